@@ -1,0 +1,3 @@
+from needlecli.cli.app import run
+
+run()

@@ -1,0 +1,1 @@
+"""The ``needle`` command-line interface (typer)."""

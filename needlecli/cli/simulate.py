@@ -1,0 +1,49 @@
+"""``needle simulate CONFIG``: run every Monte-Carlo insertion of an experiment and write its results."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from needlecli.cli.app import app
+from needlecli.cli.common import log, progress_bar, setup_logging, user_errors
+from needlecli.experiments.config import load_config
+from needlecli.experiments.runner import default_output, run_experiment
+from needlecli.reports.evaluate import evaluate_results
+from needlecli.reports.tables import to_markdown
+
+
+@app.command()
+@user_errors
+def simulate(
+    config: Path = typer.Argument(..., help="Experiment config (YAML)."),
+    runs: int = typer.Option(None, "--runs", "-n", min=1, help="Number of Monte-Carlo runs (overrides runs.count)."),
+    seed: int = typer.Option(None, "--seed", "-s", min=0, help="Seed (overrides runs.seed)."),
+    out: Path = typer.Option(None, "--out", "-o", help="Results file (default: output.path or results/<name>.h5)."),
+    set_: list[str] = typer.Option([], "--set", help="Override a config key: --set sensors.0.rate=2"),
+    dry_run: bool = typer.Option(False, "--dry-run", help="Validate and describe; simulate nothing."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar or log lines."),
+) -> None:
+    """Simulate the insertions, measure them, run the observers, write one HDF5 results file and print
+    the summary table."""
+    setup_logging(quiet)
+    cfg, text = load_config(config, overrides=set_, runs=runs, seed=seed)
+    target = out if out is not None else default_output(cfg)
+    if dry_run:
+        typer.echo(
+            f"{config}: valid; {cfg.runs.count} run(s) of model {cfg.model.type!r}, seed {cfg.runs.seed}, "
+            f"{len(cfg.sensors)} sensor(s), {len(cfg.observers)} observer(s) -> {target}"
+        )
+        return
+    log.info("simulating %d run(s) of %s (seed %d)", cfg.runs.count, cfg.name, cfg.runs.seed)
+    with progress_bar(not quiet) as bar:
+        result = run_experiment(cfg, text, out=target, progress=bar)
+    tables = evaluate_results(result.path, tables=["summary"], out_dir=None)
+    for name, df in tables.items():
+        if not df.empty:
+            typer.echo(to_markdown(df))
+    bad = (result.truth.status != "ok").sum()
+    if bad:
+        typer.echo(f"{bad} of {len(result.truth.status)} runs stopped early (see the status table)")
+    typer.echo(f"results: {result.path}")

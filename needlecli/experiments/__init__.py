@@ -1,0 +1,1 @@
+"""Config schema, input schedules, truth simulation and the experiment runner."""

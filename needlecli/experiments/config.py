@@ -1,0 +1,351 @@
+"""The experiment config: a typed schema, validated in full before any work starts.
+
+The schema is assembled from the registries, so a newly registered model, sensor or observer brings its
+own settings schema with it. Errors are :class:`~needlecli.errors.ConfigError` naming the file and the
+key path, e.g. ``configs/x.yaml: [sensors -> 0 -> rate] Input should be greater than 0``.
+"""
+
+from __future__ import annotations
+
+import copy
+import functools
+from pathlib import Path
+from typing import Annotated, Any, Literal, Union
+
+import numpy as np
+import yaml
+from pydantic import Field, ValidationError, create_model, field_validator, model_validator
+
+from needlecli.errors import ConfigError
+from needlecli.experiments.schedule import Signal, as_signal, signal_size
+from needlecli.models import MODELS, Model
+from needlecli.observers import OBSERVERS
+from needlecli.schema import NonNeg, Positive, Strict
+from needlecli.sensors import PIPELINES, SENSORS
+
+
+class TissueLayer(Strict):
+    depth: NonNeg = Field(description="depth at which the layer starts (model length unit)")
+    curvature: NonNeg = Field(description="value of the model's curvature parameter in this layer")
+
+
+class Tissue(Strict):
+    """Layers along the insertion; the model's curvature parameter follows the layer of the tip."""
+
+    layers: list[TissueLayer] = Field(min_length=1)
+
+    @field_validator("layers")
+    @classmethod
+    def _ordered(cls, v):
+        if v[0].depth != 0:
+            raise ValueError("the first layer must start at depth 0")
+        if any(b.depth <= a.depth for a, b in zip(v, v[1:])):
+            raise ValueError("layer depths must increase strictly")
+        return v
+
+
+class ProcessNoise(Strict):
+    """Process noise added to the truth after each step: std per state in unit/sqrt(s) (scaled by
+    sqrt(dt), so results do not depend on the step). Off unless given."""
+
+    std: dict[str, NonNeg] = Field(default_factory=dict)
+
+
+class Runs(Strict):
+    count: int = Field(1, ge=1, le=1_000_000, description="number of Monte-Carlo runs")
+    seed: int = Field(0, ge=0, description="seed of every random stream of the experiment")
+
+
+class Stop(Strict):
+    """When an insertion ends: at a final depth or after a duration (exactly one)."""
+
+    depth: Positive | None = Field(None, description="final inserted length, model length unit")
+    time: Positive | None = Field(None, description="duration, s")
+
+    @model_validator(mode="after")
+    def _one(self):
+        if (self.depth is None) == (self.time is None):
+            raise ValueError("give exactly one of depth, time")
+        return self
+
+
+class Simulation(Strict):
+    dt: Positive = Field(0.01, le=1.0, description="integration step of the truth, s")
+
+
+class Output(Strict):
+    path: str | None = Field(None, description="results file (default results/<name>.h5)")
+    store_every: int = Field(1, ge=1, description="store covariances every k-th step")
+    covariance: Literal["full", "diag", "none"] = "full"
+    tables: list[str] = Field(default_factory=lambda: ["summary"], description="tables of needle evaluate")
+    formats: list[Literal["md", "csv", "tex"]] = Field(default_factory=lambda: ["md", "csv", "tex"])
+
+
+def _model_spec(name: str, cls: type[Model]):
+    """Config schema of ``model:`` for one registered model."""
+
+    state_names = cls.state_names
+
+    def _states(v: dict[str, float], what: str) -> dict[str, float]:
+        unknown = [k for k in v if k not in state_names]
+        if unknown:
+            raise ValueError(f"unknown state {unknown[0]!r} in {what}; states are {', '.join(state_names)}")
+        return v
+
+    class Spec(Strict):
+        type: Literal[name]  # type: ignore[valid-type]
+        params: cls.Params = Field(default_factory=cls.Params)  # type: ignore[name-defined]
+        param_std: dict[str, NonNeg] = Field(default_factory=dict, description="per-run spread of params")
+        initial_state: dict[str, float] = Field(default_factory=dict)
+        initial_std: dict[str, NonNeg] = Field(default_factory=dict, description="per-run spread, truth")
+
+        @field_validator("initial_state")
+        @classmethod
+        def _x0(cls_, v):
+            _states(v, "initial_state")
+            for k, (lo, hi) in getattr(cls, "state_bounds", {}).items():
+                if k in v and not lo < v[k] < hi:
+                    raise ValueError(f"{k} = {v[k]} is outside ({lo:.6g}, {hi:.6g})")
+            return v
+
+        @field_validator("initial_std")
+        @classmethod
+        def _sx0(cls_, v):
+            return _states(v, "initial_std")
+
+        @field_validator("param_std")
+        @classmethod
+        def _sp(cls_, v):
+            known = list(cls.Params.model_fields)
+            for k in v:
+                if k not in known:
+                    raise ValueError(f"unknown parameter {k!r}; parameters are {', '.join(known) or 'none'}")
+            return v
+
+    Spec.__name__ = f"Model_{name}"
+    return Spec
+
+
+@functools.cache
+def _schema(registry_key: tuple) -> type[Strict]:
+    models = [_model_spec(n, MODELS.get(n)) for n in MODELS.names()]
+    sensors = [SENSORS.get(n).Settings for n in SENSORS.names()]
+    observers = [OBSERVERS.get(n).Settings for n in OBSERVERS.names()]
+
+    def union(items):
+        return Annotated[Union[tuple(items)], Field(discriminator="type")] if items else dict
+
+    model_t = union(models)
+    sensor_t = union(sensors)
+    observer_t = union(observers) if observers else Annotated[dict[str, Any], Field()]
+
+    class Base(Strict):
+        name: str = Field("experiment", pattern=r"^[A-Za-z0-9_.\-]+$")
+        description: str = ""
+        model: model_t  # type: ignore[valid-type]
+        inputs: dict[str, Signal] = Field(default_factory=dict)
+        tissue: Tissue | None = None
+        process_noise: ProcessNoise = Field(default_factory=ProcessNoise)
+        sensors: list[sensor_t] = Field(default_factory=list)  # type: ignore[valid-type]
+        observers: list[observer_t] = Field(default_factory=list)  # type: ignore[valid-type]
+        runs: Runs = Field(default_factory=Runs)
+        stop: Stop
+        simulation: Simulation = Field(default_factory=Simulation)
+        output: Output = Field(default_factory=Output)
+
+        @field_validator("inputs", mode="before")
+        @classmethod
+        def _signals(cls, v):
+            if isinstance(v, dict):
+                return {k: as_signal(s) for k, s in v.items()}
+            return v
+
+    return create_model("ExperimentConfig", __base__=Base)
+
+
+def experiment_schema() -> type[Strict]:
+    """The current schema (rebuilt when a component is registered)."""
+    key = (tuple(MODELS.names()), tuple(SENSORS.names()), tuple(OBSERVERS.names()))
+    return _schema(key)
+
+
+# ---------------------------------------------------------------------------------------------- loading
+def _strip_tags(loc: tuple, data: Any) -> tuple:
+    """Drop discriminator tags that pydantic inserts into locations of tagged unions."""
+    out = []
+    cur = data
+    for part in loc:
+        if isinstance(cur, dict) and part not in cur and isinstance(part, str) and (
+            cur.get("type") == part or cur.get("kind") == part or part in ("constant", "function-after")
+        ):
+            continue
+        out.append(part)
+        if isinstance(cur, dict):
+            cur = cur.get(part)
+        elif isinstance(cur, list) and isinstance(part, int) and part < len(cur):
+            cur = cur[part]
+        else:
+            cur = None
+    return tuple(out)
+
+
+def _message(err: dict) -> str:
+    msg = err.get("msg", "invalid value")
+    if msg.startswith("Value error, "):
+        msg = msg[len("Value error, ") :]
+    if err.get("type") == "extra_forbidden":
+        msg = "unknown key"
+    elif err.get("type") == "missing":
+        msg = "required key is missing"
+    elif err.get("type") == "union_tag_invalid":
+        ctx = err.get("ctx", {})
+        msg = f"unknown {ctx.get('discriminator', 'type').strip(chr(39))} {ctx.get('tag')!r}; known: {ctx.get('expected_tags')}"
+    elif err.get("type") == "union_tag_not_found":
+        msg = f"required key {err.get('ctx', {}).get('discriminator', '').strip(chr(39))!r} is missing"
+    return msg
+
+
+def parse_yaml(text: str, source: str) -> dict:
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+        problem = getattr(e, "problem", None) or str(e).splitlines()[0]
+        raise ConfigError(source, (), f"YAML syntax error at {where}{problem}") from None
+    if data is None:
+        raise ConfigError(source, (), "the file is empty")
+    if not isinstance(data, dict):
+        raise ConfigError(source, (), f"a config must be a mapping of keys, not {type(data).__name__}")
+    return data
+
+
+def set_dotted(data: dict, dotted: str, value: Any, source: str) -> None:
+    """Apply one ``--set key.path=value`` override (list indices as numbers)."""
+    parts = dotted.split(".")
+    cur: Any = data
+    for i, part in enumerate(parts):
+        last = i == len(parts) - 1
+        key: Any = int(part) if part.isdigit() and isinstance(cur, list) else part
+        if isinstance(cur, list):
+            if not isinstance(key, int) or key >= len(cur):
+                raise ConfigError(source, tuple(parts[: i + 1]), "no such list entry to override")
+        elif not isinstance(cur, dict):
+            raise ConfigError(source, tuple(parts[:i]), "is not a mapping; cannot override below it")
+        if last:
+            cur[key] = value
+        else:
+            if isinstance(cur, dict) and key not in cur:
+                cur[key] = {}
+            cur = cur[key]
+
+
+def load_config(
+    path: str | Path | None = None,
+    *,
+    text: str | None = None,
+    overrides: list[str] | None = None,
+    runs: int | None = None,
+    seed: int | None = None,
+):
+    """Read, override and validate a config. Returns ``(config, raw_text)``.
+
+    Raises
+    ------
+    ConfigError
+        Anything wrong with the file, with the file name and key path.
+    """
+    source = str(path) if path is not None else "<string>"
+    if text is None:
+        try:
+            text = Path(path).read_text(encoding="utf-8")  # type: ignore[arg-type]
+        except FileNotFoundError:
+            raise ConfigError(source, (), "no such file") from None
+        except (OSError, UnicodeDecodeError) as e:
+            raise ConfigError(source, (), f"cannot read the file: {e}") from None
+    data = parse_yaml(text, source)
+    data = copy.deepcopy(data)
+    for ov in overrides or []:
+        if "=" not in ov:
+            raise ConfigError(source, (), f"override {ov!r} is not of the form key.path=value")
+        k, v = ov.split("=", 1)
+        set_dotted(data, k.strip(), yaml.safe_load(v), source)
+    if runs is not None:
+        data.setdefault("runs", {})
+        if isinstance(data["runs"], dict):
+            data["runs"]["count"] = runs
+    if seed is not None:
+        data.setdefault("runs", {})
+        if isinstance(data["runs"], dict):
+            data["runs"]["seed"] = seed
+    schema = experiment_schema()
+    try:
+        cfg = schema.model_validate(data)
+    except ValidationError as e:
+        errs = e.errors()
+        err = errs[0]
+        more = f" (and {len(errs) - 1} more problem{'s' if len(errs) > 2 else ''})" if len(errs) > 1 else ""
+        raise ConfigError(source, _strip_tags(tuple(err["loc"]), data), _message(err) + more) from None
+    check_consistency(cfg, source)
+    if overrides or runs is not None or seed is not None:
+        text = yaml.safe_dump(data, sort_keys=False)
+    return cfg, text
+
+
+def check_consistency(cfg, source: str) -> None:
+    """Checks across sections: inputs against the model, sensors and observers against the model."""
+    model_cls = MODELS.get(cfg.model.type)
+    model = model_cls(cfg.model.params)
+    # inputs
+    for name, sig in cfg.inputs.items():
+        if name not in model_cls.input_names:
+            raise ConfigError(
+                source, ("inputs", name), f"model {cfg.model.type!r} has no input {name!r}; inputs are "
+                + ", ".join(model_cls.input_names)
+            )
+        size = model_cls.input_sizes[name]
+        if signal_size(sig) != size:
+            raise ConfigError(source, ("inputs", name), f"needs {size} value(s) per sample, got {signal_size(sig)}")
+        if getattr(sig, "kind", "") == "flips" and sig.at_depths is not None and name == model_cls.insertion_input:
+            raise ConfigError(source, ("inputs", name), "the insertion input cannot be triggered by depth")
+    if model_cls.insertion_input not in cfg.inputs:
+        raise ConfigError(source, ("inputs", model_cls.insertion_input), "required key is missing (insertion speed)")
+    if cfg.stop.depth is not None:
+        v = np.asarray(cfg.inputs[model_cls.insertion_input].model_dump().get("value", 1.0), dtype=float)
+        if getattr(cfg.inputs[model_cls.insertion_input], "kind", "") == "constant" and np.all(v <= 0):
+            raise ConfigError(source, ("stop", "depth"), "the insertion speed is not positive: the depth is never reached")
+    # process noise
+    for k in cfg.process_noise.std:
+        if k not in model_cls.state_names:
+            raise ConfigError(source, ("process_noise", "std", k), f"model {cfg.model.type!r} has no state {k!r}")
+    # tissue
+    if cfg.tissue is not None and model_cls.curvature_param is None:
+        raise ConfigError(source, ("tissue",), f"model {cfg.model.type!r} has no curvature parameter for tissue layers")
+    # sensors
+    names = {}
+    for i, s in enumerate(cfg.sensors):
+        sensor = SENSORS.get(s.type)(s, model)
+        if sensor.name in names:
+            raise ConfigError(source, ("sensors", i, "name"), f"sensor name {sensor.name!r} is used twice")
+        names[sensor.name] = s.type
+        problem = sensor.check_model()
+        if problem:
+            raise ConfigError(source, ("sensors", i, "type"), problem)
+        try:
+            pipe = PIPELINES.get(s.pipeline)
+        except KeyError as e:
+            raise ConfigError(source, ("sensors", i, "pipeline"), str(e.args[0])) from None
+        if not pipe.accepts(s.type):
+            raise ConfigError(source, ("sensors", i, "pipeline"), f"pipeline {s.pipeline!r} cannot make {s.type!r} measurements")
+    # observers
+    obs_names = set()
+    for i, o in enumerate(cfg.observers):
+        if isinstance(o, dict):  # no observer registered at all
+            raise ConfigError(source, ("observers", i), "no observers are available in this version")
+        cls = OBSERVERS.get(o.type)
+        name = o.name or o.type
+        if name in obs_names:
+            raise ConfigError(source, ("observers", i, "name"), f"observer name {name!r} is used twice")
+        obs_names.add(name)
+        for loc, msg in cls.check(o, model, names):
+            raise ConfigError(source, ("observers", i) + tuple(loc), msg)

@@ -1,0 +1,155 @@
+"""The experiment runner: wires model, sensors and observers from a validated config, runs them on all
+Monte-Carlo runs at once and writes the results file. It knows no component by name."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from needlecli.experiments.truth import Truth, simulate_truth, stream
+from needlecli.io.results import Group, root_attrs, write_atomic
+from needlecli.models import NotMeasurable
+from needlecli.observers import OBSERVERS, Channel, EstimationProblem, Posterior
+from needlecli.observers.base import cov_steps
+from needlecli.sensors import SENSORS, MeasurementStream
+
+Progress = Callable[[str, int, int], None]
+
+
+@dataclass
+class ExperimentResult:
+    truth: Truth
+    measurements: dict[str, MeasurementStream]
+    estimates: dict[str, Posterior]
+    path: Path | None
+
+
+def default_output(cfg) -> Path:
+    return Path(cfg.output.path) if cfg.output.path else Path("results") / f"{cfg.name}.h5"
+
+
+def build_sensors(cfg, model):
+    return [SENSORS.get(s.type)(s, model) for s in cfg.sensors]
+
+
+def build_problem(cfg, truth: Truth, sensors, streams: dict[str, MeasurementStream]) -> EstimationProblem:
+    channels = {}
+    for sensor in sensors:
+        st = streams[sensor.name]
+        try:
+            sensor.h(truth.states[:1, :1])
+            h = sensor.h
+        except NotMeasurable:
+            h = None
+        nominal = np.atleast_1d(np.asarray(st.sigma[0, 0] if st.sigma.size else np.zeros(len(st.names))))
+        channels[sensor.name] = Channel(
+            name=sensor.name, sensor_type=sensor.registered_name, t=st.t, t_available=st.t_available,
+            index=st.index, value=st.value, valid=st.valid, names=st.names, units=st.units,
+            sigma=nominal, angle=sensor.angle_channels, h=h, attrs=st.attrs,
+        )
+    n_runs = truth.states.shape[0]
+    return EstimationProblem(
+        time=truth.time,
+        inputs=np.broadcast_to(truth.inputs, (n_runs,) + truth.inputs.shape),
+        input_names=truth.model.input_names,
+        depth=np.broadcast_to(truth.depth, (n_runs, len(truth.time))),
+        channels=channels,
+        model=truth.model,
+        params=truth.model.param_arrays(),
+        interfaces=truth.interfaces,
+        initial_truth=truth.states[:, 0].copy(),
+        cov_stride=cfg.output.store_every,
+        cov_layout=cfg.output.covariance,
+    )
+
+
+def run_experiment(
+    cfg,
+    config_text: str,
+    *,
+    out: str | Path | None = None,
+    write: bool = True,
+    progress: Progress | None = None,
+) -> ExperimentResult:
+    """Simulate the truth, measure it with every sensor, run every observer, write the results file."""
+    seed = cfg.runs.seed
+    truth = simulate_truth(cfg, progress=(lambda k, n: progress("truth", k, n)) if progress else None)
+    sensors = build_sensors(cfg, truth.model)
+    streams = {s.name: s.measure(truth, stream(seed, f"sensor/{s.name}")) for s in sensors}
+    problem = build_problem(cfg, truth, sensors, streams)
+    estimates: dict[str, Posterior] = {}
+    for o in cfg.observers:
+        obs = OBSERVERS.get(o.type)(o)
+        cb = (lambda k, n, _name=obs.name: progress(f"observer {_name}", k, n)) if progress else None
+        estimates[obs.name] = obs.run(problem, stream(seed, f"observer/{obs.name}"), progress=cb)
+    path = None
+    if write:
+        path = Path(out) if out is not None else default_output(cfg)
+        write_atomic(path, results_tree(cfg, config_text, truth, streams, estimates, sensors))
+    return ExperimentResult(truth=truth, measurements=streams, estimates=estimates, path=path)
+
+
+def results_tree(cfg, config_text, truth: Truth, streams, estimates, sensors) -> Group:
+    model = truth.model
+    n_runs, T = truth.states.shape[:2]
+    root = Group(
+        attrs=root_attrs(
+            config_text,
+            cfg.runs.seed,
+            {
+                "name": cfg.name,
+                "model": model.registered_name,
+                "length_unit": model.length_unit,
+                "runs": n_runs,
+                "dt": cfg.simulation.dt,
+            },
+        )
+    )
+    root.data["time"] = truth.time
+    root.data["depth"] = truth.depth
+    root.data["truth"] = Group(
+        data={
+            "state": truth.states,
+            "status": truth.status,
+            "reason": truth.reason,
+            "event_time": truth.event_time,
+            "params": Group(data={k: np.ascontiguousarray(v) for k, v in truth.params.items()}),
+            "interfaces": truth.interfaces,
+        },
+        attrs={"names": model.state_names, "units": model.state_units, "angles": model.angle_states},
+    )
+    inputs = Group()
+    for k, v in truth.input_dict().items():
+        arr = v[:, 0] if v.shape[1] == 1 else v
+        inputs.data[k] = np.broadcast_to(arr, (n_runs,) + arr.shape)
+    for k in model.input_names:
+        inputs.attrs[f"{k}_unit"] = model.input_units[k]
+    root.data["inputs"] = inputs
+    meas = Group()
+    for s in sensors:
+        st = streams[s.name]
+        attrs = {k: v for k, v in st.attrs.items() if not isinstance(v, np.ndarray)}
+        data = {
+            "t": st.t, "t_available": st.t_available, "index": st.index,
+            "value": st.value, "valid": st.valid, "sigma": st.sigma,
+        }
+        data.update({k: v for k, v in st.attrs.items() if isinstance(v, np.ndarray)})
+        meas.data[s.name] = Group(data=data, attrs={"names": st.names, "units": st.units, **attrs})
+    root.data["measurements"] = meas
+    est = Group()
+    for name, post in estimates.items():
+        data = {"state": post.state, "status": post.status, "reason": post.reason}
+        attrs = {"names": post.names, "units": post.units, "angles": post.angle_states,
+                 "type": next(o.type for o in cfg.observers if (o.name or o.type) == name),
+                 "layout": cfg.output.covariance, "stride": cfg.output.store_every}
+        if post.cov is not None:
+            data["cov"] = post.cov
+            data["cov_index"] = cov_steps(T, cfg.output.store_every)
+        data.update(post.extras)
+        attrs.update(post.attrs)
+        est.data[name] = Group(data=data, attrs=attrs)
+    root.data["estimates"] = est
+    return root

@@ -1,0 +1,115 @@
+"""Input schedules: the signals that drive a model (insertion speed, shaft rotation, omega_B, ...).
+
+Each input of the model is given in the config under ``inputs.<name>`` as a number (constant), a list
+(constant vector) or one of the signal kinds below. Schedules are open loop and the same for every run;
+depth (inserted length) is the time integral of the model's insertion input.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal, Union
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from needlecli.schema import NonNeg, Positive, Strict
+
+Value = float | list[float]
+
+
+class ConstantSignal(Strict):
+    kind: Literal["constant"] = "constant"
+    value: Value
+
+
+class PiecewiseSignal(Strict):
+    """Values at given times, held (``interp: step``) or interpolated (``linear``) in between."""
+
+    kind: Literal["piecewise"]
+    times: list[NonNeg] = Field(min_length=1)
+    values: list[Value] = Field(min_length=1)
+    interp: Literal["step", "linear"] = "step"
+
+    @model_validator(mode="after")
+    def _check(self):
+        if len(self.times) != len(self.values):
+            raise ValueError(f"times has {len(self.times)} entries but values has {len(self.values)}")
+        if any(b <= a for a, b in zip(self.times, self.times[1:])):
+            raise ValueError("times must increase strictly")
+        sizes = {np.size(v) for v in self.values}
+        if len(sizes) > 1:
+            raise ValueError("values must all have the same size")
+        return self
+
+
+class FlipSignal(Strict):
+    """180 deg shaft rotations (or any ``angle``) at given depths or times, at ``rate`` rad/s, on top of
+    a constant ``base`` rate. Seed 000 flips at chosen depths; seed 003 (fig. 7) turns once at 25 s."""
+
+    kind: Literal["flips"]
+    at_depths: list[NonNeg] | None = None
+    at_times: list[NonNeg] | None = None
+    angle: float = Field(np.pi, description="rotation per flip, rad (sign gives the direction)")
+    rate: Positive = Field(np.pi, description="rotation speed during a flip, rad/s")
+    base: float = Field(0.0, description="rotation speed outside flips, rad/s")
+
+    @model_validator(mode="after")
+    def _check(self):
+        if (self.at_depths is None) == (self.at_times is None):
+            raise ValueError("give exactly one of at_depths, at_times")
+        marks = self.at_depths if self.at_depths is not None else self.at_times
+        if any(b < a for a, b in zip(marks, marks[1:])):
+            raise ValueError("flip depths/times must be in increasing order")
+        return self
+
+
+Signal = Annotated[Union[ConstantSignal, PiecewiseSignal, FlipSignal], Field(discriminator="kind")]
+
+
+def as_signal(v):
+    """Plain numbers and lists are constant signals."""
+    if isinstance(v, (int, float, list)) and not isinstance(v, bool):
+        return {"kind": "constant", "value": v}
+    return v
+
+
+def signal_size(sig: ConstantSignal | PiecewiseSignal | FlipSignal) -> int:
+    if isinstance(sig, ConstantSignal):
+        return int(np.size(sig.value))
+    if isinstance(sig, PiecewiseSignal):
+        return int(np.size(sig.values[0]))
+    return 1
+
+
+def evaluate_signal(sig, time: np.ndarray, depth: np.ndarray | None) -> np.ndarray:
+    """Samples ``(T, size)`` of a signal on the grid ``time``; ``depth (T,)`` for depth-triggered kinds."""
+    T = len(time)
+    if isinstance(sig, ConstantSignal):
+        return np.broadcast_to(np.atleast_1d(np.asarray(sig.value, dtype=float)), (T, signal_size(sig))).copy()
+    if isinstance(sig, PiecewiseSignal):
+        tk = np.asarray(sig.times, dtype=float)
+        vk = np.asarray(sig.values, dtype=float).reshape(len(tk), -1)
+        if sig.interp == "linear":
+            return np.stack([np.interp(time, tk, vk[:, j]) for j in range(vk.shape[1])], -1)
+        i = np.searchsorted(tk, time + 1e-12, side="right") - 1
+        return vk[np.clip(i, 0, None)]  # the first value also holds before the first time
+    # flips
+    dt = float(time[1] - time[0]) if T > 1 else 1.0
+    duration = abs(sig.angle) / sig.rate
+    if sig.at_times is not None:
+        starts = np.asarray(sig.at_times, dtype=float)
+    else:
+        if depth is None:
+            raise ValueError("depth-triggered flips need the insertion input")
+        marks = np.asarray(sig.at_depths, dtype=float)
+        k = np.searchsorted(depth, marks - 1e-12, side="left")
+        starts = np.where(k < T, time[np.clip(k, 0, T - 1)], np.inf)
+    u = np.full(T, float(sig.base))
+    speed = np.sign(sig.angle) * sig.rate
+    for s in starts:  # loop over flips (a handful), not over runs
+        if not np.isfinite(s):
+            continue
+        # each step k covers [t_k, t_k + dt): the rotation it gets is the overlap with [s, s + duration)
+        overlap = np.clip(np.minimum(time + dt, s + duration) - np.maximum(time, s), 0.0, dt) / dt
+        u = u + speed * overlap
+    return u[:, None]

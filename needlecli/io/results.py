@@ -1,0 +1,163 @@
+"""The results file: one HDF5 file per experiment. Its layout is a public contract (README, "Results
+file"); change it only with a version bump of :data:`RESULTS_FORMAT`.
+
+::
+
+    /                         attrs: format, config (YAML), seed, needlecli_version, git_hash, created,
+                                     name, model, length_unit, runs
+    /time                     (T,) s
+    /depth                    (T,) inserted length
+    /truth/state              (N, T, n)          attrs names, units, angles
+    /truth/status, /reason    (N,) str           ok | singular | diverged
+    /truth/event_time         (N,) s             when a run stopped (NaN: it did not)
+    /truth/params/<name>      (N, T)             model parameters along the run (tissue layers)
+    /truth/interfaces         (K,)               tissue interface depths
+    /inputs/<name>            (N, T[, k])        attrs unit
+    /measurements/<sensor>/t, /t_available, /index   (M,)
+    /measurements/<sensor>/value   (N, M, m)     attrs names, units, type, rate, latency, ...
+    /measurements/<sensor>/valid   (N, M) bool
+    /measurements/<sensor>/sigma   (N, M, m)
+    /estimates/<observer>/state    (N, T, n)     attrs names, units, angles, type
+    /estimates/<observer>/cov      (N, T', n, n) or (N, T', n)   attrs layout (full|diag), stride
+    /estimates/<observer>/cov_index (T',)        indices of the time grid of the stored covariances
+    /estimates/<observer>/status, /reason (N,) str
+    /estimates/<observer>/<extra>  further arrays an observer reports
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import os
+import subprocess
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from needlecli import __version__
+from needlecli.errors import DataError
+
+RESULTS_FORMAT = 1
+_STR = h5py.string_dtype("utf-8")
+
+
+def git_hash() -> str:
+    """The package's git commit (``unknown`` outside a checkout), with ``-dirty`` for local changes."""
+    here = Path(__file__).resolve().parent
+    try:
+        out = subprocess.run(
+            ["git", "describe", "--always", "--dirty", "--abbrev=40"],
+            cwd=here, capture_output=True, text=True, timeout=5, check=False,
+        )
+        return out.stdout.strip() or "unknown"
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+@dataclass
+class Group:
+    """Arrays and attributes of one HDF5 group (nested groups as values that are ``Group``)."""
+
+    data: dict[str, Any] = field(default_factory=dict)
+    attrs: dict[str, Any] = field(default_factory=dict)
+
+
+def _attr(v):
+    if isinstance(v, (list, tuple)) and (not v or isinstance(v[0], str)):
+        return np.array(list(v), dtype=_STR)
+    if isinstance(v, np.ndarray) and v.dtype.kind in "UO":
+        return v.astype(_STR)
+    return v
+
+
+def _write_group(g: h5py.Group, grp: Group) -> None:
+    for k, v in grp.attrs.items():
+        g.attrs[k] = _attr(v)
+    for k, v in grp.data.items():
+        if isinstance(v, Group):
+            _write_group(g.create_group(k), v)
+            continue
+        arr = np.asarray(v)
+        if arr.dtype.kind in "UO":
+            g.create_dataset(k, data=arr.astype(str).astype(_STR), dtype=_STR)
+        elif arr.ndim >= 2 and arr.size > 4096:
+            g.create_dataset(k, data=arr, chunks=True, compression="gzip", compression_opts=1, shuffle=True)
+        else:
+            g.create_dataset(k, data=arr)
+
+
+def write_atomic(path: str | Path, root: Group) -> Path:
+    """Write ``root`` to ``path`` through a temporary file in the same folder and a rename, so that a
+    reader never sees a half-written file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        with h5py.File(tmp, "w") as f:
+            _write_group(f, root)
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+    return path
+
+
+def root_attrs(config_text: str, seed: int, extra: dict | None = None) -> dict:
+    out = {
+        "format": RESULTS_FORMAT,
+        "config": config_text,
+        "seed": seed,
+        "needlecli_version": __version__,
+        "git_hash": git_hash(),
+        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+    }
+    out.update(extra or {})
+    return out
+
+
+# ---------------------------------------------------------------------------------------------- reading
+def _decode(v):
+    if isinstance(v, bytes):
+        return v.decode()
+    if isinstance(v, np.ndarray) and v.dtype.kind in "OS":
+        return np.array([x.decode() if isinstance(x, bytes) else x for x in v.ravel()]).reshape(v.shape)
+    return v
+
+
+def _read(g: h5py.Group) -> Group:
+    out = Group(attrs={k: _decode(v) for k, v in g.attrs.items()})
+    for k, v in g.items():
+        if isinstance(v, h5py.Group):
+            out.data[k] = _read(v)
+        else:
+            arr = v[()]
+            out.data[k] = _decode(arr) if (v.dtype.kind in "OS") else arr
+    return out
+
+
+def read_results(path: str | Path) -> Group:
+    """Load a results file completely. Raises :class:`DataError` for missing or corrupt files."""
+    path = Path(path)
+    if not path.exists():
+        raise DataError(f"{path}: no such results file")
+    try:
+        with h5py.File(path, "r") as f:
+            fmt = f.attrs.get("format")
+            if fmt is None or "truth" not in f or "time" not in f:
+                raise DataError(f"{path}: not a needlecli results file (no format attribute, /time or /truth)")
+            if int(fmt) > RESULTS_FORMAT:
+                raise DataError(
+                    f"{path}: results format {int(fmt)} is newer than this needlecli reads ({RESULTS_FORMAT})"
+                )
+            return _read(f)
+    except DataError:
+        raise
+    except (OSError, KeyError, ValueError) as e:
+        raise DataError(f"{path}: cannot read the results file ({e.__class__.__name__}: {e})") from None

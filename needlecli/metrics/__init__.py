@@ -1,0 +1,5 @@
+"""Error metrics computed from a results file only."""
+
+from needlecli.metrics.errors import ErrorSet, QuantityError, compute_errors
+
+__all__ = ["ErrorSet", "QuantityError", "compute_errors"]

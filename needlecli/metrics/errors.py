@@ -1,0 +1,136 @@
+"""Estimation errors per observer and quantity, computed from a results file only.
+
+Quantities, each present when both the truth and the estimate carry it (matched by state names):
+
+``E_xyz``    tip position error norm, mm (metres of the magnetic models converted here, at the edge)
+``E_<a>``    absolute wrapped error of each angle state (alpha, beta, gamma), deg
+``E_R``      angle of the rotation error ``R_true^T R_est``, deg, for estimates with a full orientation
+``E_h``, ``E_B``  angle between true and estimated unit vectors (magnetic models), deg
+``E_<s>``    absolute error of any other common scalar state (e.g. kappa, 1/mm), in its unit; a truth
+             parameter (e.g. kappa of the plain unicycle, which follows the tissue layers) counts as truth
+Runs whose truth or estimate is not ``ok`` are excluded and counted.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+
+from needlecli.io.results import Group
+from needlecli.numerics import angle_diff, euler_xyz_to_matrix, rotation_angle
+
+_LENGTH_TO_MM = {"mm": 1.0, "m": 1000.0, "cm": 10.0}
+_R = tuple(f"R{i}{j}" for i in range(1, 4) for j in range(1, 4))
+
+
+@dataclass
+class QuantityError:
+    """Errors ``(N_kept, T)`` of one quantity, with its unit and the kept runs."""
+
+    name: str
+    unit: str
+    values: np.ndarray
+    runs: np.ndarray
+
+
+@dataclass
+class ErrorSet:
+    observer: str
+    quantities: dict[str, QuantityError] = field(default_factory=dict)
+    n_runs: int = 0
+    excluded: dict[str, int] = field(default_factory=dict)  # reason -> count
+    not_estimated: list[str] = field(default_factory=list)
+
+    def tidy(self, time: np.ndarray, every: int = 1) -> pd.DataFrame:
+        """Tidy records ``(observer, run, quantity, unit, t, value)``, every k-th time step."""
+        frames = []
+        for q in self.quantities.values():
+            v = q.values[:, ::every]
+            tt = np.broadcast_to(time[::every], v.shape)
+            rr = np.broadcast_to(q.runs[:, None], v.shape)
+            frames.append(
+                pd.DataFrame({"observer": self.observer, "run": rr.ravel(), "quantity": q.name,
+                              "unit": q.unit, "t": tt.ravel(), "value": v.ravel()})
+            )
+        return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+
+
+def _rotation(names: list[str], state: np.ndarray) -> np.ndarray | None:
+    if all(a in names for a in ("alpha", "beta", "gamma")):
+        i = [names.index(a) for a in ("alpha", "beta", "gamma")]
+        return euler_xyz_to_matrix(state[..., i[0]], state[..., i[1]], state[..., i[2]])
+    if all(r in names for r in _R):
+        i = [names.index(r) for r in _R]
+        return state[..., i].reshape(*state.shape[:-1], 3, 3)
+    return None
+
+
+def compute_errors(res: Group) -> dict[str, ErrorSet]:
+    """Errors of every observer in a results file against its truth."""
+    truth = res.data["truth"]
+    t_names = list(truth.attrs["names"])
+    t_units = list(truth.attrs["units"])
+    t_state = truth.data["state"]
+    t_angles = set(truth.attrs.get("angles", []))
+    params = truth.data.get("params", Group()).data
+    scale = _LENGTH_TO_MM.get(str(res.attrs.get("length_unit", "mm")), 1.0)
+    out: dict[str, ErrorSet] = {}
+    for name, grp in res.data.get("estimates", Group()).data.items():
+        e_names = list(grp.attrs["names"])
+        e_units = list(grp.attrs.get("units", [""] * len(e_names)))
+        e_angles = set(grp.attrs.get("angles", []))
+        est = grp.data["state"]
+        n_runs = est.shape[0]
+        t_ok = truth.data["status"] == "ok"
+        e_ok = grp.data["status"] == "ok"
+        keep = np.nonzero(t_ok & e_ok)[0]
+        es = ErrorSet(observer=name, n_runs=n_runs)
+        if (~t_ok).any():
+            for st in np.unique(truth.data["status"][~t_ok]):
+                es.excluded[f"truth {st}"] = int((truth.data["status"] == st).sum())
+        if (t_ok & ~e_ok).any():
+            for st in np.unique(grp.data["status"][t_ok & ~e_ok]):
+                es.excluded[f"estimate {st}"] = int(((grp.data["status"] == st) & t_ok).sum())
+        ts, xs = t_state[keep], est[keep]
+
+        def col(names, arr, k):
+            return arr[..., names.index(k)]
+
+        used: set[str] = set()
+        pos_t = next((ax for ax in (("x", "y", "z"), ("px", "py", "pz")) if all(a in t_names for a in ax)), None)
+        if pos_t and all(a in e_names for a in pos_t):
+            d = np.stack([col(e_names, xs, a) - col(t_names, ts, a) for a in pos_t], -1)
+            es.quantities["E_xyz"] = QuantityError("E_xyz", "mm", scale * np.linalg.norm(d, axis=-1), keep)
+            used.update(pos_t)
+        r_t, r_e = _rotation(t_names, ts), _rotation(e_names, xs)
+        if r_t is not None and r_e is not None:
+            err = rotation_angle(np.swapaxes(r_t, -1, -2) @ r_e)
+            es.quantities["E_R"] = QuantityError("E_R", "deg", np.rad2deg(err), keep)
+            used.update(_R)
+        for vec, cols in (("h", ("hx", "hy", "hz")), ("B", ("Bx", "By", "Bz"))):
+            if all(c in t_names for c in cols) and all(c in e_names for c in cols):
+                a = np.stack([col(t_names, ts, c) for c in cols], -1)
+                b = np.stack([col(e_names, xs, c) for c in cols], -1)
+                cos = np.sum(a * b, -1) / (np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1))
+                es.quantities[f"E_{vec}"] = QuantityError(
+                    f"E_{vec}", "deg", np.rad2deg(np.arccos(np.clip(cos, -1, 1))), keep
+                )
+                used.update(cols)
+        for k in e_names:
+            if k in used:
+                continue
+            if k in t_names:
+                tv, unit = col(t_names, ts, k), t_units[t_names.index(k)]
+            elif k in params:
+                tv, unit = params[k][keep], e_units[e_names.index(k)]
+            else:
+                continue
+            if k in e_angles or k in t_angles:
+                es.quantities[f"E_{k}"] = QuantityError(f"E_{k}", "deg", np.rad2deg(np.abs(angle_diff(col(e_names, xs, k), tv))), keep)
+            else:
+                es.quantities[f"E_{k}"] = QuantityError(f"E_{k}", unit, np.abs(col(e_names, xs, k) - tv), keep)
+        es.not_estimated = [k for k in t_names if k not in e_names and k not in used]
+        out[name] = es
+    return out

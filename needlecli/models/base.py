@@ -1,0 +1,182 @@
+"""The model contract.
+
+A model knows its equations and nothing else: state and input names with units, which states are angles,
+the vector field ``f(x, u, p)`` batched over any leading axes, its Jacobians, an RK4 step, the tip
+quantities that sensors measure (position, rotation, tangent, roll, field direction), and a check of its
+domain. Parameters are passed as a mapping ``name -> array`` broadcastable to the batch shape ``x.shape[:-1]``
+so that they may differ between runs and change with time (tissue layers).
+
+New models are added by subclassing :class:`Model` and decorating with ``@MODELS.register("name")``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import ClassVar
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict
+
+from needlecli.numerics import complex_step_jacobian, rk4_step
+from needlecli.registry import Registry
+
+Params = Mapping[str, np.ndarray]
+
+
+class ModelParams(BaseModel):
+    """Base schema of a model's parameters in a config (``model.params``)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class NotMeasurable(Exception):
+    """Raised when a sensor asks a model for a quantity it does not have (e.g. position on SO(3))."""
+
+
+class Model:
+    """Base class of kinematic needle models.
+
+    Class attributes
+    ----------------
+    state_names, state_units : tuple of str
+    angle_states : tuple of str
+        States compared and averaged wrapped.
+    input_names, input_sizes, input_units : inputs in order; ``input_sizes[name]`` entries each
+    insertion_input : str
+        The input whose time integral is the inserted length (depth).
+    curvature_param : str or None
+        The parameter that tissue layers set as a function of depth.
+    length_unit : str
+        Unit of positions (``mm``; ``m`` for the magnetic models of seed 004).
+    Params : pydantic schema of ``model.params`` in a config.
+    """
+
+    state_names: ClassVar[tuple[str, ...]] = ()
+    state_units: ClassVar[tuple[str, ...]] = ()
+    angle_states: ClassVar[tuple[str, ...]] = ()
+    input_names: ClassVar[tuple[str, ...]] = ()
+    input_sizes: ClassVar[dict[str, int]] = {}
+    input_units: ClassVar[dict[str, str]] = {}
+    insertion_input: ClassVar[str] = "v"
+    curvature_param: ClassVar[str | None] = None
+    length_unit: ClassVar[str] = "mm"
+    Params: ClassVar[type[ModelParams]] = ModelParams
+    state_bounds: ClassVar[dict[str, tuple[float, float]]] = {}  # open intervals for initial states
+    registered_name: ClassVar[str] = ""
+
+    def __init__(self, params: ModelParams | None = None) -> None:
+        self.params = params if params is not None else self.Params()
+
+    # ----------------------------------------------------------------- sizes and names
+    @property
+    def n(self) -> int:
+        return len(self.state_names)
+
+    @property
+    def m(self) -> int:
+        return sum(self.input_sizes[k] for k in self.input_names)
+
+    def input_slice(self, name: str) -> slice:
+        start = 0
+        for k in self.input_names:
+            if k == name:
+                return slice(start, start + self.input_sizes[k])
+            start += self.input_sizes[k]
+        raise KeyError(name)
+
+    @property
+    def angle_mask(self) -> np.ndarray:
+        return np.array([s in self.angle_states for s in self.state_names])
+
+    def index(self, name: str) -> int:
+        return self.state_names.index(name)
+
+    def param_arrays(self) -> dict[str, np.ndarray]:
+        """Parameters from the config as float arrays (scalars broadcast over the batch)."""
+        return {k: np.asarray(v, dtype=float) for k, v in self.params.model_dump().items()}
+
+    # ----------------------------------------------------------------- dynamics
+    def f(self, x: np.ndarray, u: np.ndarray, p: Params) -> np.ndarray:
+        """Vector field ``x' (..., n)`` for state ``x (..., n)`` and inputs ``u (..., m)``."""
+        raise NotImplementedError
+
+    def jacobian(self, x: np.ndarray, u: np.ndarray, p: Params) -> np.ndarray:
+        """``df/dx`` of shape ``(..., n, n)`` (complex step unless a subclass is analytic)."""
+        u = np.asarray(u)
+        return complex_step_jacobian(lambda xx: self.f(xx, u[..., None, :], _expand(p)), x)
+
+    def input_jacobian(self, x: np.ndarray, u: np.ndarray, p: Params) -> np.ndarray:
+        """``df/du`` of shape ``(..., n, m)``."""
+        x = np.asarray(x)
+        return complex_step_jacobian(lambda uu: self.f(x[..., None, :], uu, _expand(p)), u)
+
+    def step(self, x: np.ndarray, u: np.ndarray, p: Params, dt: float) -> np.ndarray:
+        """Advance by ``dt`` with RK4, inputs and parameters held over the step."""
+        return self.normalize(rk4_step(lambda xx: self.f(xx, u, p), x, dt))
+
+    def normalize(self, x: np.ndarray) -> np.ndarray:
+        """Bring a state back onto its manifold after a step (identity by default)."""
+        return x
+
+    def sync_params(self, x: np.ndarray, p: Params) -> np.ndarray:
+        """Write parameters that the model carries as states (e.g. curvature) into ``x``. Identity here."""
+        return x
+
+    def initial_state(self, p: Params) -> np.ndarray:
+        """Default initial state ``(n,)``: at the origin, pointing along +z."""
+        raise NotImplementedError
+
+    # ----------------------------------------------------------------- domain
+    #: below ``singular_threshold`` the state is outside the domain; a blow-up of a state whose margin
+    #: is below ``near_singular_threshold`` is attributed to the singularity rather than to divergence.
+    singular_threshold: ClassVar[float] = 0.0
+    near_singular_threshold: ClassVar[float] = 0.0
+    singular_reason: ClassVar[str] = ""
+
+    def singularity_margin(self, x: np.ndarray, p: Params) -> np.ndarray | None:
+        """Distance ``(...)`` to the model's singularity (None when it has none)."""
+        return None
+
+    def singular(self, x: np.ndarray, p: Params) -> np.ndarray:
+        """Boolean ``(...)``: True where the state left the model's domain (NaN counts as outside)."""
+        m = self.singularity_margin(x, p)
+        if m is None:
+            return np.zeros(np.shape(x)[:-1], dtype=bool)
+        return ~(m > self.singular_threshold)
+
+    def near_singular(self, x: np.ndarray, p: Params) -> np.ndarray:
+        m = self.singularity_margin(x, p)
+        if m is None:
+            return np.zeros(np.shape(x)[:-1], dtype=bool)
+        return ~(m > self.near_singular_threshold)
+
+    # ----------------------------------------------------------------- what sensors measure
+    def tip_position(self, x: np.ndarray) -> np.ndarray:
+        raise NotMeasurable(f"model {self.registered_name!r} has no tip position")
+
+    def tip_rotation(self, x: np.ndarray) -> np.ndarray:
+        raise NotMeasurable(f"model {self.registered_name!r} has no tip orientation")
+
+    def tangent(self, x: np.ndarray) -> np.ndarray:
+        return self.tip_rotation(x)[..., :, 2]
+
+    def roll(self, x: np.ndarray) -> np.ndarray:
+        raise NotMeasurable(f"model {self.registered_name!r} has no roll angle")
+
+    def field_direction(self, x: np.ndarray) -> np.ndarray:
+        raise NotMeasurable(f"model {self.registered_name!r} has no magnetic field state")
+
+    @classmethod
+    def provides(cls, quantity: str) -> bool:
+        """Whether the model defines ``quantity`` (a method name above)."""
+        return getattr(cls, quantity) is not getattr(Model, quantity) or (
+            quantity == "tangent" and cls.provides("tip_rotation")
+        )
+
+
+def _expand(p: Params) -> dict[str, np.ndarray]:
+    """Add a perturbation axis to per-batch parameters for the complex-step Jacobian."""
+    return {k: np.asarray(v)[..., None] if np.ndim(v) else v for k, v in p.items()}
+
+
+MODELS: Registry[type[Model]] = Registry("model")

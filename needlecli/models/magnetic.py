@@ -1,0 +1,110 @@
+"""Magnetic needle models of seed 004, in metres: MNM (eq. 1) and the bicycle model BiNM (eq. 4)."""
+
+from __future__ import annotations
+
+import numpy as np
+from pydantic import Field
+
+from needlecli.models.base import MODELS, Model, ModelParams, Params
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross product that stays analytic for complex input (``np.cross`` does too, but is slow)."""
+    return np.stack(
+        [
+            a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+            a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+            a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0],
+        ],
+        -1,
+    )
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+
+
+class MNMParams(ModelParams):
+    c: float = Field(20.0, ge=0.0, description="steering constant, 1/m")
+
+
+class _MagneticBase(Model):
+    state_names = ("px", "py", "pz", "hx", "hy", "hz", "Bx", "By", "Bz")
+    state_units = ("m", "m", "m", "1", "1", "1", "1", "1", "1")
+    input_names = ("v", "omega_B")
+    input_sizes = {"v": 1, "omega_B": 3}
+    input_units = {"v": "m/s", "omega_B": "rad/s"}
+    length_unit = "m"
+
+    def _turn(self, h, b, v, p):
+        raise NotImplementedError
+
+    def f(self, x, u, p: Params):
+        h, b = x[..., 3:6], x[..., 6:9]
+        v, wb = u[..., 0], u[..., 1:4]
+        dp = h * v[..., None]
+        dh = self._turn(h, b, v, p) + h * (1.0 - _dot(h, h))[..., None]
+        db = _cross(wb, b) + b * (1.0 - _dot(b, b))[..., None]
+        return np.concatenate([dp, dh, db], -1)
+
+    def initial_state(self, p: Params) -> np.ndarray:
+        # tip along +y in the camera plane, field along the tip
+        return np.array([0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 1.0, 0.0])
+
+    def tip_position(self, x):
+        return x[..., 0:3]
+
+    def tangent(self, x):
+        h = x[..., 3:6]
+        return h / np.linalg.norm(h, axis=-1, keepdims=True)
+
+    def field_direction(self, x):
+        b = x[..., 6:9]
+        return b / np.linalg.norm(b, axis=-1, keepdims=True)
+
+
+@MODELS.register("mnm")
+class MagneticNeedleModel(_MagneticBase):
+    r"""Magnetic needle model (seed 004, eq. 1), metres.
+
+    .. math::
+        p' = h v,\quad h' = c v (h \times B) \times h + h (1 - |h|^2),\quad
+        B' = \omega_B \times B + B (1 - |B|^2)
+
+    The ``(1 - |.|^2)`` terms make ``|h| = |B| = 1`` attracting invariant sets.
+    """
+
+    curvature_param = "c"
+    Params = MNMParams
+
+    def _turn(self, h, b, v, p):
+        return (p["c"] * v)[..., None] * _cross(_cross(h, b), h)
+
+
+class BiNMParams(ModelParams):
+    l_inv: float = Field(20.0, ge=0.0, description="inverse bicycle length, 1/m")
+
+
+@MODELS.register("binm")
+class BicycleNeedleModel(_MagneticBase):
+    r"""Bicycle needle model (seed 004, eq. 4), metres.
+
+    .. math:: h' = l^{-1} v \frac{(h \times B) \times h}{B \cdot h} + h (1 - |h|^2)
+
+    Singular when the field is perpendicular to the tip (``B . h -> 0``): the run is reported
+    ``singular`` with the time it happened.
+    """
+
+    curvature_param = "l_inv"
+    Params = BiNMParams
+    singular_reason = "B . h -> 0: the bicycle model is singular when the field is perpendicular to the tip"
+
+    def _turn(self, h, b, v, p):
+        return ((p["l_inv"] * v) / _dot(b, h))[..., None] * _cross(_cross(h, b), h)
+
+    singular_threshold = 1e-3  # |cos| of the angle between B and h
+    near_singular_threshold = 5e-2
+
+    def singularity_margin(self, x, p):
+        h, b = x[..., 3:6], x[..., 6:9]
+        return np.abs(_dot(h, b)) / (np.linalg.norm(h, axis=-1) * np.linalg.norm(b, axis=-1))

@@ -1,0 +1,133 @@
+"""Bevel-tip needle models in generalized coordinates (seeds 000 and 003), in mm, rad, s.
+
+Frame (``MODELS.md``): ``R = Rx(alpha) Ry(beta) Rz(gamma)``, tangent ``R e3``, body twist linear
+``(0, 0, v)`` and angular ``(kappa v, 0, u)``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from pydantic import Field
+
+from needlecli.models.base import MODELS, Model, ModelParams, Params
+from needlecli.numerics import euler_xyz_to_matrix
+
+
+class UnicycleParams(ModelParams):
+    kappa: float = Field(0.002, ge=0.0, description="path curvature, 1/mm")
+
+
+@MODELS.register("unicycle")
+class Unicycle(Model):
+    r"""3D unicycle in generalized coordinates (seed 000, eq. 1).
+
+    .. math::
+        x' = v \sin b,\; y' = -v \cos b \sin a,\; z' = v \cos a \cos b,\\
+        a' = \kappa v \cos g / \cos b,\; b' = \kappa v \sin g,\; g' = u - \kappa v \cos g \tan b
+
+    State ``(x, y, z, alpha, beta, gamma)`` in mm and rad; inputs ``v`` (mm/s) and ``u`` (rad/s);
+    parameter ``kappa`` (1/mm). Singular at ``cos(beta) = 0``.
+    """
+
+    state_names = ("x", "y", "z", "alpha", "beta", "gamma")
+    state_units = ("mm", "mm", "mm", "rad", "rad", "rad")
+    angle_states = ("alpha", "beta", "gamma")
+    input_names = ("v", "u")
+    input_sizes = {"v": 1, "u": 1}
+    input_units = {"v": "mm/s", "u": "rad/s"}
+    curvature_param = "kappa"
+    Params = UnicycleParams
+    state_bounds = {"beta": (-np.pi / 2, np.pi / 2)}
+    singular_reason = "cos(beta) -> 0: the generalized-coordinate unicycle is undefined at beta = +-pi/2"
+
+    def f(self, x, u, p: Params):
+        a, b, g = x[..., 3], x[..., 4], x[..., 5]
+        v, w = u[..., 0], u[..., 1]
+        sa, ca = np.sin(a), np.cos(a)
+        sb, cb = np.sin(b), np.cos(b)
+        sg, cg = np.sin(g), np.cos(g)
+        kv = p["kappa"] * v
+        return np.stack(
+            [v * sb, -v * cb * sa, v * ca * cb, kv * cg / cb, kv * sg, w - kv * cg * sb / cb], -1
+        )
+
+    def initial_state(self, p: Params) -> np.ndarray:
+        return np.zeros(6)
+
+    singular_threshold = 1e-6  # |cos(beta)|
+    near_singular_threshold = 1e-2
+
+    def singularity_margin(self, x, p):
+        return np.abs(np.cos(x[..., 4]))
+
+    def tip_position(self, x):
+        return x[..., 0:3]
+
+    def tip_rotation(self, x):
+        return euler_xyz_to_matrix(x[..., 3], x[..., 4], x[..., 5])
+
+    def tangent(self, x):
+        a, b = x[..., 3], x[..., 4]
+        return np.stack([np.sin(b), -np.cos(b) * np.sin(a), np.cos(a) * np.cos(b)], -1)
+
+    def roll(self, x):
+        return x[..., 5]
+
+
+class ModifiedUnicycleParams(ModelParams):
+    kappa: float = Field(0.002, ge=0.0, description="true curvature, 1/mm (initial value of the state)")
+    beta_cut: float = Field(
+        0.0, ge=0.0, le=np.deg2rad(6.0), description="cutting angle of the bevel, rad (0..6 deg)"
+    )
+
+
+@MODELS.register("modified_unicycle")
+class ModifiedUnicycle(Unicycle):
+    r"""Modified unicycle with cutting angle and curvature as a state (seed 003, eq. 1).
+
+    Rotating the shaft adds a body-y angular velocity ``(beta_cut / 2) g_r`` with
+    ``g_r = u2 - kappa cos g tan b u1`` the roll rate of the plain unicycle (``MODELS.md``):
+
+    .. math::
+        a' = \kappa \cos g / \cos b\, u_1 - (\beta_c/2) \sin g / \cos b\, g_r,\quad
+        b' = \kappa \sin g\, u_1 + (\beta_c/2) \cos g\, g_r,\quad g' = g_r,\quad \kappa' = 0
+
+    State ``(x, y, z, alpha, beta, gamma, kappa)``; inputs ``v = u1`` and ``u = u2``.
+    """
+
+    state_names = Unicycle.state_names + ("kappa",)
+    state_units = Unicycle.state_units + ("1/mm",)
+    Params = ModifiedUnicycleParams
+
+    def f(self, x, u, p: Params):
+        half_cut = 0.5 * p["beta_cut"]
+        a, b, g = x[..., 3], x[..., 4], x[..., 5]
+        kappa, v, w = x[..., 6], u[..., 0], u[..., 1]
+        sa, ca = np.sin(a), np.cos(a)
+        sb, cb = np.sin(b), np.cos(b)
+        sg, cg = np.sin(g), np.cos(g)
+        kv = kappa * v
+        g_r = w - kv * cg * sb / cb
+        c = half_cut * g_r
+        return np.stack(
+            [
+                v * sb,
+                -v * cb * sa,
+                v * ca * cb,
+                kv * cg / cb - c * sg / cb,
+                kv * sg + c * cg,
+                g_r,
+                np.zeros_like(kv),
+            ],
+            -1,
+        )
+
+    def initial_state(self, p: Params) -> np.ndarray:
+        x0 = np.zeros(7)
+        x0[6] = float(np.mean(p["kappa"]))
+        return x0
+
+    def sync_params(self, x, p):
+        x = x.copy()
+        x[..., 6] = p["kappa"]
+        return x

@@ -1,0 +1,124 @@
+"""Open-loop prediction: the model driven by the known inputs from an initial estimate, no measurement.
+
+The reference every observer must beat, and the simplest complete user of the observer contract. The
+covariance is propagated as in an EKF prediction, ``P <- F P F^T + Q dt``, with ``F`` the Jacobian of
+the RK4 step (complex step through the step, so it is exact to rounding).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+
+from needlecli.numerics import complex_step_jacobian
+from needlecli.observers.base import (
+    OBSERVERS,
+    STATUS_DIVERGED,
+    STATUS_OK,
+    STATUS_SINGULAR,
+    EstimationProblem,
+    Observer,
+    ObserverSettings,
+    Posterior,
+    cov_steps,
+    shrink_cov,
+)
+from needlecli.schema import NonNeg, Strict
+
+
+class Initial(Strict):
+    """Initial estimate: the truth's initial state (``from: truth``) or the config's nominal one
+    (``from: nominal``), plus Gaussian noise of the given std per state; ``P0`` is ``diag(std^2)``
+    plus ``p0_floor``."""
+
+    from_: Literal["truth", "nominal"] = Field("truth", alias="from")
+    std: dict[str, NonNeg] = Field(default_factory=dict)
+    p0_floor: NonNeg = 1e-12
+
+
+class OpenLoopSettings(ObserverSettings):
+    type: Literal["open_loop"]
+    init: Initial = Field(default_factory=Initial)
+    params: dict[str, float] = Field(default_factory=dict, description="the observer's own model parameters")
+    q: dict[str, NonNeg] = Field(default_factory=dict, description="process noise std per state, unit/sqrt(s)")
+
+
+@OBSERVERS.register("open_loop")
+class OpenLoop(Observer):
+    Settings = OpenLoopSettings
+
+    @classmethod
+    def check(cls, settings, model, sensors):
+        out = []
+        for where, keys in (("init", settings.init.std), ("q", settings.q)):
+            for k in keys:
+                if k not in model.state_names:
+                    loc = (where, "std", k) if where == "init" else (where, k)
+                    out.append((loc, f"model {model.registered_name!r} has no state {k!r}"))
+        for k in settings.params:
+            if k not in model.Params.model_fields:
+                out.append((("params", k), f"model {model.registered_name!r} has no parameter {k!r}"))
+        return out
+
+    def run(self, problem: EstimationProblem, rng: np.random.Generator, progress=None) -> Posterior:
+        model = problem.model
+        s = self.settings
+        n_runs, T, n = problem.n_runs, len(problem.time), model.n
+        params = {k: np.asarray(v, dtype=float) for k, v in problem.params.items()}
+        params.update({k: np.asarray(v, dtype=float) for k, v in s.params.items()})
+        if s.init.from_ == "truth" and problem.initial_truth is not None:
+            x = np.array(problem.initial_truth, dtype=float)
+        else:
+            x = np.broadcast_to(model.initial_state(params), (n_runs, n)).astype(float)
+        std = np.array([s.init.std.get(k, 0.0) for k in model.state_names])
+        x = model.normalize(x + std * rng.standard_normal(x.shape))
+        P = np.broadcast_to(np.diag(std**2 + s.init.p0_floor), (n_runs, n, n)).copy()
+        dt_all = np.diff(problem.time)
+        qd = np.array([s.q.get(k, 0.0) for k in model.state_names]) ** 2
+
+        keep = cov_steps(T, problem.cov_stride)
+        states = np.empty((n_runs, T, n))
+        covs = [] if problem.cov_layout != "none" else None
+        states[:, 0] = x
+        status = np.full(n_runs, STATUS_OK, dtype=object)
+        reason = np.full(n_runs, "", dtype=object)
+        alive = np.ones(n_runs, dtype=bool)
+        if covs is not None and 0 in keep:
+            covs.append(shrink_cov(P, problem.cov_layout))
+        every = max(1, (T - 1) // 100)
+        with np.errstate(all="ignore"):
+            for k in range(T - 1):
+                u = problem.inputs[:, k]
+                dt = float(dt_all[k])
+                step = lambda xx: model.step(xx, u[:, None, :], params, dt)  # noqa: E731
+                F = complex_step_jacobian(step, x)
+                xn = model.step(x, u, params, dt)
+                P = F @ P @ np.swapaxes(F, -1, -2) + np.diag(qd * dt)
+                P = 0.5 * (P + np.swapaxes(P, -1, -2))
+                sing = model.singular(xn, params)
+                bad = alive & (sing | ~np.isfinite(xn).all(-1))
+                if bad.any():
+                    status[bad & sing] = STATUS_SINGULAR
+                    reason[bad & sing] = model.singular_reason
+                    status[bad & ~sing] = STATUS_DIVERGED
+                    reason[bad & ~sing] = f"non-finite estimate at t = {problem.time[k + 1]:.3f} s"
+                    alive &= ~bad
+                    xn = np.where(alive[:, None], xn, x)
+                x = xn
+                states[:, k + 1] = x
+                if covs is not None and (k + 1) in keep:
+                    covs.append(shrink_cov(P, problem.cov_layout))
+                if progress is not None and (k % every == 0 or k == T - 2):
+                    progress(k + 1, T - 1)
+        cov = np.stack(covs, 1) if covs is not None else None
+        return Posterior(
+            state=states,
+            cov=cov,
+            status=status.astype(str),
+            reason=reason.astype(str),
+            names=model.state_names,
+            units=model.state_units,
+            angle_states=model.angle_states,
+        )

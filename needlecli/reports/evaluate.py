@@ -1,0 +1,57 @@
+"""Evaluation of a results file: errors -> tables (Markdown, CSV, LaTeX) and plots (PNG)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import pandas as pd
+import yaml
+
+from needlecli.io.results import read_results
+from needlecli.metrics import compute_errors
+from needlecli.reports.tables import TABLES, write_table
+
+log = logging.getLogger("needlecli")
+
+
+def configured_tables(res) -> list[str]:
+    """The tables the experiment's config asks for (``output.tables``), else the summary."""
+    try:
+        cfg = yaml.safe_load(res.attrs.get("config", "")) or {}
+        names = (cfg.get("output") or {}).get("tables")
+    except yaml.YAMLError:
+        names = None
+    return [n for n in (names or ["summary", "accuracy", "status"]) if n in TABLES]
+
+
+def evaluate_results(
+    path: str | Path,
+    *,
+    tables: list[str] | None = None,
+    out_dir: str | Path | None = None,
+    formats: list[str] | None = None,
+    plots: bool = False,
+) -> dict[str, pd.DataFrame]:
+    """Compute the tables of a results file; write them (and plots) to ``out_dir`` when given."""
+    path = Path(path)
+    res = read_results(path)
+    errors = compute_errors(res)
+    names = tables or configured_tables(res)
+    out: dict[str, pd.DataFrame] = {}
+    for name in names:
+        out[name] = TABLES.get(name)(res, errors)
+    if out_dir is not None:
+        out_dir = Path(out_dir)
+        stem = res.attrs.get("name", path.stem)
+        for name, df in out.items():
+            doc = (TABLES.get(name).__doc__ or "").strip().split("\n\n")[0].replace("\n", " ")
+            write_table(df, out_dir / f"{stem}_{name}", formats or ["md", "csv", "tex"], caption=doc)
+        if plots:
+            from needlecli.reports.plots import error_vs_depth, trajectories
+
+            for p in (error_vs_depth(res, errors, out_dir / f"{stem}_error_vs_depth.png"),
+                      trajectories(res, out_dir / f"{stem}_trajectories.png")):
+                if p is not None:
+                    log.info("plot: %s", p)
+    return out

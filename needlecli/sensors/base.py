@@ -1,0 +1,205 @@
+"""The sensor contract and the seam for measurement pipelines.
+
+A sensor owns its clock (rate, start, latency), its measurement function ``h``, its noise and its
+dropouts. *How* a measurement is made from the truth is a :class:`Pipeline`: ``gaussian`` adds
+statistical noise to ``h(truth)``; image pipelines (render a frame, segment it) register under another
+name and are chosen per sensor with ``pipeline:`` in the config, with the same clock and output.
+
+New sensors: subclass :class:`Sensor` with a ``Settings`` schema whose ``type`` is a ``Literal`` and
+decorate with ``@SENSORS.register("type")``. New pipelines: subclass :class:`Pipeline`, list the sensor
+types it supports, decorate with ``@PIPELINES.register("name")``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, ClassVar
+
+import numpy as np
+from pydantic import Field
+
+from needlecli.numerics import wrap_angle
+from needlecli.registry import Registry
+from needlecli.schema import NonNeg, Positive, Probability, Strict
+
+if TYPE_CHECKING:
+    from needlecli.experiments.truth import Truth
+    from needlecli.models import Model
+
+
+class SensorSettings(Strict):
+    """Settings every sensor has. Times in s, rates in Hz."""
+
+    type: str
+    name: str | None = Field(None, description="name in the results file (defaults to the type)")
+    rate: Positive = Field(description="sampling rate, Hz")
+    start: NonNeg = Field(0.0, description="time of the first sample, s")
+    latency: NonNeg = Field(0.0, description="delay between acquisition and availability, s")
+    dropout: Probability = Field(0.0, description="probability that a sample is lost")
+    pipeline: str = Field("gaussian", description="how measurements are made: gaussian, or an image pipeline")
+
+
+@dataclass(frozen=True)
+class MeasurementStream:
+    """What a sensor produced for all runs.
+
+    Attributes
+    ----------
+    t : (M,) acquisition times (the state the measurement describes), s
+    t_available : (M,) times the measurement becomes available (``t + latency``), s
+    index : (M,) index of ``t`` on the simulation time grid
+    value : (N, M, m) measured values; entries where ``valid`` is False are NaN
+    valid : (N, M) bool
+    sigma : (N, M, m) noise standard deviation used (the sensor's truth; observers bring their own R)
+    """
+
+    t: np.ndarray
+    t_available: np.ndarray
+    index: np.ndarray
+    value: np.ndarray
+    valid: np.ndarray
+    sigma: np.ndarray
+    names: tuple[str, ...]
+    units: tuple[str, ...]
+    attrs: dict = field(default_factory=dict)
+
+
+class Sensor:
+    """Base class of emulated sensors.
+
+    Class attributes
+    ----------------
+    Settings : the pydantic schema of the sensor's config entry.
+    requires : model quantities the sensor needs (names of :class:`~needlecli.models.Model` methods).
+    """
+
+    Settings: ClassVar[type[SensorSettings]] = SensorSettings
+    requires: ClassVar[tuple[str, ...]] = ()
+    registered_name: ClassVar[str] = ""
+
+    def __init__(self, settings: SensorSettings, model: Model) -> None:
+        self.settings = settings
+        self.model = model
+        self.name = settings.name or settings.type
+
+    # ------------------------------------------------------------------ description
+    @property
+    def channel_names(self) -> tuple[str, ...]:
+        raise NotImplementedError
+
+    @property
+    def channel_units(self) -> tuple[str, ...]:
+        raise NotImplementedError
+
+    @property
+    def angle_channels(self) -> np.ndarray:
+        """Boolean mask of channels that are angles (wrapped)."""
+        return np.zeros(len(self.channel_names), dtype=bool)
+
+    unit_vector: ClassVar[bool] = False  # channels form one unit vector (renormalised after noise)
+
+    def check_model(self) -> str | None:
+        """Why this sensor cannot measure the model, or None."""
+        for q in self.requires:
+            if not self.model.provides(q):
+                return (
+                    f"sensor {self.registered_name!r} measures {q.replace('_', ' ')}, which model "
+                    f"{self.model.registered_name!r} does not have"
+                )
+        return None
+
+    # ------------------------------------------------------------------ clock
+    def sample_indices(self, time: np.ndarray) -> np.ndarray:
+        """Indices of the simulation grid at which samples are acquired (nearest grid point)."""
+        dt = float(time[1] - time[0]) if len(time) > 1 else 1.0
+        t_end = float(time[-1])
+        period = 1.0 / self.settings.rate
+        n = int(np.floor((t_end - self.settings.start) / period + 1e-9)) + 1
+        if n <= 0:
+            return np.zeros(0, dtype=np.int64)
+        ideal = self.settings.start + period * np.arange(n)
+        idx = np.rint(ideal / dt).astype(np.int64)
+        idx = idx[idx < len(time)]
+        return np.unique(idx)
+
+    # ------------------------------------------------------------------ measurement model
+    def h(self, x: np.ndarray) -> np.ndarray:
+        """Noise-free measurement ``(..., m)`` of states ``x (..., n)`` (for observers)."""
+        raise NotImplementedError
+
+    def ideal(self, truth: Truth, idx: np.ndarray) -> np.ndarray:
+        """Noise-free measurement ``(N, M, m)`` of the truth at grid indices ``idx``."""
+        return self.h(truth.states[:, idx])
+
+    def sigma(self, truth: Truth, idx: np.ndarray) -> np.ndarray:
+        """Noise standard deviation ``(N, M, m)`` at those samples."""
+        raise NotImplementedError
+
+    def perturb(self, ideal: np.ndarray, sigma: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """Add Gaussian noise; wrap angle channels; renormalise unit vectors."""
+        y = ideal + sigma * rng.standard_normal(ideal.shape)
+        if self.unit_vector:
+            y = y / np.linalg.norm(y, axis=-1, keepdims=True)
+        mask = self.angle_channels
+        if mask.any():
+            y[..., mask] = wrap_angle(y[..., mask])
+        return y
+
+    # ------------------------------------------------------------------ the whole thing
+    def measure(self, truth: Truth, rng: np.random.Generator) -> MeasurementStream:
+        """Sample the truth on this sensor's clock through its pipeline, then apply dropouts."""
+        idx = self.sample_indices(truth.time)
+        pipeline = PIPELINES.get(self.settings.pipeline)()
+        value, valid, sigma = pipeline.measure(self, truth, idx, rng)
+        if self.settings.dropout > 0:
+            valid = valid & (rng.random(valid.shape) >= self.settings.dropout)
+        # a run's samples after its truth stopped (singular / diverged) are not measurements
+        valid = valid & (truth.time[idx][None, :] <= truth.valid_until[:, None])
+        value = np.where(valid[..., None], value, np.nan)
+        t = truth.time[idx]
+        return MeasurementStream(
+            t=t,
+            t_available=t + self.settings.latency,
+            index=idx,
+            value=value,
+            valid=valid,
+            sigma=sigma,
+            names=self.channel_names,
+            units=self.channel_units,
+            attrs={"type": self.registered_name, "rate": self.settings.rate, "latency": self.settings.latency,
+                   "dropout": self.settings.dropout, "pipeline": self.settings.pipeline},
+        )
+
+
+class Pipeline:
+    """How a sensor turns the truth into measurements. ``supports``: sensor types, or ``("*",)``."""
+
+    supports: ClassVar[tuple[str, ...]] = ("*",)
+    registered_name: ClassVar[str] = ""
+
+    def measure(
+        self, sensor: Sensor, truth: Truth, idx: np.ndarray, rng: np.random.Generator
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return ``value (N, M, m)``, ``valid (N, M)`` and ``sigma (N, M, m)``."""
+        raise NotImplementedError
+
+    @classmethod
+    def accepts(cls, sensor_type: str) -> bool:
+        return "*" in cls.supports or sensor_type in cls.supports
+
+
+SENSORS: Registry[type[Sensor]] = Registry("sensor type")
+PIPELINES: Registry[type[Pipeline]] = Registry("measurement pipeline")
+
+
+@PIPELINES.register("gaussian")
+class GaussianPipeline(Pipeline):
+    """The statistical pipeline: ``h(truth) + N(0, sigma^2)`` per channel."""
+
+    def measure(self, sensor, truth, idx, rng):
+        ideal = sensor.ideal(truth, idx)
+        sigma = np.broadcast_to(sensor.sigma(truth, idx), ideal.shape)
+        value = sensor.perturb(ideal, sigma, rng)
+        valid = np.ones(ideal.shape[:2], dtype=bool)
+        return value, valid, np.ascontiguousarray(sigma)
+

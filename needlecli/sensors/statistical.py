@@ -1,0 +1,258 @@
+"""The sensors of the seeds at the statistical level (``MODELS.md``, "Emulated hardware").
+
+Positions are in the model's length unit (mm; m for the magnetic models), angles in rad. Image-based
+versions of the same sensors plug in as pipelines (``pipeline: image``) with the same output.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from pydantic import Field, field_validator
+
+from needlecli.models import NotMeasurable
+from needlecli.schema import NonNeg, Positive, Strict
+from needlecli.sensors.base import SENSORS, Sensor, SensorSettings
+
+Sigma = NonNeg | list[NonNeg]
+
+
+def _per_channel(sigma: float | list[float], m: int, what: str) -> np.ndarray:
+    s = np.atleast_1d(np.asarray(sigma, dtype=float))
+    if s.size == 1:
+        return np.full(m, float(s[0]))
+    if s.size != m:
+        raise ValueError(f"{what} has {s.size} entries for {m} channels")
+    return s
+
+
+class DistanceGrowth(Strict):
+    """Noise growing with distance from a transducer: ``sigma = (1 + a d / d_max) sigma_c`` (seed 003)."""
+
+    transducer: tuple[float, float, float] = Field(description="transducer position, model length unit")
+    a: NonNeg = 1.0
+    d_max: Positive = Field(80.0, description="normalising distance, model length unit")
+
+
+_AXES = ("x", "y", "z")
+
+
+class PositionSettings(SensorSettings):
+    type: Literal["position"]
+    axes: list[Literal["x", "y", "z"]] = Field(default_factory=lambda: ["x", "y", "z"], min_length=1)
+    sigma: Sigma = Field(0.3, description="noise std per axis at the transducer, model length unit")
+    growth: DistanceGrowth | None = None
+
+    @field_validator("axes")
+    @classmethod
+    def _unique(cls, v):
+        if len(set(v)) != len(v):
+            raise ValueError("axes must not repeat")
+        return v
+
+
+@SENSORS.register("position")
+class PositionSensor(Sensor):
+    """Tip position, any subset of axes: 2D transverse ultrasound (x, y; seed 000), 3D ultrasound
+    (x, y, z at 1 Hz, sigma growing with distance; seed 003), overhead camera (seed 004)."""
+
+    Settings = PositionSettings
+    requires = ("tip_position",)
+
+    def __init__(self, settings, model):
+        super().__init__(settings, model)
+        self._cols = [_AXES.index(a) for a in settings.axes]
+        self._sigma = _per_channel(settings.sigma, len(self._cols), "sigma")
+
+    @property
+    def channel_names(self):
+        return tuple(self.settings.axes)
+
+    @property
+    def channel_units(self):
+        return (self.model.length_unit,) * len(self._cols)
+
+    def h(self, x):
+        return self.model.tip_position(x)[..., self._cols]
+
+    def sigma(self, truth, idx):
+        g = self.settings.growth
+        if g is None:
+            return self._sigma
+        p = self.model.tip_position(truth.states[:, idx])
+        d = np.linalg.norm(p - np.asarray(g.transducer), axis=-1)
+        return (1.0 + g.a * d / g.d_max)[..., None] * self._sigma
+
+
+class EncoderSettings(SensorSettings):
+    type: Literal["encoder"]
+    channels: list[Literal["depth", "roll", "base_angle"]] = Field(
+        default_factory=lambda: ["depth", "roll"], min_length=1
+    )
+    sigma: Sigma = Field(0.0035, description="noise std per channel (mm for depth, rad for angles)")
+
+    @field_validator("channels")
+    @classmethod
+    def _unique(cls, v):
+        if len(set(v)) != len(v):
+            raise ValueError("channels must not repeat")
+        return v
+
+
+@SENSORS.register("encoder")
+class EncoderSensor(Sensor):
+    """Robot encoders (seeds 000, 003): insertion depth, the needle's roll angle, the base angle
+    (integral of the shaft rotation input). Seed 003 reads the tip roll gamma from the robot
+    (0.2 deg std)."""
+
+    Settings = EncoderSettings
+
+    def __init__(self, settings, model):
+        super().__init__(settings, model)
+        self._sigma = _per_channel(settings.sigma, len(settings.channels), "sigma")
+
+    @property
+    def requires(self):  # type: ignore[override]
+        return ("roll",) if "roll" in self.settings.channels else ()
+
+    @property
+    def channel_names(self):
+        return tuple(self.settings.channels)
+
+    @property
+    def channel_units(self):
+        return tuple(self.model.length_unit if c == "depth" else "rad" for c in self.settings.channels)
+
+    @property
+    def angle_channels(self):
+        return np.array([c != "depth" for c in self.settings.channels])
+
+    def h(self, x):
+        if any(c != "roll" for c in self.settings.channels):
+            raise NotMeasurable("encoder depth and base angle are inputs, not functions of the state")
+        return self.model.roll(x)[..., None]
+
+    def ideal(self, truth, idx):
+        n_runs = truth.states.shape[0]
+        cols = []
+        for c in self.settings.channels:
+            if c == "depth":
+                cols.append(np.broadcast_to(truth.depth[idx], (n_runs, len(idx))))
+            elif c == "base_angle":
+                cols.append(np.broadcast_to(truth.base_angle[idx], (n_runs, len(idx))))
+            else:
+                cols.append(self.model.roll(truth.states[:, idx]))
+        return np.stack(cols, -1)
+
+    def sigma(self, truth, idx):
+        return self._sigma
+
+
+class ElastographySettings(SensorSettings):
+    type: Literal["elastography"]
+    sigma: NonNeg = Field(1e-3, description="curvature noise std, 1/(model length unit)")
+    interface_sigma: NonNeg = Field(0.0, description="std of the interface depths it reports")
+
+
+@SENSORS.register("elastography")
+class ElastographySensor(Sensor):
+    """Shear-wave elastography (seed 003): the stiffness map gives the curvature at the tip's depth
+    and the tissue interfaces (reported in the stream's attributes)."""
+
+    Settings = ElastographySettings
+
+    @property
+    def channel_names(self):
+        return ("kappa",)
+
+    @property
+    def channel_units(self):
+        return (f"1/{self.model.length_unit}",)
+
+    def check_model(self):
+        if self.model.curvature_param is None:
+            return f"model {self.model.registered_name!r} has no curvature for elastography to measure"
+        return None
+
+    def h(self, x):
+        name = self.model.curvature_param
+        if name not in self.model.state_names:
+            raise NotMeasurable(f"model {self.model.registered_name!r} does not carry curvature as a state")
+        return x[..., [self.model.index(name)]]
+
+    def ideal(self, truth, idx):
+        return truth.params[self.model.curvature_param][:, idx][..., None]
+
+    def sigma(self, truth, idx):
+        return np.array([self.settings.sigma])
+
+    def measure(self, truth, rng):
+        stream = super().measure(truth, rng)
+        depths = np.asarray(truth.interfaces, dtype=float)
+        if depths.size and self.settings.interface_sigma > 0:
+            depths = depths + self.settings.interface_sigma * rng.standard_normal(
+                (truth.states.shape[0], depths.size)
+            )
+        else:
+            depths = np.broadcast_to(depths, (truth.states.shape[0], depths.size))
+        stream.attrs["interfaces"] = np.ascontiguousarray(depths)
+        return stream
+
+
+class UnitVectorSettings(SensorSettings):
+    sigma: NonNeg = Field(0.01, description="angular noise std, rad")
+
+
+class TangentSettings(UnitVectorSettings):
+    type: Literal["tangent"]
+
+
+@SENSORS.register("tangent")
+class TangentSensor(Sensor):
+    """Needle tangent direction as a unit vector (bi-plane fluoroscopy or an EM tracker; seed 001)."""
+
+    Settings = TangentSettings
+    requires = ("tangent",)
+    unit_vector = True
+
+    @property
+    def channel_names(self):
+        return ("tx", "ty", "tz")
+
+    @property
+    def channel_units(self):
+        return ("1", "1", "1")
+
+    def h(self, x):
+        return self.model.tangent(x)
+
+    def sigma(self, truth, idx):
+        return np.full(3, self.settings.sigma)
+
+
+class FieldSettings(UnitVectorSettings):
+    type: Literal["bfield"]
+
+
+@SENSORS.register("bfield")
+class FieldDirectionSensor(Sensor):
+    """Direction of the magnetic field from the Helmholtz coils' record (seed 004: 18 Hz)."""
+
+    Settings = FieldSettings
+    requires = ("field_direction",)
+    unit_vector = True
+
+    @property
+    def channel_names(self):
+        return ("bx", "by", "bz")
+
+    @property
+    def channel_units(self):
+        return ("1", "1", "1")
+
+    def h(self, x):
+        return self.model.field_direction(x)
+
+    def sigma(self, truth, idx):
+        return np.full(3, self.settings.sigma)

@@ -16,3 +16,18 @@ class Strict(BaseModel):
 NonNeg = Annotated[float, Field(ge=0.0)]
 Positive = Annotated[float, Field(gt=0.0)]
 Probability = Annotated[float, Field(ge=0.0, lt=1.0)]
+
+
+class DistanceGrowth(Strict):
+    """Noise growing with distance from a transducer: ``sigma = (1 + a d / d_max) sigma_c`` (seed 003)."""
+
+    transducer: tuple[float, float, float] = Field(description="transducer position, model length unit")
+    a: NonNeg = 1.0
+    d_max: Positive = Field(80.0, description="normalising distance, model length unit")
+
+    def factor(self, position: "np.ndarray") -> "np.ndarray":
+        """``1 + a d / d_max`` for positions ``(..., 3)``."""
+        import numpy as np
+
+        d = np.linalg.norm(np.asarray(position) - np.asarray(self.transducer), axis=-1)
+        return 1.0 + self.a * d / self.d_max

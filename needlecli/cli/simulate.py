@@ -39,11 +39,12 @@ def simulate(
     log.info("simulating %d run(s) of %s (seed %d)", cfg.runs.count, cfg.name, cfg.runs.seed)
     with progress_bar(not quiet) as bar:
         result = run_experiment(cfg, text, out=target, progress=bar)
-    tables = evaluate_results(result.path, tables=["summary"], out_dir=None)
-    for name, df in tables.items():
+    stopped = any((p.status != "ok").any() for p in result.estimates.values()) or (result.truth.status != "ok").any()
+    wanted = (["summary"] if cfg.observers else []) + (["status"] if stopped else [])
+    tables = evaluate_results(result.path, tables=wanted, out_dir=None) if wanted else {}
+    for df in tables.values():
         if not df.empty:
-            typer.echo(to_markdown(df))
-    bad = (result.truth.status != "ok").sum()
-    if bad:
-        typer.echo(f"{bad} of {len(result.truth.status)} runs stopped early (see the status table)")
+            typer.echo(to_markdown(df) + "\n")
+    if not cfg.observers:
+        typer.echo("no observers configured: truth and measurements only")
     typer.echo(f"results: {result.path}")

@@ -170,15 +170,69 @@ def experiment_schema() -> type[Strict]:
 
 
 # ---------------------------------------------------------------------------------------------- loading
+_TYPE_ERRORS = {
+    "float_type": "a number", "int_type": "an integer", "string_type": "a string", "bool_type": "true or false",
+    "list_type": "a list", "tuple_type": "a list", "dict_type": "a mapping", "model_type": "a mapping",
+    "model_attributes_type": "a mapping",
+}
+
+
+def _member_tag(part: Any) -> bool:
+    """Whether a location part is a label pydantic gives a member of a (non-tagged) union."""
+    return isinstance(part, str) and (
+        "[" in part or part.startswith("constrained-") or part in ("float", "int", "str", "bool", "function-after")
+    )
+
+
+def _pick_errors(errs: list[dict]) -> list[dict]:
+    """Drop errors of union members the value plainly is not (``sigma: -1`` for ``float | list[float]``
+    yields 'should be a valid list' besides the real problem); when every member rejects the value's
+    type, keep one error saying what was allowed."""
+    groups: dict[tuple, list[dict]] = {}
+    for e in errs:
+        i = next((j for j, part in enumerate(e["loc"]) if _member_tag(part)), None)
+        if i is not None:
+            groups.setdefault(tuple(e["loc"][:i]), []).append(e)
+    out, seen = [], set()
+    for e in errs:
+        i = next((j for j, part in enumerate(e["loc"]) if _member_tag(part)), None)
+        group = groups.get(tuple(e["loc"][:i])) if i is not None else None
+        if not group or len({g["loc"][i] for g in group}) < 2:
+            out.append(e)
+            continue
+        def plain(g, i=i):
+            return g["type"] in _TYPE_ERRORS and len(g["loc"]) == i + 1
+        real = [g for g in group if not plain(g)]
+        if real:
+            if e in real:
+                out.append(e)
+        elif id(group) not in seen:
+            seen.add(id(group))
+            wanted = " or ".join(dict.fromkeys(_TYPE_ERRORS[g["type"]] for g in group))
+            out.append({**e, "type": "union_type", "msg": f"should be {wanted}, not {_yaml_type(e.get('input'))}"})
+    return out or errs
+
+
+def _yaml_type(v: Any) -> str:
+    for t, name in ((bool, "true/false"), (int, "a number"), (float, "a number"), (str, "a string"),
+                    (list, "a list"), (dict, "a mapping"), (type(None), "empty (null)")):
+        if isinstance(v, t):
+            return f"{name} {v!r}" if isinstance(v, (str, int, float)) and not isinstance(v, bool) else name
+    return type(v).__name__
+
+
 def _strip_tags(loc: tuple, data: Any) -> tuple:
-    """Drop discriminator tags that pydantic inserts into locations of tagged unions."""
+    """Drop discriminator tags and union-member labels that pydantic inserts into locations."""
     out = []
     cur = data
+    shorthand = False  # a constant signal written as a bare number or list: no 'value' key to name
     for part in loc:
-        if isinstance(cur, dict) and part not in cur and isinstance(part, str) and (
-            cur.get("type") == part or cur.get("kind") == part or part in ("constant", "function-after")
-        ):
-            continue
+        if not (isinstance(cur, dict) and part in cur):
+            if isinstance(cur, dict) and isinstance(part, str) and part in (cur.get("type"), cur.get("kind")):
+                continue
+            if _member_tag(part) or part == "constant" or (shorthand and part == "value"):
+                shorthand = part == "constant" and not isinstance(cur, dict)
+                continue
         out.append(part)
         if isinstance(cur, dict):
             cur = cur.get(part)
@@ -189,6 +243,15 @@ def _strip_tags(loc: tuple, data: Any) -> tuple:
     return tuple(out)
 
 
+def _location(err: dict, data: Any) -> tuple:
+    loc = _strip_tags(tuple(err["loc"]), data)
+    if err.get("type") in ("union_tag_invalid", "union_tag_not_found"):
+        loc += (err.get("ctx", {}).get("discriminator", "type").strip(chr(39)),)
+    elif err.get("type") == "missing" and loc and isinstance(loc[-1], int):
+        loc = loc[:-1]  # a fixed-length list with too few entries
+    return loc
+
+
 def _message(err: dict) -> str:
     msg = err.get("msg", "invalid value")
     if msg.startswith("Value error, "):
@@ -196,23 +259,51 @@ def _message(err: dict) -> str:
     if err.get("type") == "extra_forbidden":
         msg = "unknown key"
     elif err.get("type") == "missing":
-        msg = "required key is missing"
+        loc = err.get("loc", ())
+        msg = f"too few entries (entry {loc[-1]} is missing)" if loc and isinstance(loc[-1], int) else (
+            "required key is missing")
     elif err.get("type") == "union_tag_invalid":
         ctx = err.get("ctx", {})
         msg = f"unknown {ctx.get('discriminator', 'type').strip(chr(39))} {ctx.get('tag')!r}; known: {ctx.get('expected_tags')}"
     elif err.get("type") == "union_tag_not_found":
         msg = f"required key {err.get('ctx', {}).get('discriminator', '').strip(chr(39))!r} is missing"
-    return msg
+    elif err.get("type") in ("dict_type", "model_type", "model_attributes_type"):
+        loc = err.get("loc", ())
+        what = "a number, a list or a mapping with 'kind'" if len(loc) == 2 and loc[0] == "inputs" else "a mapping"
+        msg = f"should be {what}, not {_yaml_type(err.get('input'))}"
+    elif err.get("type") in ("list_type", "tuple_type"):
+        msg = f"should be a list, not {_yaml_type(err.get('input'))}"
+    msg = msg.replace(" after validation", "")
+    return " ".join(msg.split())  # one line
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """The safe loader, but a key given twice in one mapping is an error (YAML keeps the last)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if isinstance(key, (str, int, float, bool)) and key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"key {key!r} is given twice in the same mapping", key_node.start_mark
+                )
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
 
 
 def parse_yaml(text: str, source: str) -> dict:
     try:
-        data = yaml.safe_load(text)
+        data = yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 (a SafeLoader)
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
         problem = getattr(e, "problem", None) or str(e).splitlines()[0]
-        raise ConfigError(source, (), f"YAML syntax error at {where}{problem}") from None
+        ctx, cmark = getattr(e, "context", None), getattr(e, "context_mark", None)
+        if ctx and cmark is not None and mark is not None and cmark.line != mark.line:
+            problem += f" ({ctx} that starts at line {cmark.line + 1})"
+        what = "YAML error" if isinstance(e, yaml.constructor.ConstructorError) else "YAML syntax error"
+        raise ConfigError(source, (), f"{what} at {where}{problem}") from None
     if data is None:
         raise ConfigError(source, (), "the file is empty")
     if not isinstance(data, dict):
@@ -282,14 +373,30 @@ def load_config(
     try:
         cfg = schema.model_validate(data)
     except ValidationError as e:
-        errs = e.errors()
+        errs = _pick_errors(e.errors())
         err = errs[0]
         more = f" (and {len(errs) - 1} more problem{'s' if len(errs) > 2 else ''})" if len(errs) > 1 else ""
-        raise ConfigError(source, _strip_tags(tuple(err["loc"]), data), _message(err) + more) from None
+        raise ConfigError(source, _location(err, data), _message(err) + more) from None
     check_consistency(cfg, source)
     if overrides or runs is not None or seed is not None:
         text = yaml.safe_dump(data, sort_keys=False)
     return cfg, text
+
+
+def _depth_reachable(sig, depth: float) -> bool:
+    """Whether an insertion-speed schedule ever reaches ``depth`` (a schedule whose last value is not
+    positive must get there before its last change; else the simulation would grow without end)."""
+    if getattr(sig, "kind", "") == "piecewise":
+        tk = np.asarray(sig.times, dtype=float)
+        vk = np.asarray(sig.values, dtype=float).reshape(len(tk), -1)[:, 0]
+        if vk[-1] > 0:
+            return True
+        mid = 0.5 * (vk[1:] + vk[:-1]) if sig.interp == "linear" else vk[:-1]
+        inner = float(np.sum(mid * np.diff(tk)))
+        return vk[0] * tk[0] + inner >= depth - 1e-9
+    if getattr(sig, "kind", "") == "flips":
+        return sig.base > 0 or (sig.at_times is not None and len(sig.at_times) * sig.angle >= depth)
+    return True
 
 
 def check_consistency(cfg, source: str) -> None:
@@ -314,6 +421,8 @@ def check_consistency(cfg, source: str) -> None:
         v = np.asarray(cfg.inputs[model_cls.insertion_input].model_dump().get("value", 1.0), dtype=float)
         if getattr(cfg.inputs[model_cls.insertion_input], "kind", "") == "constant" and np.all(v <= 0):
             raise ConfigError(source, ("stop", "depth"), "the insertion speed is not positive: the depth is never reached")
+        if not _depth_reachable(cfg.inputs[model_cls.insertion_input], cfg.stop.depth):
+            raise ConfigError(source, ("stop", "depth"), "the insertion schedule ends without reaching this depth")
     # process noise
     for k in cfg.process_noise.std:
         if k not in model_cls.state_names:
@@ -324,10 +433,15 @@ def check_consistency(cfg, source: str) -> None:
     # sensors
     names = {}
     for i, s in enumerate(cfg.sensors):
-        sensor = SENSORS.get(s.type)(s, model)
+        try:
+            sensor = SENSORS.get(s.type)(s, model)
+        except ValueError as e:  # settings that contradict each other, e.g. 2 sigmas for 3 axes
+            key = str(e).split()[0] if str(e) else ""
+            loc = ("sensors", i) + ((key,) if key in type(s).model_fields else ())
+            raise ConfigError(source, loc, str(e)) from None
         if sensor.name in names:
             raise ConfigError(source, ("sensors", i, "name"), f"sensor name {sensor.name!r} is used twice")
-        names[sensor.name] = s.type
+        names[sensor.name] = sensor
         problem = sensor.check_model()
         if problem:
             raise ConfigError(source, ("sensors", i, "type"), problem)

@@ -35,20 +35,31 @@ def build_sensors(cfg, model):
     return [SENSORS.get(s.type)(s, model) for s in cfg.sensors]
 
 
+def measurement_function(sensor, model):
+    """``h`` of ``sensor`` for the state of ``model`` (which may be an observer's own), or None."""
+    if model is not sensor.model:
+        sensor = type(sensor)(sensor.settings, model)
+        if sensor.check_model():
+            return None
+    try:
+        with np.errstate(all="ignore"):
+            sensor.h(np.zeros((1, model.n)))
+    except NotMeasurable:
+        return None
+    return sensor.h
+
+
 def build_problem(cfg, truth: Truth, sensors, streams: dict[str, MeasurementStream]) -> EstimationProblem:
     channels = {}
     for sensor in sensors:
         st = streams[sensor.name]
-        try:
-            sensor.h(truth.states[:1, :1])
-            h = sensor.h
-        except NotMeasurable:
-            h = None
+        h = measurement_function(sensor, truth.model)
         nominal = np.atleast_1d(np.asarray(st.sigma[0, 0] if st.sigma.size else np.zeros(len(st.names))))
         channels[sensor.name] = Channel(
             name=sensor.name, sensor_type=sensor.registered_name, t=st.t, t_available=st.t_available,
             index=st.index, value=st.value, valid=st.valid, names=st.names, units=st.units,
             sigma=nominal, angle=sensor.angle_channels, h=h, attrs=st.attrs,
+            h_for=lambda model, _s=sensor: measurement_function(_s, model), unit_vector=sensor.unit_vector,
         )
     n_runs = truth.states.shape[0]
     return EstimationProblem(

@@ -47,6 +47,15 @@ class Truth:
     def valid_until(self) -> np.ndarray:
         return np.where(np.isnan(self.event_time), self.time[-1], self.event_time)
 
+    def states_at(self, idx: np.ndarray) -> np.ndarray:
+        """``states[:, idx]``: a view (no copy) when the indices are evenly spaced, as clocks are."""
+        idx = np.asarray(idx)
+        if idx.size > 1:
+            step = idx[1] - idx[0]
+            if step > 0 and np.all(np.diff(idx) == step):
+                return self.states[:, idx[0] : idx[-1] + 1 : step]
+        return self.states[:, idx]
+
     def input_dict(self) -> dict[str, np.ndarray]:
         return {k: self.inputs[:, self.model.input_slice(k)] for k in self.model.input_names}
 
@@ -158,7 +167,7 @@ def simulate_truth(cfg, *, runs: int | None = None, progress: Callable[[int, int
                 xn = xn + q * rng_q.standard_normal(xn.shape)
             pk1 = p_at(k + 1)
             xn = model.sync_params(xn, pk1)
-            sing = model.singular(xn, pk1)
+            sing = model.singular(xn, pk1) | model.crossed_singularity(x, xn, pk1)
             finite = np.isfinite(xn).all(-1)
             bad = (sing | ~finite) & alive
             if bad.any():

@@ -97,6 +97,9 @@ def write_atomic(path: str | Path, root: Group) -> Path:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
     try:
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes the file private (0600); results are ordinary files
         with h5py.File(tmp, "w") as f:
             _write_group(f, root)
         os.replace(tmp, path)

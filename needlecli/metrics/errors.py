@@ -128,7 +128,8 @@ def compute_errors(res: Group) -> dict[str, ErrorSet]:
             else:
                 continue
             if k in e_angles or k in t_angles:
-                es.quantities[f"E_{k}"] = QuantityError(f"E_{k}", "deg", np.rad2deg(np.abs(angle_diff(col(e_names, xs, k), tv))), keep)
+                err = np.rad2deg(np.abs(angle_diff(col(e_names, xs, k), tv)))
+                es.quantities[f"E_{k}"] = QuantityError(f"E_{k}", "deg", err, keep)
             else:
                 es.quantities[f"E_{k}"] = QuantityError(f"E_{k}", unit, np.abs(col(e_names, xs, k) - tv), keep)
         es.not_estimated = [k for k in t_names if k not in e_names and k not in used]

@@ -150,6 +150,11 @@ class Model:
             return np.zeros(np.shape(x)[:-1], dtype=bool)
         return ~(m > self.near_singular_threshold)
 
+    def crossed_singularity(self, x: np.ndarray, xn: np.ndarray, p: Params) -> np.ndarray:
+        """Boolean ``(...)``: True where one step from ``x`` to ``xn`` jumped over the singularity without
+        a grid time inside the singular band. Never, unless a model says how to tell."""
+        return np.zeros(np.shape(xn)[:-1], dtype=bool)
+
     # ----------------------------------------------------------------- what sensors measure
     def tip_position(self, x: np.ndarray) -> np.ndarray:
         raise NotMeasurable(f"model {self.registered_name!r} has no tip position")

@@ -108,3 +108,8 @@ class BicycleNeedleModel(_MagneticBase):
     def singularity_margin(self, x, p):
         h, b = x[..., 3:6], x[..., 6:9]
         return np.abs(_dot(h, b)) / (np.linalg.norm(h, axis=-1) * np.linalg.norm(b, axis=-1))
+
+    def crossed_singularity(self, x, xn, p):
+        # B . h changes sign only through the singularity (which repels the exact flow): a step that
+        # jumps over the band |cos| < singular_threshold is caught here
+        return _dot(x[..., 3:6], x[..., 6:9]) * _dot(xn[..., 3:6], xn[..., 6:9]) < 0

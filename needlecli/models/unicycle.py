@@ -41,24 +41,30 @@ class Unicycle(Model):
     singular_reason = "cos(beta) -> 0: the generalized-coordinate unicycle is undefined at beta = +-pi/2"
 
     def f(self, x, u, p: Params):
-        a, b, g = x[..., 3], x[..., 4], x[..., 5]
         v, w = u[..., 0], u[..., 1]
-        sa, ca = np.sin(a), np.cos(a)
-        sb, cb = np.sin(b), np.cos(b)
-        sg, cg = np.sin(g), np.cos(g)
+        s, c = np.sin(x[..., 3:6]), np.cos(x[..., 3:6])  # one call each for the three angles
+        sa, sb, sg = s[..., 0], s[..., 1], s[..., 2]
+        ca, cb, cg = c[..., 0], c[..., 1], c[..., 2]
         kv = p["kappa"] * v
-        return np.stack(
-            [v * sb, -v * cb * sa, v * ca * cb, kv * cg / cb, kv * sg, w - kv * cg * sb / cb], -1
-        )
+        kvc = kv * cg / cb
+        out = np.empty(np.broadcast_shapes(x.shape, kv.shape + (6,)), dtype=np.result_type(x, u, kv))
+        out[..., 0] = v * sb
+        out[..., 1] = -v * cb * sa
+        out[..., 2] = v * ca * cb
+        out[..., 3] = kvc
+        out[..., 4] = kv * sg
+        out[..., 5] = w - kvc * sb
+        return out
 
     def initial_state(self, p: Params) -> np.ndarray:
         return np.zeros(6)
 
-    singular_threshold = 1e-6  # |cos(beta)|
+    singular_threshold = 1e-6  # cos(beta)
     near_singular_threshold = 1e-2
 
     def singularity_margin(self, x, p):
-        return np.abs(np.cos(x[..., 4]))
+        # signed: cos(beta) < 0 is outside the domain (-pi/2, pi/2), so a step that jumps over pi/2 counts
+        return np.cos(x[..., 4])
 
     def tip_position(self, x):
         return x[..., 0:3]
@@ -100,27 +106,22 @@ class ModifiedUnicycle(Unicycle):
     Params = ModifiedUnicycleParams
 
     def f(self, x, u, p: Params):
-        half_cut = 0.5 * p["beta_cut"]
-        a, b, g = x[..., 3], x[..., 4], x[..., 5]
-        kappa, v, w = x[..., 6], u[..., 0], u[..., 1]
-        sa, ca = np.sin(a), np.cos(a)
-        sb, cb = np.sin(b), np.cos(b)
-        sg, cg = np.sin(g), np.cos(g)
-        kv = kappa * v
+        v, w = u[..., 0], u[..., 1]
+        s, c = np.sin(x[..., 3:6]), np.cos(x[..., 3:6])
+        sa, sb, sg = s[..., 0], s[..., 1], s[..., 2]
+        ca, cb, cg = c[..., 0], c[..., 1], c[..., 2]
+        kv = x[..., 6] * v
         g_r = w - kv * cg * sb / cb
-        c = half_cut * g_r
-        return np.stack(
-            [
-                v * sb,
-                -v * cb * sa,
-                v * ca * cb,
-                kv * cg / cb - c * sg / cb,
-                kv * sg + c * cg,
-                g_r,
-                np.zeros_like(kv),
-            ],
-            -1,
-        )
+        cut = (0.5 * p["beta_cut"]) * g_r
+        out = np.empty(np.broadcast_shapes(x.shape, kv.shape + (7,)), dtype=np.result_type(x, u, cut))
+        out[..., 0] = v * sb
+        out[..., 1] = -v * cb * sa
+        out[..., 2] = v * ca * cb
+        out[..., 3] = (kv * cg - cut * sg) / cb
+        out[..., 4] = kv * sg + cut * cg
+        out[..., 5] = g_r
+        out[..., 6] = 0.0
+        return out
 
     def initial_state(self, p: Params) -> np.ndarray:
         x0 = np.zeros(7)

@@ -1,20 +1,20 @@
 """Pure array functions shared by models, sensors and observers. Every function broadcasts over
 leading batch axes; the last axis (or last two, for matrices) is the object itself."""
 
-from needlecli.numerics.angles import wrap_angle, angle_diff
-from needlecli.numerics.integrate import rk4_step, complex_step_jacobian, finite_difference_jacobian
+from needlecli.numerics.angles import angle_diff, wrap_angle
+from needlecli.numerics.integrate import complex_step_jacobian, finite_difference_jacobian, rk4_step
 from needlecli.numerics.rotations import (
+    euler_xyz_to_matrix,
     hat,
-    vee,
+    matrix_to_euler_xyz,
+    project_to_so3,
     rot_x,
     rot_y,
     rot_z,
-    euler_xyz_to_matrix,
-    matrix_to_euler_xyz,
+    rotation_angle,
     so3_exp,
     so3_log,
-    rotation_angle,
-    project_to_so3,
+    vee,
 )
 
 __all__ = [

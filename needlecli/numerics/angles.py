@@ -7,7 +7,8 @@ import numpy as np
 
 def wrap_angle(a: np.ndarray | float) -> np.ndarray:
     """Wrap angles to [-pi, pi). Works on any shape."""
-    return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
+    w = (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
+    return w - 2.0 * np.pi * (w >= np.pi)  # ``%`` rounds to 2 pi for a just below -pi (mod 2 pi)
 
 
 def angle_diff(a: np.ndarray | float, b: np.ndarray | float) -> np.ndarray:

@@ -112,12 +112,14 @@ def so3_log(r: np.ndarray) -> np.ndarray:
     small = th < 1e-8
     out = np.where(small[..., None], v, v * (th / ss)[..., None])
     if np.any(near_pi):
-        # axis from the symmetric part: R + I = 2 a a^T near pi
-        b = 0.5 * (r + np.eye(3))
+        # axis from the symmetric part: (R + R^T) / 2 - cos(th) I = (1 - cos th) a a^T (exact; R + I is not
+        # symmetric away from th = pi and biased the axis by O(pi - th))
+        b = 0.5 * (r + np.swapaxes(r, -1, -2)) - np.cos(th)[..., None, None] * np.eye(3)
         diag = np.diagonal(b, axis1=-2, axis2=-1)
         i = np.argmax(diag, axis=-1)
         col = np.take_along_axis(b, i[..., None, None], axis=-1)[..., 0]
-        ax = col / np.linalg.norm(col, axis=-1, keepdims=True)
+        nrm = np.linalg.norm(col, axis=-1, keepdims=True)
+        ax = col / np.where(nrm > 0, nrm, 1.0)  # zero only away from pi, where it is not used
         sign = np.where(np.sum(ax * v, axis=-1, keepdims=True) < 0, -1.0, 1.0)
         out = np.where(near_pi[..., None], sign * ax * th[..., None], out)
     return out

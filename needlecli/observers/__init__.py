@@ -1,5 +1,6 @@
 """State estimators, registered by type in :data:`OBSERVERS`."""
 
+from needlecli.observers import open_loop, ukf  # noqa: F401  (registers)
 from needlecli.observers.base import (
     OBSERVERS,
     Channel,
@@ -8,6 +9,5 @@ from needlecli.observers.base import (
     ObserverSettings,
     Posterior,
 )
-from needlecli.observers import open_loop  # noqa: F401  (registers)
 
 __all__ = ["OBSERVERS", "Channel", "EstimationProblem", "Observer", "ObserverSettings", "Posterior"]

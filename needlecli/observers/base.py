@@ -43,8 +43,10 @@ class Channel:
     t : (M,) acquisition times, s; ``t_available`` (M,) when they can be used
     index : (M,) index of ``t`` on the problem's time grid
     value : (N, M, m), NaN where not ``valid`` (N, M)
-    h : ``h(x (..., n)) -> (..., m)`` for the truth model's state, or None when the channel is not a
-        function of the state (e.g. encoder depth)
+    h : ``h(x (..., n)) -> (..., m)`` for the experiment model's state, or None when the channel is not
+        a function of the state (e.g. encoder depth)
+    h_for : ``h_for(model)`` gives the same measurement function for another model (an observer's own),
+        or None where that model cannot predict the channel
     sigma : (m,) the sensor's nominal noise std (observers may use their own R instead)
     angle : (m,) bool, channels compared wrapped
     """
@@ -61,6 +63,8 @@ class Channel:
     sigma: np.ndarray
     angle: np.ndarray
     h: Callable[[np.ndarray], np.ndarray] | None
+    h_for: Callable[[Model], Callable[[np.ndarray], np.ndarray] | None] = lambda model: None
+    unit_vector: bool = False
     attrs: Mapping = field(default_factory=dict)
 
 
@@ -129,8 +133,8 @@ class Observer:
         self.name = settings.name or settings.type
 
     @classmethod
-    def check(cls, settings: ObserverSettings, model: Model, sensors: Mapping[str, str]) -> list[tuple[tuple, str]]:
-        """Problems with running on ``model`` with ``sensors`` (name -> type): ``[(loc, message)]``."""
+    def check(cls, settings: ObserverSettings, model: Model, sensors: Mapping) -> list[tuple[tuple, str]]:
+        """Problems with running on ``model`` with ``sensors`` (name -> Sensor): ``[(loc, message)]``."""
         return []
 
     def run(self, problem: EstimationProblem, rng: np.random.Generator, progress=None) -> Posterior:

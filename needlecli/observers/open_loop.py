@@ -92,7 +92,7 @@ class OpenLoop(Observer):
             for k in range(T - 1):
                 u = problem.inputs[:, k]
                 dt = float(dt_all[k])
-                step = lambda xx: model.step(xx, u[:, None, :], params, dt)  # noqa: E731
+                step = lambda xx, u=u, dt=dt: model.step(xx, u[:, None, :], params, dt)
                 F = complex_step_jacobian(step, x)
                 xn = model.step(x, u, params, dt)
                 P = F @ P @ np.swapaxes(F, -1, -2) + np.diag(qd * dt)

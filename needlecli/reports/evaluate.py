@@ -8,6 +8,7 @@ from pathlib import Path
 import pandas as pd
 import yaml
 
+from needlecli.errors import DataError
 from needlecli.io.results import read_results
 from needlecli.metrics import compute_errors
 from needlecli.reports.tables import TABLES, write_table
@@ -36,7 +37,10 @@ def evaluate_results(
     """Compute the tables of a results file; write them (and plots) to ``out_dir`` when given."""
     path = Path(path)
     res = read_results(path)
-    errors = compute_errors(res)
+    try:
+        errors = compute_errors(res)
+    except KeyError as e:  # a readable HDF5 file that lacks part of the layout
+        raise DataError(f"{path}: incomplete results file (missing {e})") from None
     names = tables or configured_tables(res)
     out: dict[str, pd.DataFrame] = {}
     for name in names:

@@ -72,11 +72,17 @@ def status_table(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
     groups = [("truth", truth)] + list(res.data.get("estimates", Group()).data.items())
     for name, g in groups:
         st, rs = g.data["status"], g.data["reason"]
+        when = g.data.get("event_time")
         for s in np.unique(st):
-            reasons = sorted({r for r in rs[st == s] if r})
-            rows.append({"Source": name, "Status": s, "Runs": int((st == s).sum()),
-                         "Reasons": "; ".join(reasons)})
-    return pd.DataFrame(rows, columns=["Source", "Status", "Runs", "Reasons"])
+            sel = st == s
+            reasons = sorted({r for r in rs[sel] if r})
+            stopped = ""
+            if when is not None and s != "ok" and np.isfinite(when[sel]).any():
+                w = when[sel][np.isfinite(when[sel])]
+                stopped = f"{w.min():.2f}" if w.min() == w.max() else f"{w.min():.2f} to {w.max():.2f}"
+            rows.append({"Source": name, "Status": s, "Runs": int(sel.sum()),
+                         "Stopped at [s]": stopped, "Reasons": "; ".join(reasons)})
+    return pd.DataFrame(rows, columns=["Source", "Status", "Runs", "Stopped at [s]", "Reasons"])
 
 
 def _float_format(x: float) -> str:

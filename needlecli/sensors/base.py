@@ -129,7 +129,7 @@ class Sensor:
 
     def ideal(self, truth: Truth, idx: np.ndarray) -> np.ndarray:
         """Noise-free measurement ``(N, M, m)`` of the truth at grid indices ``idx``."""
-        return self.h(truth.states[:, idx])
+        return self.h(truth.states_at(idx))
 
     def sigma(self, truth: Truth, idx: np.ndarray) -> np.ndarray:
         """Noise standard deviation ``(N, M, m)`` at those samples."""

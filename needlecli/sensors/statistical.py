@@ -12,7 +12,7 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from needlecli.models import NotMeasurable
-from needlecli.schema import NonNeg, Positive, Strict
+from needlecli.schema import DistanceGrowth, NonNeg, Positive, Strict
 from needlecli.sensors.base import SENSORS, Sensor, SensorSettings
 
 Sigma = NonNeg | list[NonNeg]
@@ -25,14 +25,6 @@ def _per_channel(sigma: float | list[float], m: int, what: str) -> np.ndarray:
     if s.size != m:
         raise ValueError(f"{what} has {s.size} entries for {m} channels")
     return s
-
-
-class DistanceGrowth(Strict):
-    """Noise growing with distance from a transducer: ``sigma = (1 + a d / d_max) sigma_c`` (seed 003)."""
-
-    transducer: tuple[float, float, float] = Field(description="transducer position, model length unit")
-    a: NonNeg = 1.0
-    d_max: Positive = Field(80.0, description="normalising distance, model length unit")
 
 
 _AXES = ("x", "y", "z")
@@ -80,7 +72,7 @@ class PositionSensor(Sensor):
         g = self.settings.growth
         if g is None:
             return self._sigma
-        p = self.model.tip_position(truth.states[:, idx])
+        p = self.model.tip_position(truth.states_at(idx))
         d = np.linalg.norm(p - np.asarray(g.transducer), axis=-1)
         return (1.0 + g.a * d / g.d_max)[..., None] * self._sigma
 
@@ -142,7 +134,7 @@ class EncoderSensor(Sensor):
             elif c == "base_angle":
                 cols.append(np.broadcast_to(truth.base_angle[idx], (n_runs, len(idx))))
             else:
-                cols.append(self.model.roll(truth.states[:, idx]))
+                cols.append(self.model.roll(truth.states_at(idx)))
         return np.stack(cols, -1)
 
     def sigma(self, truth, idx):

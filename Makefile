@@ -1,0 +1,31 @@
+# needlecli: common tasks. `make help` lists them.
+PY ?= python
+
+.PHONY: help install demo test bench lint clean
+
+help:
+	@echo "make install  - install needlecli with test extras (editable)"
+	@echo "make demo     - run the bundled default experiment and write its tables"
+	@echo "make test     - run the test suite (what .ci/run runs)"
+	@echo "make bench    - speed benchmarks (figures also as ratios against an in-run reference)"
+	@echo "make lint     - ruff"
+	@echo "make clean    - remove results/ and caches"
+
+install:
+	$(PY) -m pip install -e '.[test]'
+
+demo:
+	needle simulate configs/default.yaml
+	needle evaluate results/default.h5
+
+test:
+	$(PY) -m pytest
+
+bench:
+	$(PY) benchmarks/bench_simulate.py
+
+lint:
+	$(PY) -m ruff check needlecli tests benchmarks
+
+clean:
+	rm -rf results .pytest_cache .ruff_cache .hypothesis

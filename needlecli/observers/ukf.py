@@ -1,0 +1,465 @@
+"""Multi-rate unscented Kalman filter of seed 003 (sec. 2.3, appendix B), batched over runs.
+
+Every Monte-Carlo run advances at once; sigma points are one more array axis. At each filter tick the
+sigma points are propagated with the model (RK4 on the grid steps since the last tick, inputs held per
+step), then updated with every measurement that became available in ``(t_{k-1}, t_k]``. Runs may differ
+in what arrived: missing entries are masked out of the gain, which is the same as removing their rows
+and columns (the matrices "sized to what arrived" of appendix B).
+
+Seed 003's additions: measurement-noise reset by distance to the transducer
+(``sigma = (1 + a d / d_max) sigma_c``, ``d`` from the measured tip), reset of ``P_kappa_kappa`` when the
+tip crosses a tissue interface, the curvature constraint ``0 <= kappa <= kappa_max`` (else keep the
+previous estimate), and final-position prediction from chosen observation depths. Optional chi-square
+innovation gating rejects outliers per channel (counted per run).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from pydantic import Field, model_validator
+from scipy.stats import chi2
+
+from needlecli.models import MODELS, Model
+from needlecli.numerics import wrap_angle
+from needlecli.numerics.unscented import (
+    MerweWeights,
+    residual,
+    robust_cholesky,
+    sigma_points,
+    symmetrize,
+    weighted_cov,
+    weighted_mean,
+)
+from needlecli.observers.base import (
+    OBSERVERS,
+    STATUS_DIVERGED,
+    STATUS_OK,
+    STATUS_SINGULAR,
+    EstimationProblem,
+    Observer,
+    ObserverSettings,
+    Posterior,
+    cov_steps,
+    shrink_cov,
+)
+from needlecli.schema import DistanceGrowth, NonNeg, Positive, Probability, Strict
+
+
+class MeasurementSpec(Strict):
+    """How the filter treats one measurement channel (a sensor, by name)."""
+
+    sigma: NonNeg | list[NonNeg] = Field(description="noise std per component (R = diag(sigma^2))")
+    growth: DistanceGrowth | None = Field(None, description="R reset by distance to the transducer")
+    gate: Probability | None = Field(None, description="chi-square gate probability, e.g. 0.999; off if unset")
+
+
+class UKFInit(Strict):
+    """Initial estimate. ``from: truth`` starts from the true initial state plus Gaussian noise of
+    ``std`` per state (seed 003: alpha, beta with 5 deg std); ``from: nominal`` from the model's default
+    pose and the observer's parameters. ``first_measurement`` then overwrites states with the first valid
+    sample of a channel component (``{x: us3d.x, gamma: robot.roll}``)."""
+
+    from_: Literal["truth", "nominal"] = Field("truth", alias="from")
+    std: dict[str, NonNeg] = Field(default_factory=dict)
+    values: dict[str, float] = Field(default_factory=dict, description="fixed initial values per state")
+    first_measurement: dict[str, str] = Field(default_factory=dict)
+
+
+class KappaReset(Strict):
+    """Reset of ``P_kappa_kappa`` to ``factor * P0_kappa_kappa`` when the tip crosses an interface."""
+
+    factor: Positive = 1.0
+    interfaces: str = Field("experiment", description="'experiment' or the name of an elastography channel")
+
+
+class UKFSettings(ObserverSettings):
+    type: Literal["ukf"]
+    model: str | None = Field(None, description="the filter's model (default: the experiment's)")
+    params: dict[str, float] = Field(default_factory=dict, description="the filter's model parameters")
+    rate: Positive | None = Field(None, description="filter rate, Hz (default: the simulation grid's)")
+    alpha: Positive = 1e-3
+    beta: NonNeg = 2.0
+    kappa: float = 0.0
+    q: dict[str, NonNeg] = Field(default_factory=dict, description="process noise std per state per tick")
+    p0: dict[str, NonNeg] = Field(default_factory=dict, description="initial variance per state")
+    measurements: dict[str, MeasurementSpec] = Field(default_factory=dict)
+    init: UKFInit = Field(default_factory=UKFInit)
+    kappa_max: Positive | None = Field(None, description="curvature constraint 0 <= kappa <= kappa_max")
+    kappa_reset: KappaReset | None = None
+    predict_at_depths: list[NonNeg] = Field(default_factory=list, description="observation depths for prediction")
+    max_cov_trace: Positive = Field(1e8, description="a run whose tr(P) exceeds this has diverged")
+
+    @model_validator(mode="after")
+    def _check(self):
+        if any(b <= a for a, b in zip(self.predict_at_depths, self.predict_at_depths[1:])):
+            raise ValueError("predict_at_depths must increase strictly")
+        return self
+
+
+def _component(spec: str) -> tuple[str, str]:
+    if "." not in spec:
+        raise ValueError(f"{spec!r} is not of the form channel.component")
+    ch, comp = spec.rsplit(".", 1)
+    return ch, comp
+
+
+@OBSERVERS.register("ukf")
+class UnscentedKalmanFilter(Observer):
+    r"""Batched multi-rate UKF with Merwe scaled sigma points (seed 003 uses alpha 1e-3, beta 2, kappa 0).
+
+    Prediction :math:`\mathcal X_{k|k-1} = f(\mathcal X_{k-1|k-1}, u)`,
+    :math:`P_{k|k-1} = \sum_i W^c_i \delta\mathcal X_i \delta\mathcal X_i^T + Q`; update with the
+    measurements available at tick ``k`` only. Angles are averaged and differenced wrapped.
+    """
+
+    Settings = UKFSettings
+
+    # ------------------------------------------------------------------ configuration checks
+    @classmethod
+    def _model_cls(cls, settings, model):
+        return MODELS.get(settings.model) if settings.model else type(model)
+
+    @classmethod
+    def check(cls, settings, model, sensors):
+        out = []
+        if settings.model and settings.model not in MODELS:
+            return [(("model",), f"unknown model {settings.model!r}; known: {', '.join(MODELS.names())}")]
+        mcls = cls._model_cls(settings, model)
+        for where, keys in (("q", settings.q), ("p0", settings.p0), ("init", settings.init.std)):
+            for k in keys:
+                if k not in mcls.state_names:
+                    loc = (where, k) if where != "init" else ("init", "std", k)
+                    out.append((loc, f"model {mcls.registered_name!r} has no state {k!r}"))
+        for k in settings.init.values:
+            if k not in mcls.state_names:
+                out.append((("init", "values", k), f"model {mcls.registered_name!r} has no state {k!r}"))
+        for k in settings.params:
+            if k not in mcls.Params.model_fields:
+                out.append((("params", k), f"model {mcls.registered_name!r} has no parameter {k!r}"))
+        try:
+            own = mcls(mcls.Params(**{**(model.params.model_dump() if mcls is type(model) else {}), **settings.params}))
+        except Exception as e:  # parameters out of the model's range
+            return out + [(("params",), str(e).splitlines()[-1].strip())]
+        from needlecli.experiments.runner import measurement_function
+
+        for name in settings.measurements:
+            if name not in sensors:
+                known = ", ".join(sensors) or "none"
+                out.append((("measurements", name), f"no sensor named {name!r}; sensors: {known}"))
+            elif measurement_function(sensors[name], own) is None:
+                out.append((("measurements", name),
+                            f"model {mcls.registered_name!r} cannot predict what sensor {name!r} measures"))
+        for state, spec in settings.init.first_measurement.items():
+            if state not in mcls.state_names:
+                out.append((("init", "first_measurement", state), f"model {mcls.registered_name!r} has no state {state!r}"))
+            try:
+                ch, _ = _component(spec)
+            except ValueError as e:
+                out.append((("init", "first_measurement", state), str(e)))
+                continue
+            if ch not in sensors:
+                out.append((("init", "first_measurement", state), f"no sensor named {ch!r}"))
+        for k in mcls.input_names:
+            if k not in model.input_names:
+                out.append((("model",), f"the filter's model needs input {k!r}, which the experiment does not give"))
+        if settings.kappa_max is not None or settings.kappa_reset is not None:
+            if mcls.curvature_param not in mcls.state_names:
+                out.append((("kappa_max" if settings.kappa_max is not None else "kappa_reset",),
+                            f"model {mcls.registered_name!r} has no curvature state"))
+        if settings.kappa_reset is not None and settings.kappa_reset.interfaces != "experiment":
+            sensor = sensors.get(settings.kappa_reset.interfaces)
+            if sensor is None or sensor.registered_name != "elastography":
+                out.append((("kappa_reset", "interfaces"), "must be 'experiment' or the name of an elastography sensor"))
+        return out
+
+    # ------------------------------------------------------------------ run
+    def run(self, problem: EstimationProblem, rng: np.random.Generator, progress=None) -> Posterior:
+        s = self.settings
+        mcls = self._model_cls(s, problem.model)
+        if mcls is type(problem.model) and not s.params:
+            model: Model = problem.model
+        else:
+            base = problem.model.params.model_dump() if mcls is type(problem.model) else {}
+            base.update(s.params)
+            model = mcls(mcls.Params(**base))
+        params = model.param_arrays()
+        n, N = model.n, problem.n_runs
+        angles = model.angle_mask
+        w = MerweWeights(n, s.alpha, s.beta, s.kappa)
+        wm, wc = w.wm, w.wc
+        time = problem.time
+        T = len(time)
+        dt_grid = float(time[1] - time[0]) if T > 1 else 1.0
+        stride = 1 if s.rate is None else max(1, int(round(1.0 / (s.rate * dt_grid))))
+        ticks = np.arange(0, T, stride)
+        if ticks[-1] != T - 1:
+            ticks = np.append(ticks, T - 1)
+        # inputs of the filter's model, by name from the experiment's
+        in_cols = []
+        for k in model.input_names:
+            sl = problem.model.input_slice(k)
+            in_cols.extend(range(sl.start, sl.stop))
+        inputs = problem.inputs[..., in_cols]
+
+        # --- channels used, and the tick at which each sample becomes available
+        chans = self._channels(problem, model)
+
+        # --- initial estimate
+        x, P0 = self._initial(problem, model, params, rng, chans)
+        P = np.broadcast_to(P0, (N, n, n)).copy()
+        Q = np.diag(np.array([s.q.get(k, 0.0) for k in model.state_names]) ** 2)
+        kappa_i = model.index(model.curvature_param) if model.curvature_param in model.state_names else None
+        interfaces = self._interfaces(problem, N)
+
+        # --- outputs
+        states = np.empty((N, T, n))
+        keep = set(cov_steps(T, problem.cov_stride).tolist())
+        covs: list[np.ndarray] | None = [] if problem.cov_layout != "none" else None
+        status = np.full(N, STATUS_OK, dtype=object)
+        reason = np.full(N, "", dtype=object)
+        alive = np.ones(N, dtype=bool)
+        repairs = np.zeros(N, dtype=np.int64)
+        constraint_hits = np.zeros(N, dtype=np.int64)
+        resets = np.zeros(N, dtype=np.int64)
+        gated = {c["name"]: np.zeros(N, dtype=np.int64) for c in chans}
+        used = {c["name"]: np.zeros(N, dtype=np.int64) for c in chans}
+        depths = np.asarray(s.predict_at_depths, dtype=float)
+        pred_final = np.full((N, len(depths), n), np.nan)
+        pred_tick = np.full(len(depths), -1, dtype=np.int64)
+
+        def emit(lo: int, hi: int, xv: np.ndarray, pv: np.ndarray) -> None:
+            """Store the estimate for grid steps lo..hi (held between ticks)."""
+            states[:, lo : hi + 1] = xv[:, None, :]
+            if covs is not None:
+                for j in range(lo, hi + 1):
+                    if j in keep:
+                        covs.append(shrink_cov(pv, problem.cov_layout))
+
+        # samples available at t = 0 serve the initialisation only; updates start with the first tick
+        x_good, P_good = x, P
+        emit(0, 0, x, P)
+        every = max(1, len(ticks) // 100)
+        with np.errstate(all="ignore"):
+            for i in range(1, len(ticks)):
+                k0, k1 = ticks[i - 1], ticks[i]
+                # ---- predict: sigma points through the model over the grid steps of this tick
+                root, bad = robust_cholesky(P)
+                repairs += bad & alive
+                X = sigma_points(x, root, w, angles)
+                for j in range(k0, k1):
+                    X = model.step(X, inputs[:, j, None, :], params, dt_grid)
+                x_prev = x
+                x = weighted_mean(X, wm, angles)
+                dX = residual(X, x[..., None, :], angles)
+                P = symmetrize(weighted_cov(dX, dX, wc) + Q)
+                # ---- tissue interface: reset the curvature variance
+                if s.kappa_reset is not None and kappa_i is not None and interfaces.size:
+                    d0, d1 = problem.depth[:, k0], problem.depth[:, k1]
+                    crossed = np.any((d0[:, None] < interfaces) & (interfaces <= d1[:, None]), axis=-1) & alive
+                    if crossed.any():
+                        target = s.kappa_reset.factor * P0[kappa_i, kappa_i]
+                        add = np.maximum(target - P[:, kappa_i, kappa_i], 0.0) * crossed
+                        P[:, kappa_i, kappa_i] += add
+                        resets += crossed
+                # ---- update with what arrived in (t_k0, t_k1]
+                x, P = self._update(x, P, X, k0, k1, chans, w, alive, gated, used, angles)
+                # ---- curvature constraint: keep the previous estimate outside [0, kappa_max]
+                if kappa_i is not None and s.kappa_max is not None:
+                    kk = x[:, kappa_i]
+                    out = ((kk < 0) | (kk > s.kappa_max)) & alive
+                    if out.any():
+                        x[out, kappa_i] = x_prev[out, kappa_i]
+                        constraint_hits += out
+                # ---- divergence and model singularity
+                tr = np.trace(P, axis1=-2, axis2=-1)
+                finite = np.isfinite(x).all(-1) & np.isfinite(P).all(axis=(-1, -2))
+                sing = model.singular(x, params)
+                bad = alive & (~finite | (tr > s.max_cov_trace) | sing)
+                if bad.any():
+                    is_s = bad & sing & finite
+                    status[is_s] = STATUS_SINGULAR
+                    reason[is_s] = f"{model.singular_reason} (t = {time[k1]:.2f} s)"
+                    is_d = bad & ~is_s
+                    status[is_d] = STATUS_DIVERGED
+                    reason[is_d] = f"non-finite or exploding covariance at t = {time[k1]:.2f} s"
+                    alive &= ~bad
+                # a stopped run holds its last good estimate
+                x = np.where(alive[:, None], x, x_good)
+                P = np.where(alive[:, None, None], P, P_good)
+                x_good, P_good = x, P
+                emit(k0 + 1, k1, x, P)
+                # ---- final-position prediction from the observation depths reached now
+                if depths.size:
+                    dnow = problem.depth[0, k1]
+                    due = np.nonzero((pred_tick < 0) & (depths <= dnow + 1e-9))[0]
+                    if due.size:
+                        final = self._rollout(model, x, inputs, params, k1, T, dt_grid)
+                        pred_final[:, due] = final[:, None, :]
+                        pred_tick[due] = k1
+                if progress is not None and (i % every == 0 or i == len(ticks) - 1):
+                    progress(i, len(ticks) - 1)
+        cov = np.stack(covs, 1) if covs is not None else None
+        extras = {
+            "cholesky_repairs": repairs,
+            "constraint_hits": constraint_hits,
+            "kappa_resets": resets,
+        }
+        for c in chans:
+            extras[f"used/{c['name']}"] = used[c["name"]]
+            extras[f"gated/{c['name']}"] = gated[c["name"]]
+        if depths.size:
+            extras["prediction/depth"] = depths
+            extras["prediction/time"] = np.where(pred_tick >= 0, time[np.maximum(pred_tick, 0)], np.nan)
+            extras["prediction/final_state"] = pred_final
+        return Posterior(
+            state=states,
+            cov=cov,
+            status=status.astype(str),
+            reason=reason.astype(str),
+            names=model.state_names,
+            units=model.state_units,
+            angle_states=model.angle_states,
+            extras=extras,
+            attrs={"filter_rate": 1.0 / (stride * dt_grid), "model": model.registered_name,
+                   "sigma_alpha": s.alpha, "sigma_beta": s.beta, "sigma_kappa": s.kappa},
+        )
+
+    # ------------------------------------------------------------------ pieces
+    def _channels(self, problem: EstimationProblem, model: Model) -> list[dict]:
+        s = self.settings
+        names = list(s.measurements) or [c for c, ch in problem.channels.items() if ch.h_for(model) is not None]
+        dt = float(problem.time[1] - problem.time[0]) if len(problem.time) > 1 else 1.0
+        out = []
+        for name in names:
+            ch = problem.channels[name]
+            h = ch.h_for(model)
+            if h is None:
+                raise ValueError(f"channel {name!r} cannot be predicted from model {model.registered_name!r}")
+            m = len(ch.names)
+            spec = s.measurements.get(name)
+            sigma = np.broadcast_to(np.asarray(spec.sigma if spec else ch.sigma, dtype=float), (m,)).copy()
+            growth = spec.growth if spec else None
+            pos_cols = [i for i, c in enumerate(ch.names) if c in ("x", "y", "z")]
+            avail = np.ceil(ch.t_available / dt - 1e-9).astype(np.int64)
+            order = np.argsort(avail, kind="stable")
+            out.append({
+                "name": name, "h": h, "m": m, "sigma": sigma, "growth": growth,
+                "pos_cols": pos_cols, "pos_axes": [("x", "y", "z").index(ch.names[i]) for i in pos_cols],
+                "gate": chi2.ppf(spec.gate, m) if spec and spec.gate else None,
+                "angle": np.asarray(ch.angle, dtype=bool), "value": ch.value, "valid": ch.valid,
+                "avail": avail[order], "order": order, "channel": ch,
+            })
+        return out
+
+    def _initial(self, problem, model, params, rng, chans):
+        s = self.settings
+        N, n = problem.n_runs, model.n
+        x = np.broadcast_to(np.asarray(model.initial_state(params), dtype=float), (N, n)).copy()
+        if s.init.from_ == "truth" and problem.initial_truth is not None:
+            for i, name in enumerate(model.state_names):
+                if name in problem.model.state_names:
+                    x[:, i] = problem.initial_truth[:, problem.model.index(name)]
+        for name, v in s.init.values.items():
+            x[:, model.index(name)] = v
+        std = np.array([s.init.std.get(k, 0.0) for k in model.state_names])
+        x = x + std * rng.standard_normal(x.shape)
+        for state, spec in s.init.first_measurement.items():
+            ch_name, comp = spec.rsplit(".", 1)
+            ch = problem.channels[ch_name]
+            if comp not in ch.names:
+                raise ValueError(f"channel {ch_name!r} has no component {comp!r}; it has {', '.join(ch.names)}")
+            valid = ch.valid
+            first = np.argmax(valid, axis=1)
+            has = valid.any(axis=1)
+            vals = ch.value[np.arange(N), first, ch.names.index(comp)]
+            x[has, model.index(state)] = vals[has]
+        ang = model.angle_mask
+        x[:, ang] = wrap_angle(x[:, ang])
+        x = model.normalize(x)
+        p0 = np.array([s.p0.get(k, s.init.std.get(k, 0.0) ** 2) for k in model.state_names])
+        return x, np.diag(np.maximum(p0, 1e-12))
+
+    def _interfaces(self, problem, N) -> np.ndarray:
+        r = self.settings.kappa_reset
+        if r is None:
+            return np.zeros(0)
+        if r.interfaces == "experiment":
+            return np.asarray(problem.interfaces, dtype=float)
+        return np.asarray(problem.channels[r.interfaces].attrs.get("interfaces", np.zeros((N, 0))), dtype=float)
+
+    def _update(self, x, P, X, k0, k1, chans, w, alive, gated, used, angles):
+        """Update with every sample that became available in (k0, k1], per run where valid."""
+        N = x.shape[0]
+        ys, masks, rs, hs, angs, blocks = [], [], [], [], [], []
+        for c in chans:
+            lo = np.searchsorted(c["avail"], k0, side="right")
+            hi = np.searchsorted(c["avail"], k1, side="right")
+            if lo == hi:
+                continue
+            y = np.zeros((N, c["m"]))
+            v = np.zeros(N, dtype=bool)
+            for j in c["order"][lo:hi]:  # the latest valid sample of the window wins (usually one)
+                vj = c["valid"][:, j] & alive
+                y = np.where(vj[:, None], c["value"][:, j], y)
+                v |= vj
+            if not v.any():
+                continue
+            sig = np.broadcast_to(c["sigma"], (N, c["m"])).copy()
+            if c["growth"] is not None and c["pos_cols"]:
+                g = c["growth"]
+                tr = np.asarray(g.transducer)[c["pos_axes"]]
+                d = np.linalg.norm(y[:, c["pos_cols"]] - tr, axis=-1)
+                f = 1.0 + g.a * d / g.d_max
+                sig[:, c["pos_cols"]] *= f[:, None]
+            start = sum(b[2] for b in blocks)
+            blocks.append((c, start, c["m"]))
+            ys.append(y)
+            masks.append(np.broadcast_to(v[:, None], (N, c["m"])))
+            rs.append(sig**2)
+            hs.append(c["h"](X))
+            angs.append(c["angle"])
+        if not ys:
+            return x, P
+        y = np.concatenate(ys, -1)
+        mask = np.concatenate(masks, -1).astype(float)
+        R = np.concatenate(rs, -1)
+        Y = np.concatenate(hs, -1)  # (N, S, M)
+        ang_y = np.concatenate(angs)
+        y_hat = weighted_mean(Y, w.wm, ang_y)
+        dY = residual(Y, y_hat[:, None, :], ang_y)
+        dX = residual(X, x[:, None, :], angles)
+        Pyy = weighted_cov(dY, dY, w.wc) + R[..., None] * np.eye(R.shape[-1])
+        Pxy = weighted_cov(dX, dY, w.wc)
+        nu = np.where(mask > 0, residual(y, y_hat, ang_y), 0.0)
+        # chi-square gating per channel block
+        for c, start, m in blocks:
+            sl = slice(start, start + m)
+            on = mask[:, start] > 0
+            if c["gate"] is not None:
+                S = Pyy[:, sl, sl]
+                nis = np.einsum("ni,ni->n", nu[:, sl], np.linalg.solve(S, nu[:, sl][..., None])[..., 0])
+                out = on & ~(nis <= c["gate"])
+                if out.any():
+                    mask[out, sl] = 0.0
+                    nu[out, sl] = 0.0
+                    gated[c["name"]] += out
+                    on = on & ~out
+            used[c["name"]] += on
+        mm = mask[:, :, None] * mask[:, None, :]
+        Pyy_m = Pyy * mm + np.eye(Pyy.shape[-1]) * (1.0 - mask)[:, None, :]
+        Pxy_m = Pxy * mask[:, None, :]
+        K = np.swapaxes(np.linalg.solve(Pyy_m, np.swapaxes(Pxy_m, -1, -2)), -1, -2)  # (N, n, M)
+        x = x + np.einsum("nij,nj->ni", K, nu)
+        if angles.any():
+            x[:, angles] = wrap_angle(x[:, angles])
+        P = symmetrize(P - K @ Pyy_m @ np.swapaxes(K, -1, -2))
+        return x, P
+
+    @staticmethod
+    def _rollout(model, x, inputs, params, k_from, T, dt):
+        """The model from the estimate at step ``k_from`` to the end of the grid with the planned inputs."""
+        for j in range(k_from, T - 1):
+            x = model.step(x, inputs[:, j], params, dt)
+        return x

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 
@@ -25,7 +26,7 @@ class DistanceGrowth(Strict):
     a: NonNeg = 1.0
     d_max: Positive = Field(80.0, description="normalising distance, model length unit")
 
-    def factor(self, position: "np.ndarray") -> "np.ndarray":
+    def factor(self, position: np.ndarray) -> np.ndarray:
         """``1 + a d / d_max`` for positions ``(..., 3)``."""
         import numpy as np
 

@@ -131,6 +131,8 @@ def results_tree(cfg, config_text, truth: Truth, streams, estimates, sensors) ->
             "interfaces": truth.interfaces,
         },
         attrs={"names": model.state_names, "units": model.state_units, "angles": model.angle_states},
+        dataset_attrs={"state": {"names": model.state_names, "units": model.state_units,
+                                 "angles": model.angle_states}},
     )
     inputs = Group()
     for k, v in truth.input_dict().items():
@@ -138,6 +140,7 @@ def results_tree(cfg, config_text, truth: Truth, streams, estimates, sensors) ->
         inputs.data[k] = np.broadcast_to(arr, (n_runs,) + arr.shape)
     for k in model.input_names:
         inputs.attrs[f"{k}_unit"] = model.input_units[k]
+        inputs.dataset_attrs[k] = {"unit": model.input_units[k]}
     root.data["inputs"] = inputs
     meas = Group()
     for s in sensors:
@@ -148,7 +151,8 @@ def results_tree(cfg, config_text, truth: Truth, streams, estimates, sensors) ->
             "value": st.value, "valid": st.valid, "sigma": st.sigma,
         }
         data.update({k: v for k, v in st.attrs.items() if isinstance(v, np.ndarray)})
-        meas.data[s.name] = Group(data=data, attrs={"names": st.names, "units": st.units, **attrs})
+        meas.data[s.name] = Group(data=data, attrs={"names": st.names, "units": st.units, **attrs},
+                                  dataset_attrs={"value": {"names": st.names, "units": st.units}})
     root.data["measurements"] = meas
     est = Group()
     for name, post in estimates.items():
@@ -161,6 +165,9 @@ def results_tree(cfg, config_text, truth: Truth, streams, estimates, sensors) ->
             data["cov_index"] = cov_steps(T, cfg.output.store_every)
         data.update(post.extras)
         attrs.update(post.attrs)
-        est.data[name] = Group(data=data, attrs=attrs)
+        ds = {"state": {"names": post.names, "units": post.units, "angles": post.angle_states}}
+        if post.cov is not None:
+            ds["cov"] = {"layout": cfg.output.covariance, "stride": cfg.output.store_every}
+        est.data[name] = Group(data=data, attrs=attrs, dataset_attrs=ds)
     root.data["estimates"] = est
     return root

@@ -167,7 +167,7 @@ def simulate_truth(cfg, *, runs: int | None = None, progress: Callable[[int, int
                 xn = xn + q * rng_q.standard_normal(xn.shape)
             pk1 = p_at(k + 1)
             xn = model.sync_params(xn, pk1)
-            sing = model.singular(xn, pk1) | model.crossed_singularity(x, xn, pk1)
+            sing = model.left_domain(x, xn, pk1)
             finite = np.isfinite(xn).all(-1)
             bad = (sing | ~finite) & alive
             if bad.any():

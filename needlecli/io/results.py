@@ -63,6 +63,7 @@ class Group:
 
     data: dict[str, Any] = field(default_factory=dict)
     attrs: dict[str, Any] = field(default_factory=dict)
+    dataset_attrs: dict[str, dict[str, Any]] = field(default_factory=dict)  # attributes of one dataset
 
 
 def _attr(v):
@@ -87,6 +88,8 @@ def _write_group(g: h5py.Group, grp: Group) -> None:
             g.create_dataset(k, data=arr, chunks=True, compression="gzip", compression_opts=1, shuffle=True)
         else:
             g.create_dataset(k, data=arr)
+        for ak, av in grp.dataset_attrs.get(k, {}).items():
+            g[k].attrs[ak] = _attr(av)
 
 
 def write_atomic(path: str | Path, root: Group) -> Path:

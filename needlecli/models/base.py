@@ -155,6 +155,10 @@ class Model:
         a grid time inside the singular band. Never, unless a model says how to tell."""
         return np.zeros(np.shape(xn)[:-1], dtype=bool)
 
+    def left_domain(self, x: np.ndarray, xn: np.ndarray, p: Params) -> np.ndarray:
+        """Whether the step ``x -> xn`` ended in, or jumped over, the singularity (what runs check)."""
+        return self.singular(xn, p) | self.crossed_singularity(x, xn, p)
+
     # ----------------------------------------------------------------- what sensors measure
     def tip_position(self, x: np.ndarray) -> np.ndarray:
         raise NotMeasurable(f"model {self.registered_name!r} has no tip position")

@@ -97,7 +97,7 @@ class OpenLoop(Observer):
                 xn = model.step(x, u, params, dt)
                 P = F @ P @ np.swapaxes(F, -1, -2) + np.diag(qd * dt)
                 P = 0.5 * (P + np.swapaxes(P, -1, -2))
-                sing = model.singular(xn, params)
+                sing = model.left_domain(x, xn, params)
                 bad = alive & (sing | ~np.isfinite(xn).all(-1))
                 if bad.any():
                     status[bad & sing] = STATUS_SINGULAR

@@ -275,7 +275,7 @@ class UnscentedKalmanFilter(Observer):
                 # ---- divergence and model singularity
                 tr = np.trace(P, axis1=-2, axis2=-1)
                 finite = np.isfinite(x).all(-1) & np.isfinite(P).all(axis=(-1, -2))
-                sing = model.singular(x, params)
+                sing = model.left_domain(x_good, x, params)
                 bad = alive & (~finite | (tr > s.max_cov_trace) | sing)
                 if bad.any():
                     is_s = bad & sing & finite
@@ -408,10 +408,7 @@ class UnscentedKalmanFilter(Observer):
                 continue
             sig = np.broadcast_to(c["sigma"], (N, c["m"])).copy()
             if c["growth"] is not None and c["pos_cols"]:
-                g = c["growth"]
-                tr = np.asarray(g.transducer)[c["pos_axes"]]
-                d = np.linalg.norm(y[:, c["pos_cols"]] - tr, axis=-1)
-                f = 1.0 + g.a * d / g.d_max
+                f = c["growth"].factor(y[:, c["pos_cols"]], axes=c["pos_axes"])
                 sig[:, c["pos_cols"]] *= f[:, None]
             start = sum(b[2] for b in blocks)
             blocks.append((c, start, c["m"]))

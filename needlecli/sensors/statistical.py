@@ -12,7 +12,7 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from needlecli.models import NotMeasurable
-from needlecli.schema import DistanceGrowth, NonNeg, Positive, Strict
+from needlecli.schema import DistanceGrowth, NonNeg
 from needlecli.sensors.base import SENSORS, Sensor, SensorSettings
 
 Sigma = NonNeg | list[NonNeg]
@@ -72,9 +72,7 @@ class PositionSensor(Sensor):
         g = self.settings.growth
         if g is None:
             return self._sigma
-        p = self.model.tip_position(truth.states_at(idx))
-        d = np.linalg.norm(p - np.asarray(g.transducer), axis=-1)
-        return (1.0 + g.a * d / g.d_max)[..., None] * self._sigma
+        return g.factor(self.model.tip_position(truth.states_at(idx)))[..., None] * self._sigma
 
 
 class EncoderSettings(SensorSettings):

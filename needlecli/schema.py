@@ -26,9 +26,8 @@ class DistanceGrowth(Strict):
     a: NonNeg = 1.0
     d_max: Positive = Field(80.0, description="normalising distance, model length unit")
 
-    def factor(self, position: np.ndarray) -> np.ndarray:
-        """``1 + a d / d_max`` for positions ``(..., 3)``."""
-        import numpy as np
-
-        d = np.linalg.norm(np.asarray(position) - np.asarray(self.transducer), axis=-1)
+    def factor(self, position: np.ndarray, axes: list[int] | None = None) -> np.ndarray:
+        """``1 + a d / d_max`` for positions ``(..., 3)`` (or ``(..., len(axes))`` of those axes)."""
+        tr = np.asarray(self.transducer) if axes is None else np.asarray(self.transducer)[axes]
+        d = np.linalg.norm(np.asarray(position) - tr, axis=-1)
         return 1.0 + self.a * d / self.d_max

@@ -282,7 +282,9 @@ class _UniqueKeyLoader(yaml.SafeLoader):
 
     def construct_mapping(self, node, deep=False):
         seen = set()
-        for key_node, _ in node.value:
+        for key_node, _ in node.value:  # the keys written in this mapping, before '<<' merges add theirs
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue
             key = self.construct_object(key_node, deep=deep)
             if isinstance(key, (str, int, float, bool)) and key in seen:
                 raise yaml.constructor.ConstructorError(
@@ -415,6 +417,11 @@ def check_consistency(cfg, source: str) -> None:
             raise ConfigError(source, ("inputs", name), f"needs {size} value(s) per sample, got {signal_size(sig)}")
         if getattr(sig, "kind", "") == "flips" and sig.at_depths is not None and name == model_cls.insertion_input:
             raise ConfigError(source, ("inputs", name), "the insertion input cannot be triggered by depth")
+        if getattr(sig, "kind", "") == "cases" and name == model_cls.insertion_input:
+            raise ConfigError(source, ("inputs", name), "the insertion input cannot differ between runs (cases)")
+    n_cases = {len(sig.cases) for sig in cfg.inputs.values() if getattr(sig, "kind", "") == "cases"}
+    if len(n_cases) > 1:
+        raise ConfigError(source, ("inputs",), f"inputs given as cases must have the same number of cases, not {sorted(n_cases)}")
     if model_cls.insertion_input not in cfg.inputs:
         raise ConfigError(source, ("inputs", model_cls.insertion_input), "required key is missing (insertion speed)")
     if cfg.stop.depth is not None:

@@ -64,7 +64,7 @@ def build_problem(cfg, truth: Truth, sensors, streams: dict[str, MeasurementStre
     n_runs = truth.states.shape[0]
     return EstimationProblem(
         time=truth.time,
-        inputs=np.broadcast_to(truth.inputs, (n_runs,) + truth.inputs.shape),
+        inputs=truth.inputs,
         input_names=truth.model.input_names,
         depth=np.broadcast_to(truth.depth, (n_runs, len(truth.time))),
         channels=channels,
@@ -136,8 +136,10 @@ def results_tree(cfg, config_text, truth: Truth, streams, estimates, sensors) ->
     )
     inputs = Group()
     for k, v in truth.input_dict().items():
-        arr = v[:, 0] if v.shape[1] == 1 else v
-        inputs.data[k] = np.broadcast_to(arr, (n_runs,) + arr.shape)
+        inputs.data[k] = v[..., 0] if v.shape[-1] == 1 else v
+    if truth.case is not None:
+        inputs.data["case"] = truth.case
+        inputs.attrs["case_labels"] = truth.case_labels
     for k in model.input_names:
         inputs.attrs[f"{k}_unit"] = model.input_units[k]
         inputs.dataset_attrs[k] = {"unit": model.input_units[k]}

@@ -63,17 +63,57 @@ class FlipSignal(Strict):
         return self
 
 
-Signal = Annotated[Union[ConstantSignal, PiecewiseSignal, FlipSignal], Field(discriminator="kind")]
+PlainSignal = Annotated[Union[ConstantSignal, PiecewiseSignal, FlipSignal], Field(discriminator="kind")]
 
 
 def as_signal(v):
     """Plain numbers and lists are constant signals."""
     if isinstance(v, (int, float, list)) and not isinstance(v, bool):
         return {"kind": "constant", "value": v}
+    if isinstance(v, dict) and v.get("kind") == "cases" and isinstance(v.get("cases"), list):
+        return {**v, "cases": [as_signal(c) for c in v["cases"]]}
     return v
 
 
-def signal_size(sig: ConstantSignal | PiecewiseSignal | FlipSignal) -> int:
+class CasesSignal(Strict):
+    """Different schedules for different runs: run ``i`` follows case ``i mod len(cases)`` (seed 003
+    Fig. 7 compares rotation schedules this way). Not for the insertion input, whose integral is the
+    depth shared by all runs."""
+
+    kind: Literal["cases"]
+    cases: list[PlainSignal] = Field(min_length=1)
+    labels: list[str] | None = None
+
+    @model_validator(mode="after")
+    def _check(self):
+        if self.labels is not None and len(self.labels) != len(self.cases):
+            raise ValueError(f"labels has {len(self.labels)} entries for {len(self.cases)} cases")
+        if len({signal_size(c) for c in self.cases}) > 1:
+            raise ValueError("all cases must have the same size")
+        return self
+
+    def case_labels(self) -> list[str]:
+        return list(self.labels) if self.labels is not None else [describe(c) for c in self.cases]
+
+
+Signal = Annotated[Union[ConstantSignal, PiecewiseSignal, FlipSignal, CasesSignal], Field(discriminator="kind")]
+
+
+def describe(sig) -> str:
+    """A short label of a signal for legends and tables."""
+    if isinstance(sig, ConstantSignal):
+        return f"constant {sig.value}"
+    if isinstance(sig, PiecewiseSignal):
+        return f"piecewise ({len(sig.times)} knots, {sig.interp})"
+    if isinstance(sig, FlipSignal):
+        at = f"at depths {sig.at_depths}" if sig.at_depths is not None else f"at t = {sig.at_times}"
+        return f"flips {at}"
+    return sig.kind
+
+
+def signal_size(sig) -> int:
+    if isinstance(sig, CasesSignal):
+        return signal_size(sig.cases[0])
     if isinstance(sig, ConstantSignal):
         return int(np.size(sig.value))
     if isinstance(sig, PiecewiseSignal):
@@ -82,8 +122,11 @@ def signal_size(sig: ConstantSignal | PiecewiseSignal | FlipSignal) -> int:
 
 
 def evaluate_signal(sig, time: np.ndarray, depth: np.ndarray | None) -> np.ndarray:
-    """Samples ``(T, size)`` of a signal on the grid ``time``; ``depth (T,)`` for depth-triggered kinds."""
+    """Samples ``(T, size)`` of a signal on the grid ``time`` (``(K, T, size)`` for K cases);
+    ``depth (T,)`` for depth-triggered kinds."""
     T = len(time)
+    if isinstance(sig, CasesSignal):
+        return np.stack([evaluate_signal(c, time, depth) for c in sig.cases])
     if isinstance(sig, ConstantSignal):
         return np.broadcast_to(np.atleast_1d(np.asarray(sig.value, dtype=float)), (T, signal_size(sig))).copy()
     if isinstance(sig, PiecewiseSignal):

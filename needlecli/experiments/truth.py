@@ -25,8 +25,9 @@ def stream(seed: int, name: str) -> np.random.Generator:
 class Truth:
     """The simulated insertions.
 
-    time (T,) s; states (N, T, n); inputs (T, m) flat, the same for every run; depth (T,) inserted
-    length; base_angle (T,) integral of the rotation input; params name -> (N, T) (curvature follows
+    time (T,) s; states (N, T, n); inputs (N, T, m) flat (a broadcast view when every run has the same
+    schedule); case (N,) index of the input case of each run (``case_labels``); depth (T,) inserted
+    length; base_angle (N, T) integral of the rotation input; params name -> (N, T) (curvature follows
     the tissue layers); status / reason (N,) str; event_time (N,) time a run stopped (NaN if it did
     not); valid_until (N,) last time with a valid state.
     """
@@ -42,6 +43,8 @@ class Truth:
     status: np.ndarray
     reason: np.ndarray
     event_time: np.ndarray
+    case: np.ndarray | None = None
+    case_labels: list[str] | None = None
 
     @property
     def valid_until(self) -> np.ndarray:
@@ -57,7 +60,8 @@ class Truth:
         return self.states[:, idx]
 
     def input_dict(self) -> dict[str, np.ndarray]:
-        return {k: self.inputs[:, self.model.input_slice(k)] for k in self.model.input_names}
+        """Inputs by name, ``(N, T, size)``."""
+        return {k: self.inputs[..., self.model.input_slice(k)] for k in self.model.input_names}
 
 
 def time_grid(cfg, model: Model) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
@@ -112,7 +116,15 @@ def simulate_truth(cfg, *, runs: int | None = None, progress: Callable[[int, int
     time, depth, input_dict = time_grid(cfg, model)
     T = len(time)
     dt = cfg.simulation.dt
-    u = np.concatenate([input_dict[k] for k in model.input_names], -1)  # (T, m)
+    # per-run inputs: run i follows case i mod K of every input given as cases (all with the same K)
+    n_cases = max((a.shape[0] for a in input_dict.values() if a.ndim == 3), default=0)
+    case = np.arange(n_runs) % n_cases if n_cases else None
+    per_run = [a[case] if a.ndim == 3 else np.broadcast_to(a, (n_runs,) + a.shape) for a in
+               (input_dict[k] for k in model.input_names)]
+    u = np.concatenate(per_run, -1) if n_cases else np.broadcast_to(
+        np.concatenate([input_dict[k] for k in model.input_names], -1), (n_runs, T, model.m))
+    case_labels = next((cfg.inputs[k].case_labels() for k in model.input_names
+                        if k in cfg.inputs and getattr(cfg.inputs[k], "kind", "") == "cases"), None)
 
     # parameters: per run (param_std), per step (tissue layers)
     rng_p = stream(seed, "truth/params")
@@ -162,7 +174,7 @@ def simulate_truth(cfg, *, runs: int | None = None, progress: Callable[[int, int
     with np.errstate(all="ignore"):
         for k in range(T - 1):
             pk = p_at(k)
-            xn = model.step(x, u[k], pk, dt)
+            xn = model.step(x, u[:, k], pk, dt)
             if use_q:
                 xn = xn + q * rng_q.standard_normal(xn.shape)
             pk1 = p_at(k + 1)
@@ -191,10 +203,11 @@ def simulate_truth(cfg, *, runs: int | None = None, progress: Callable[[int, int
     interfaces = (
         np.array([layer.depth for layer in cfg.tissue.layers[1:]]) if cfg.tissue is not None else np.zeros(0)
     )
-    vi = input_dict.get("u")
-    base_angle = (
-        np.concatenate([[0.0], np.cumsum(vi[:-1, 0] * dt)]) if vi is not None and vi.shape[1] == 1 else np.zeros(T)
-    )
+    if "u" in model.input_names and model.input_sizes["u"] == 1:
+        w = u[:, :-1, model.input_slice("u").start]
+        base_angle = np.concatenate([np.zeros((n_runs, 1)), np.cumsum(w * dt, axis=1)], axis=1)
+    else:
+        base_angle = np.zeros((n_runs, T))
     return Truth(
         model=model,
         time=time,
@@ -207,5 +220,7 @@ def simulate_truth(cfg, *, runs: int | None = None, progress: Callable[[int, int
         status=status.astype(str),
         reason=reason.astype(str),
         event_time=event,
+        case=case,
+        case_labels=case_labels,
     )
 

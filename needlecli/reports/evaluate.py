@@ -49,13 +49,13 @@ def evaluate_results(
         out_dir = Path(out_dir)
         stem = res.attrs.get("name", path.stem)
         for name, df in out.items():
-            doc = (TABLES.get(name).__doc__ or "").strip().split("\n\n")[0].replace("\n", " ")
+            doc = " ".join((TABLES.get(name).__doc__ or "").strip().split("\n\n")[0].split())
             write_table(df, out_dir / f"{stem}_{name}", formats or ["md", "csv", "tex"], caption=doc)
         if plots:
-            from needlecli.reports.plots import error_vs_depth, trajectories
+            from needlecli.reports.plots import PLOTS
 
-            for p in (error_vs_depth(res, errors, out_dir / f"{stem}_error_vs_depth.png"),
-                      trajectories(res, out_dir / f"{stem}_trajectories.png")):
+            for name in PLOTS.names():
+                p = PLOTS.get(name)(res, errors, out_dir / stem)
                 if p is not None:
                     log.info("plot: %s", p)
     return out

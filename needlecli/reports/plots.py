@@ -14,9 +14,14 @@ import numpy as np  # noqa: E402
 
 from needlecli.io.results import Group  # noqa: E402
 from needlecli.metrics import ErrorSet  # noqa: E402
+from needlecli.registry import Registry  # noqa: E402
+
+#: plot functions ``(results, errors, path_stem) -> Path | None`` (None: not applicable to this file)
+PLOTS: Registry = Registry("plot")
 
 
-def _save(fig, path: Path) -> Path:
+def save_figure(fig, path: Path) -> Path:
+    """Save a figure as PNG through a temporary file and a rename; close it."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".png", dir=path.parent)
     os.close(fd)
@@ -30,7 +35,8 @@ def _save(fig, path: Path) -> Path:
     return path
 
 
-def error_vs_depth(res: Group, errors: dict[str, ErrorSet], path: Path) -> Path | None:
+@PLOTS.register("error_vs_depth")
+def error_vs_depth(res: Group, errors: dict[str, ErrorSet], path_stem: Path) -> Path | None:
     """Mean and 5-95 % band of each error quantity against inserted depth, one panel per quantity."""
     quantities = sorted({q for es in errors.values() for q in es.quantities})
     if not quantities:
@@ -52,10 +58,11 @@ def error_vs_depth(res: Group, errors: dict[str, ErrorSet], path: Path) -> Path 
     axes[0, 0].legend(loc="upper right", fontsize="small")
     axes[-1, 0].set_xlabel(f"inserted depth [{unit}]")
     fig.suptitle(f"{res.attrs.get('name', '')}: error against depth (mean, 5-95 % of runs)")
-    return _save(fig, path)
+    return save_figure(fig, Path(f"{path_stem}_error_vs_depth.png"))
 
 
-def trajectories(res: Group, path: Path, max_runs: int = 10) -> Path | None:
+@PLOTS.register("trajectories")
+def trajectories(res: Group, errors: dict[str, ErrorSet], path_stem: Path, max_runs: int = 10) -> Path | None:
     """Tip paths of the first runs in two projections, truth and every position estimate."""
     truth = res.data["truth"]
     names = list(truth.attrs["names"])
@@ -83,4 +90,4 @@ def trajectories(res: Group, path: Path, max_runs: int = 10) -> Path | None:
         ax.grid(alpha=0.3)
     axs[0].legend(fontsize="small")
     fig.suptitle(f"{res.attrs.get('name', '')}: tip paths of the first {st.shape[0]} runs")
-    return _save(fig, path)
+    return save_figure(fig, Path(f"{path_stem}_trajectories.png"))

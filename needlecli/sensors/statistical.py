@@ -130,7 +130,7 @@ class EncoderSensor(Sensor):
             if c == "depth":
                 cols.append(np.broadcast_to(truth.depth[idx], (n_runs, len(idx))))
             elif c == "base_angle":
-                cols.append(np.broadcast_to(truth.base_angle[idx], (n_runs, len(idx))))
+                cols.append(truth.base_angle[:, idx])
             else:
                 cols.append(self.model.roll(truth.states_at(idx)))
         return np.stack(cols, -1)

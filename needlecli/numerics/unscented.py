@@ -76,21 +76,39 @@ def robust_cholesky(p: np.ndarray, floor: float = 1e-12) -> tuple[np.ndarray, np
         return root, np.ones_like(bad)
 
 
+def _select(angles: np.ndarray) -> slice | np.ndarray | None:
+    """The angle components as a slice when contiguous (cheaper than a boolean index), else the mask;
+    None when there are none."""
+    idx = np.flatnonzero(angles)
+    if idx.size == 0:
+        return None
+    if idx[-1] - idx[0] + 1 == idx.size:
+        return slice(int(idx[0]), int(idx[-1]) + 1)
+    return idx
+
+
+def _wrap_where_needed(d: np.ndarray, sel) -> None:
+    """Wrap ``d[..., sel]`` in place; skipped (one cheap test) when every entry is inside [-pi, pi)."""
+    sub = d[..., sel]
+    if sub.size and not (np.max(sub) < np.pi and np.min(sub) >= -np.pi):
+        d[..., sel] = wrap_angle(sub)
+
+
 def residual(a: np.ndarray, b: np.ndarray, angles: np.ndarray) -> np.ndarray:
     """``a - b`` with the components flagged in ``angles (n,)`` wrapped to [-pi, pi)."""
     d = a - b
-    if angles.any():
-        d[..., angles] = wrap_angle(d[..., angles])
+    sel = _select(angles)
+    if sel is not None:
+        _wrap_where_needed(d, sel)
     return d
 
 
 def sigma_points(x: np.ndarray, root: np.ndarray, w: MerweWeights, angles: np.ndarray) -> np.ndarray:
     """``(..., 2n+1, n)`` sigma points around ``x (..., n)`` with ``root`` a square root of ``P``."""
     cols = np.sqrt(w.scale) * np.swapaxes(root, -1, -2)  # (..., n, n): row i = column i of sqrt(scale P)
-    pts = np.concatenate([x[..., None, :], x[..., None, :] + cols, x[..., None, :] - cols], axis=-2)
-    if angles.any():
-        pts[..., angles] = wrap_angle(pts[..., angles])
-    return pts
+    # angle components are not wrapped here: the models are periodic in them, and unwrapped points keep
+    # their differences to the central point small (see weighted_mean)
+    return np.concatenate([x[..., None, :], x[..., None, :] + cols, x[..., None, :] - cols], axis=-2)
 
 
 def weighted_mean(pts: np.ndarray, wm: np.ndarray, angles: np.ndarray) -> np.ndarray:
@@ -98,12 +116,13 @@ def weighted_mean(pts: np.ndarray, wm: np.ndarray, angles: np.ndarray) -> np.nda
     central point, so that points on both sides of +-pi average correctly."""
     ref = pts[..., 0, :]
     d = residual(pts, ref[..., None, :], angles)
-    m = ref + np.einsum("s,...sn->...n", wm, d)
-    if angles.any():
-        m[..., angles] = wrap_angle(m[..., angles])
+    m = ref + np.matmul(wm, d)
+    sel = _select(angles)
+    if sel is not None:
+        _wrap_where_needed(m, sel)
     return m
 
 
 def weighted_cov(da: np.ndarray, db: np.ndarray, wc: np.ndarray) -> np.ndarray:
     """``sum_i wc_i da_i db_i^T`` over the sigma axis of residuals ``da (..., S, p)``, ``db (..., S, q)``."""
-    return np.einsum("s,...sp,...sq->...pq", wc, da, db)
+    return np.matmul(np.swapaxes(da * wc[:, None], -1, -2), db)

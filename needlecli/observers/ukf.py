@@ -205,6 +205,7 @@ class UnscentedKalmanFilter(Observer):
 
         # --- channels used, and the tick at which each sample becomes available
         chans = self._channels(problem, model)
+        schedule = self._schedule(chans, ticks)
 
         # --- initial estimate
         x, P0 = self._initial(problem, model, params, rng, chans)
@@ -228,6 +229,8 @@ class UnscentedKalmanFilter(Observer):
         depths = np.asarray(s.predict_at_depths, dtype=float)
         pred_final = np.full((N, len(depths), n), np.nan)
         pred_tick = np.full(len(depths), -1, dtype=np.int64)
+        roll = np.zeros((N, 0, n))  # rollouts to the final depth, advanced with the sigma points
+        roll_ids: list[int] = []
 
         def emit(lo: int, hi: int, xv: np.ndarray, pv: np.ndarray) -> None:
             """Store the estimate for grid steps lo..hi (held between ticks)."""
@@ -248,8 +251,12 @@ class UnscentedKalmanFilter(Observer):
                 root, bad = robust_cholesky(P)
                 repairs += bad & alive
                 X = sigma_points(x, root, w, angles)
+                S = X.shape[1]
+                if roll.shape[1]:  # predictions in flight ride along with the sigma points
+                    X = np.concatenate([X, roll], axis=1)
                 for j in range(k0, k1):
                     X = model.step(X, inputs[:, j, None, :], params, dt_grid)
+                X, roll = X[:, :S], X[:, S:]
                 x_prev = x
                 x = weighted_mean(X, wm, angles)
                 dX = residual(X, x[..., None, :], angles)
@@ -264,7 +271,8 @@ class UnscentedKalmanFilter(Observer):
                         P[:, kappa_i, kappa_i] += add
                         resets += crossed
                 # ---- update with what arrived in (t_k0, t_k1]
-                x, P = self._update(x, P, X, k0, k1, chans, w, alive, gated, used, angles)
+                if schedule[i]:
+                    x, P = self._update(x, P, X, dX, schedule[i], w, alive, gated, used)
                 # ---- curvature constraint: keep the previous estimate outside [0, kappa_max]
                 if kappa_i is not None and s.kappa_max is not None:
                     kk = x[:, kappa_i]
@@ -274,7 +282,7 @@ class UnscentedKalmanFilter(Observer):
                         constraint_hits += out
                 # ---- divergence and model singularity
                 tr = np.trace(P, axis1=-2, axis2=-1)
-                finite = np.isfinite(x).all(-1) & np.isfinite(P).all(axis=(-1, -2))
+                finite = np.isfinite(x).all(-1) & np.isfinite(tr)  # NaN anywhere in P reaches x next tick
                 sing = model.left_domain(x_good, x, params)
                 bad = alive & (~finite | (tr > s.max_cov_trace) | sing)
                 if bad.any():
@@ -285,21 +293,23 @@ class UnscentedKalmanFilter(Observer):
                     status[is_d] = STATUS_DIVERGED
                     reason[is_d] = f"non-finite or exploding covariance at t = {time[k1]:.2f} s"
                     alive &= ~bad
-                # a stopped run holds its last good estimate
-                x = np.where(alive[:, None], x, x_good)
-                P = np.where(alive[:, None, None], P, P_good)
+                if not alive.all():  # a stopped run holds its last good estimate
+                    x = np.where(alive[:, None], x, x_good)
+                    P = np.where(alive[:, None, None], P, P_good)
                 x_good, P_good = x, P
                 emit(k0 + 1, k1, x, P)
                 # ---- final-position prediction from the observation depths reached now
                 if depths.size:
                     dnow = problem.depth[0, k1]
                     due = np.nonzero((pred_tick < 0) & (depths <= dnow + 1e-9))[0]
-                    if due.size:
-                        final = self._rollout(model, x, inputs, params, k1, T, dt_grid)
-                        pred_final[:, due] = final[:, None, :]
+                    if due.size:  # start one open-loop rollout per depth from the current estimate
+                        roll = np.concatenate([roll, np.repeat(x[:, None, :], due.size, axis=1)], axis=1)
+                        roll_ids.extend(due.tolist())
                         pred_tick[due] = k1
                 if progress is not None and (i % every == 0 or i == len(ticks) - 1):
                     progress(i, len(ticks) - 1)
+        if roll_ids:
+            pred_final[:, roll_ids] = roll
         cov = np.stack(covs, 1) if covs is not None else None
         extras = {
             "cholesky_repairs": repairs,
@@ -389,54 +399,72 @@ class UnscentedKalmanFilter(Observer):
             return np.asarray(problem.interfaces, dtype=float)
         return np.asarray(problem.channels[r.interfaces].attrs.get("interfaces", np.zeros((N, 0))), dtype=float)
 
-    def _update(self, x, P, X, k0, k1, chans, w, alive, gated, used, angles):
-        """Update with every sample that became available in (k0, k1], per run where valid."""
+    @staticmethod
+    def _schedule(chans: list[dict], ticks: np.ndarray) -> list[list[tuple[dict, np.ndarray]]]:
+        """For each filter tick, the channels with samples that became available since the last tick,
+        and those samples (in time order). Samples available at the first tick serve initialisation."""
+        schedule: list[list[tuple[dict, np.ndarray]]] = [[] for _ in ticks]
+        for c in chans:
+            tick_of = np.searchsorted(ticks, c["avail"], side="left")
+            for i in np.unique(tick_of):
+                if 0 < i < len(ticks):
+                    schedule[i].append((c, c["order"][tick_of == i]))
+        return schedule
+
+    def _update(self, x, P, X, dX, arrived, w, alive, gated, used):
+        """Update with the samples that arrived at this tick, per run where valid."""
         N = x.shape[0]
         ys, masks, rs, hs, angs, blocks = [], [], [], [], [], []
-        for c in chans:
-            lo = np.searchsorted(c["avail"], k0, side="right")
-            hi = np.searchsorted(c["avail"], k1, side="right")
-            if lo == hi:
-                continue
-            y = np.zeros((N, c["m"]))
-            v = np.zeros(N, dtype=bool)
-            for j in c["order"][lo:hi]:  # the latest valid sample of the window wins (usually one)
-                vj = c["valid"][:, j] & alive
-                y = np.where(vj[:, None], c["value"][:, j], y)
-                v |= vj
+        start = 0
+        for c, samples in arrived:
+            if len(samples) == 1:
+                j = samples[0]
+                v = c["valid"][:, j] & alive
+                y = np.where(v[:, None], c["value"][:, j], 0.0)
+            else:  # several samples of a channel in one tick: the latest valid one wins
+                y = np.zeros((N, c["m"]))
+                v = np.zeros(N, dtype=bool)
+                for j in samples:
+                    vj = c["valid"][:, j] & alive
+                    y = np.where(vj[:, None], c["value"][:, j], y)
+                    v |= vj
             if not v.any():
                 continue
-            sig = np.broadcast_to(c["sigma"], (N, c["m"])).copy()
+            r = np.broadcast_to(c["sigma"] ** 2, (N, c["m"]))
             if c["growth"] is not None and c["pos_cols"]:
                 f = c["growth"].factor(y[:, c["pos_cols"]], axes=c["pos_axes"])
-                sig[:, c["pos_cols"]] *= f[:, None]
-            start = sum(b[2] for b in blocks)
+                r = r.copy()
+                r[:, c["pos_cols"]] *= (f**2)[:, None]
             blocks.append((c, start, c["m"]))
+            start += c["m"]
             ys.append(y)
             masks.append(np.broadcast_to(v[:, None], (N, c["m"])))
-            rs.append(sig**2)
+            rs.append(r)
             hs.append(c["h"](X))
             angs.append(c["angle"])
         if not ys:
             return x, P
-        y = np.concatenate(ys, -1)
-        mask = np.concatenate(masks, -1).astype(float)
-        R = np.concatenate(rs, -1)
-        Y = np.concatenate(hs, -1)  # (N, S, M)
-        ang_y = np.concatenate(angs)
+        if len(ys) == 1:
+            y, mask, R, Y, ang_y = ys[0], masks[0].astype(float), rs[0], hs[0], angs[0]
+        else:
+            y = np.concatenate(ys, -1)
+            mask = np.concatenate(masks, -1).astype(float)
+            R = np.concatenate(rs, -1)
+            Y = np.concatenate(hs, -1)  # (N, S, M)
+            ang_y = np.concatenate(angs)
+        M = y.shape[-1]
         y_hat = weighted_mean(Y, w.wm, ang_y)
         dY = residual(Y, y_hat[:, None, :], ang_y)
-        dX = residual(X, x[:, None, :], angles)
-        Pyy = weighted_cov(dY, dY, w.wc) + R[..., None] * np.eye(R.shape[-1])
+        Pyy = weighted_cov(dY, dY, w.wc)
+        Pyy[:, np.arange(M), np.arange(M)] += R
         Pxy = weighted_cov(dX, dY, w.wc)
-        nu = np.where(mask > 0, residual(y, y_hat, ang_y), 0.0)
+        nu = residual(y, y_hat, ang_y) * mask
         # chi-square gating per channel block
-        for c, start, m in blocks:
-            sl = slice(start, start + m)
-            on = mask[:, start] > 0
+        for c, b0, m in blocks:
+            sl = slice(b0, b0 + m)
+            on = mask[:, b0] > 0
             if c["gate"] is not None:
-                S = Pyy[:, sl, sl]
-                nis = np.einsum("ni,ni->n", nu[:, sl], np.linalg.solve(S, nu[:, sl][..., None])[..., 0])
+                nis = np.einsum("ni,ni->n", nu[:, sl], np.linalg.solve(Pyy[:, sl, sl], nu[:, sl][..., None])[..., 0])
                 out = on & ~(nis <= c["gate"])
                 if out.any():
                     mask[out, sl] = 0.0
@@ -444,19 +472,13 @@ class UnscentedKalmanFilter(Observer):
                     gated[c["name"]] += out
                     on = on & ~out
             used[c["name"]] += on
-        mm = mask[:, :, None] * mask[:, None, :]
-        Pyy_m = Pyy * mm + np.eye(Pyy.shape[-1]) * (1.0 - mask)[:, None, :]
-        Pxy_m = Pxy * mask[:, None, :]
+        if mask.all():
+            Pyy_m, Pxy_m = Pyy, Pxy
+        else:  # missing entries: zero their rows and columns, unit diagonal, so their gain is zero
+            Pyy_m = Pyy * (mask[:, :, None] * mask[:, None, :])
+            Pyy_m[:, np.arange(M), np.arange(M)] += 1.0 - mask
+            Pxy_m = Pxy * mask[:, None, :]
         K = np.swapaxes(np.linalg.solve(Pyy_m, np.swapaxes(Pxy_m, -1, -2)), -1, -2)  # (N, n, M)
-        x = x + np.einsum("nij,nj->ni", K, nu)
-        if angles.any():
-            x[:, angles] = wrap_angle(x[:, angles])
+        x = x + np.matmul(K, nu[..., None])[..., 0]
         P = symmetrize(P - K @ Pyy_m @ np.swapaxes(K, -1, -2))
         return x, P
-
-    @staticmethod
-    def _rollout(model, x, inputs, params, k_from, T, dt):
-        """The model from the estimate at step ``k_from`` to the end of the grid with the planned inputs."""
-        for j in range(k_from, T - 1):
-            x = model.step(x, inputs[:, j], params, dt)
-        return x

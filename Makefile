@@ -1,7 +1,9 @@
 # needlecli: common tasks. `make help` lists them.
 PY ?= python
 
-.PHONY: help install demo test bench lint clean
+STUDIES := results/studies
+
+.PHONY: help install demo test bench lint clean seed003
 
 help:
 	@echo "make install  - install needlecli with test extras (editable)"
@@ -9,6 +11,7 @@ help:
 	@echo "make test     - run the test suite (what .ci/run runs)"
 	@echo "make bench    - speed benchmarks (figures also as ratios against an in-run reference)"
 	@echo "make lint     - ruff"
+	@echo "make seed003  - seed 003's simulation study: Table 1, Figs. 6-8 (results and tables in $(STUDIES))"
 	@echo "make clean    - remove results/ and caches"
 
 install:
@@ -29,3 +32,9 @@ lint:
 
 clean:
 	rm -rf results .pytest_cache .ruff_cache .hypothesis
+
+seed003:
+	@for c in table1 fig6 fig7 fig8; do \
+	  needle simulate configs/seed003/$$c.yaml --out $(STUDIES)/seed003_$$c.h5 --quiet > /dev/null && \
+	  needle evaluate $(STUDIES)/seed003_$$c.h5 --out $(STUDIES)/seed003 || exit 1; \
+	done

@@ -38,7 +38,9 @@ def save_figure(fig, path: Path) -> Path:
 @PLOTS.register("error_vs_depth")
 def error_vs_depth(res: Group, errors: dict[str, ErrorSet], path_stem: Path) -> Path | None:
     """Mean and 5-95 % band of each error quantity against inserted depth, one panel per quantity."""
-    quantities = sorted({q for es in errors.values() for q in es.quantities})
+    from needlecli.reports.tables import order_quantities
+
+    quantities = order_quantities({q for es in errors.values() for q in es.quantities})
     if not quantities:
         return None
     depth = res.data["depth"]

@@ -25,14 +25,15 @@ TABLES: Registry[TableFn] = Registry("table")
 _QUANTITY_ORDER = ["E_xyz", "E_alpha", "E_beta", "E_gamma", "E_R", "E_h", "E_B", "E_kappa"]
 
 
-def _order(names):
+def order_quantities(names):
+    """Quantities in the papers' order (position, angles, rotation, vectors, curvature, the rest)."""
     return sorted(names, key=lambda q: (_QUANTITY_ORDER.index(q) if q in _QUANTITY_ORDER else 99, q))
 
 
 def _rows(errors: dict[str, ErrorSet], stats: dict[str, Callable[[np.ndarray], float]]) -> pd.DataFrame:
     rows = []
     for obs, es in errors.items():
-        for q in _order(es.quantities):
+        for q in order_quantities(es.quantities):
             qe = es.quantities[q]
             v = qe.values[np.isfinite(qe.values)]
             row = {"Observer": obs, "Quantity": f"{q} [{qe.unit}]"}

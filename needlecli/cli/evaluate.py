@@ -8,7 +8,8 @@ import typer
 
 from needlecli.cli.app import app
 from needlecli.cli.common import fail, setup_logging, user_errors
-from needlecli.reports.evaluate import evaluate_results
+from needlecli.io.results import read_results
+from needlecli.reports.evaluate import configured_tables, evaluate_results
 from needlecli.reports.tables import TABLES, to_markdown
 
 
@@ -20,6 +21,10 @@ def evaluate(
     format_: str = typer.Option("md,csv,tex", "--format", "-f", help="Table formats: md, csv, tex."),
     tables: str = typer.Option(None, "--tables", "-t", help="Tables to write (default: the config's output.tables)."),
     plots: bool = typer.Option(True, "--plots/--no-plots", help="Write PNG plots of error against depth."),
+    baseline: Path = typer.Option(None, "--baseline", "-b", help="Check the tables against stored expectations; exit 1 on a regression."),
+    write_baseline: Path = typer.Option(None, "--write-baseline", help="Store the tables as expectations (YAML)."),
+    rel_tol: float = typer.Option(0.1, "--rel-tol", min=0.0, help="Relative tolerance for --write-baseline."),
+    abs_tol: float = typer.Option(1e-9, "--abs-tol", min=0.0, help="Absolute tolerance floor for --write-baseline."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="Print nothing but errors."),
 ) -> None:
     """Compute error statistics per observer and write them as Markdown, CSV and LaTeX tables."""
@@ -33,10 +38,28 @@ def evaluate(
         if t not in TABLES:
             fail(f"--tables: unknown table {t!r}; known: {', '.join(TABLES.names())}")
     out_dir = out if out is not None else results.parent / f"{results.stem}_tables"
+    from needlecli.reports.baseline import compare, load_baseline, make_baseline
+    from needlecli.reports.baseline import write_baseline as store
+
+    expected = load_baseline(baseline) if baseline is not None else None
+    if expected is not None and names is None:  # compute every table the baseline names
+        names = sorted({c.table for c in expected.cells} | set(configured_tables(read_results(results))))
     written = evaluate_results(results, tables=names, out_dir=out_dir, formats=formats, plots=plots)
+    name = str(read_results(results).attrs.get("name", ""))
+    if write_baseline is not None:
+        store(write_baseline, make_baseline(written, name, rel_tol, abs_tol))
+        typer.echo(f"baseline: {write_baseline}", err=quiet)
     if not quiet:
         for name, df in written.items():
             typer.echo(f"## {name}\n")
             typer.echo(to_markdown(df) if not df.empty else "(empty)")
             typer.echo("")
         typer.echo(f"tables: {out_dir}")
+    if expected is not None:
+        failures = compare(written, expected, name)
+        if failures:
+            typer.echo(f"REGRESSION: {len(failures)} of {len(expected.cells)} baseline cells of {baseline} fail:", err=True)
+            for f in failures:
+                typer.echo(f.line(), err=True)
+            raise typer.Exit(1)
+        typer.echo(f"baseline: all {len(expected.cells)} cells of {baseline} hold")

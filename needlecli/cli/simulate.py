@@ -38,7 +38,7 @@ def simulate(
         return
     log.info("simulating %d run(s) of %s (seed %d)", cfg.runs.count, cfg.name, cfg.runs.seed)
     with progress_bar(not quiet) as bar:
-        result = run_experiment(cfg, text, out=target, progress=bar)
+        result = run_experiment(cfg, text, out=target, progress=bar, base_dir=config.parent)
     stopped = any((p.status != "ok").any() for p in result.estimates.values()) or (result.truth.status != "ok").any()
     wanted = (["summary"] if cfg.observers else []) + (["status"] if stopped else [])
     tables = evaluate_results(result.path, tables=wanted, out_dir=None) if wanted else {}

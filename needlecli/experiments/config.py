@@ -69,6 +69,14 @@ class Stop(Strict):
         return self
 
 
+class Source(Strict):
+    """Take the insertions from recorded logs instead of simulating them (paths relative to the config
+    file). Inputs, sensor streams and (where recorded) the truth come from the logs."""
+
+    logs: list[str] = Field(min_length=1)
+    trials: list[str] | None = Field(None, description="trial ids to use (default: all)")
+
+
 class Simulation(Strict):
     dt: Positive = Field(0.01, le=1.0, description="integration step of the truth, s")
 
@@ -149,7 +157,8 @@ def _schema(registry_key: tuple) -> type[Strict]:
         sensors: list[sensor_t] = Field(default_factory=list)  # type: ignore[valid-type]
         observers: list[observer_t] = Field(default_factory=list)  # type: ignore[valid-type]
         runs: Runs = Field(default_factory=Runs)
-        stop: Stop
+        stop: Stop | None = None
+        source: Source | None = None
         simulation: Simulation = Field(default_factory=Simulation)
         output: Output = Field(default_factory=Output)
 
@@ -422,9 +431,17 @@ def check_consistency(cfg, source: str) -> None:
     n_cases = {len(sig.cases) for sig in cfg.inputs.values() if getattr(sig, "kind", "") == "cases"}
     if len(n_cases) > 1:
         raise ConfigError(source, ("inputs",), f"inputs given as cases must have the same number of cases, not {sorted(n_cases)}")
-    if model_cls.insertion_input not in cfg.inputs:
+    if cfg.source is not None:
+        for key in ("inputs", "sensors", "tissue", "stop"):
+            if getattr(cfg, key):
+                raise ConfigError(source, (key,), "comes from the logs when the config has a source; remove it")
+        if cfg.process_noise.std:
+            raise ConfigError(source, ("process_noise",), "comes from the logs when the config has a source; remove it")
+    elif cfg.stop is None:
+        raise ConfigError(source, ("stop",), "required key is missing (or give a source of recorded logs)")
+    elif model_cls.insertion_input not in cfg.inputs:
         raise ConfigError(source, ("inputs", model_cls.insertion_input), "required key is missing (insertion speed)")
-    if cfg.stop.depth is not None:
+    if cfg.stop is not None and cfg.stop.depth is not None and cfg.source is None:
         v = np.asarray(cfg.inputs[model_cls.insertion_input].model_dump().get("value", 1.0), dtype=float)
         if getattr(cfg.inputs[model_cls.insertion_input], "kind", "") == "constant" and np.all(v <= 0):
             raise ConfigError(source, ("stop", "depth"), "the insertion speed is not positive: the depth is never reached")
@@ -439,6 +456,11 @@ def check_consistency(cfg, source: str) -> None:
         raise ConfigError(source, ("tissue",), f"model {cfg.model.type!r} has no curvature parameter for tissue layers")
     # sensors
     names = {}
+    if cfg.source is not None:  # the logs' sensors; reading them checks the logs before any work
+        from needlecli.experiments.replay import replay_sensors
+
+        base = Path(source).parent if source != "<string>" else Path(".")
+        names.update({sn.name: sn for sn in replay_sensors(cfg, base)})
     for i, s in enumerate(cfg.sensors):
         try:
             sensor = SENSORS.get(s.type)(s, model)

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from needlecli.experiments.replay import replay_truth
 from needlecli.experiments.truth import Truth, simulate_truth, stream
 from needlecli.io.results import Group, root_attrs, write_atomic
 from needlecli.models import NotMeasurable
@@ -84,12 +85,17 @@ def run_experiment(
     out: str | Path | None = None,
     write: bool = True,
     progress: Progress | None = None,
+    base_dir: str | Path | None = None,
 ) -> ExperimentResult:
-    """Simulate the truth, measure it with every sensor, run every observer, write the results file."""
+    """Simulate the truth and measure it with every sensor (or replay recorded trials from the config's
+    ``source.logs``, relative to ``base_dir``), run every observer, write the results file."""
     seed = cfg.runs.seed
-    truth = simulate_truth(cfg, progress=(lambda k, n: progress("truth", k, n)) if progress else None)
-    sensors = build_sensors(cfg, truth.model)
-    streams = {s.name: s.measure(truth, stream(seed, f"sensor/{s.name}")) for s in sensors}
+    if cfg.source is not None:  # recorded trials instead of a simulation
+        truth, sensors, streams = replay_truth(cfg, Path(base_dir or "."))
+    else:
+        truth = simulate_truth(cfg, progress=(lambda k, n: progress("truth", k, n)) if progress else None)
+        sensors = build_sensors(cfg, truth.model)
+        streams = {s.name: s.measure(truth, stream(seed, f"sensor/{s.name}")) for s in sensors}
     problem = build_problem(cfg, truth, sensors, streams)
     estimates: dict[str, Posterior] = {}
     for o in cfg.observers:
@@ -116,6 +122,8 @@ def results_tree(cfg, config_text, truth: Truth, streams, estimates, sensors) ->
                 "length_unit": model.length_unit,
                 "runs": n_runs,
                 "dt": cfg.simulation.dt,
+                "source": "replay" if cfg.source is not None else "simulation",
+                "truth_kind": truth.truth_kind,
             },
         )
     )
@@ -127,6 +135,7 @@ def results_tree(cfg, config_text, truth: Truth, streams, estimates, sensors) ->
             "status": truth.status,
             "reason": truth.reason,
             "event_time": truth.event_time,
+            "end_time": truth.valid_until if truth.end_time is not None else np.full(n_runs, truth.time[-1]),
             "params": Group(data={k: np.ascontiguousarray(v) for k, v in truth.params.items()}),
             "interfaces": truth.interfaces,
         },
@@ -144,6 +153,8 @@ def results_tree(cfg, config_text, truth: Truth, streams, estimates, sensors) ->
         inputs.attrs[f"{k}_unit"] = model.input_units[k]
         inputs.dataset_attrs[k] = {"unit": model.input_units[k]}
     root.data["inputs"] = inputs
+    if truth.trial_ids is not None:
+        root.data["truth"].data["trial_id"] = np.array(truth.trial_ids)
     meas = Group()
     for s in sensors:
         st = streams[s.name]

@@ -45,10 +45,14 @@ class Truth:
     event_time: np.ndarray
     case: np.ndarray | None = None
     case_labels: list[str] | None = None
+    end_time: np.ndarray | None = None  # (N,) end of each run (replayed trials differ)
+    trial_ids: list[str] | None = None  # replayed trials' ids
+    truth_kind: str = "simulation"  # or what the logs recorded: ground truth, manual segmentation, none
 
     @property
     def valid_until(self) -> np.ndarray:
-        return np.where(np.isnan(self.event_time), self.time[-1], self.event_time)
+        end = self.time[-1] if self.end_time is None else self.end_time
+        return np.where(np.isnan(self.event_time), end, self.event_time)
 
     def states_at(self, idx: np.ndarray) -> np.ndarray:
         """``states[:, idx]``: a view (no copy) when the indices are evenly spaced, as clocks are."""

@@ -42,6 +42,7 @@ class ErrorSet:
     n_runs: int = 0
     excluded: dict[str, int] = field(default_factory=dict)  # reason -> count
     not_estimated: list[str] = field(default_factory=list)
+    not_computable: dict[str, str] = field(default_factory=dict)  # quantity -> why (e.g. no ground truth)
 
     def tidy(self, time: np.ndarray, every: int = 1) -> pd.DataFrame:
         """Tidy records ``(observer, run, quantity, unit, t, value)``, every k-th time step."""
@@ -133,5 +134,12 @@ def compute_errors(res: Group) -> dict[str, ErrorSet]:
             else:
                 es.quantities[f"E_{k}"] = QuantityError(f"E_{k}", unit, np.abs(col(e_names, xs, k) - tv), keep)
         es.not_estimated = [k for k in t_names if k not in e_names and k not in used]
+        kind = str(res.attrs.get("truth_kind", "simulation"))
+        for q in list(es.quantities):
+            if not np.isfinite(es.quantities[q].values).any():
+                es.not_computable[q] = (
+                    "the logs have no ground truth" if kind == "none" else "no truth sample where it was estimated"
+                )
+                del es.quantities[q]
         out[name] = es
     return out

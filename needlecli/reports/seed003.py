@@ -74,7 +74,9 @@ def prediction_table(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
                          "Mean (mm)": float(np.mean(e)) if e.size else np.nan,
                          "Std (mm)": float(np.std(e)) if e.size else np.nan,
                          "Max (mm)": float(np.max(e)) if e.size else np.nan, "Runs": int(e.size)})
-    return pd.DataFrame(rows, columns=["Observer", f"Depth observed ({unit})", "Mean (mm)", "Std (mm)", "Max (mm)", "Runs"])
+    df = pd.DataFrame(rows, columns=["Observer", f"Depth observed ({unit})", "Mean (mm)", "Std (mm)", "Max (mm)", "Runs"])
+    df.attrs["keys"] = ["Observer", f"Depth observed ({unit})"]
+    return df
 
 
 @PLOTS.register("prediction")

@@ -41,6 +41,11 @@ def _rows(errors: dict[str, ErrorSet], stats: dict[str, Callable[[np.ndarray], f
                 row[col] = fn(v) if v.size else np.nan
             row["Runs"] = f"{len(qe.runs)}/{es.n_runs}"
             rows.append(row)
+        for q, why in es.not_computable.items():
+            row = {"Observer": obs, "Quantity": f"{q}: not computable ({why})"}
+            row.update({col: np.nan for col in stats})
+            row["Runs"] = f"0/{es.n_runs}"
+            rows.append(row)
     cols = ["Observer", "Quantity", *stats, "Runs"]
     return pd.DataFrame(rows, columns=cols)
 

@@ -1,0 +1,333 @@
+"""Recorded insertions: the log file format (a public contract, see README "Log files").
+
+One HDF5 file holds one or more trials::
+
+    /                               attrs: format = "needlecli-log", version, created, description,
+                                           synthetic (bool), source (what made it: config and seed, or
+                                           the importer), config (the YAML that made it, if synthetic)
+    /trials/<id>/                   attrs: metadata (needle, medium, field_strength, operator_notes, ...)
+    /trials/<id>/inputs/<name>/t        (K,)   s, strictly increasing
+    /trials/<id>/inputs/<name>/value    (K,) or (K, k)   attrs unit, kind (commanded | measured)
+    /trials/<id>/sensors/<name>/t       (M,)   acquisition times, s, strictly increasing
+    /trials/<id>/sensors/<name>/value   (M, m) attrs names, units
+    /trials/<id>/sensors/<name>/valid   (M,) bool (optional: all valid)
+    /trials/<id>/sensors/<name>         attrs sensor: JSON of the sensor's settings (type, axes, ...)
+    /trials/<id>/truth/t                (L,)   optional ground truth (or manual segmentation)
+    /trials/<id>/truth/state            (L, n) attrs names, units, kind (ground truth | manual segmentation)
+
+A log is read completely and checked before any work: a missing group, timestamps going backwards or
+repeated, values that are not finite in valid samples, shapes that do not match the names: each is a
+:class:`~needlecli.errors.DataError` naming the file, trial, channel and sample.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from needlecli import __version__
+from needlecli.errors import DataError
+from needlecli.io.results import Group, _decode, write_atomic
+
+LOG_FORMAT = "needlecli-log"
+LOG_VERSION = 1
+
+
+@dataclass
+class SensorStream:
+    """One sensor's samples in one trial. ``settings`` describe the sensor (its ``type`` at least)."""
+
+    t: np.ndarray
+    value: np.ndarray
+    valid: np.ndarray
+    names: tuple[str, ...]
+    units: tuple[str, ...]
+    settings: dict[str, Any]
+
+
+@dataclass
+class InputStream:
+    t: np.ndarray
+    value: np.ndarray  # (K, k)
+    unit: str
+    kind: str = "commanded"
+
+
+@dataclass
+class TruthStream:
+    t: np.ndarray
+    state: np.ndarray  # (L, n)
+    names: tuple[str, ...]
+    units: tuple[str, ...]
+    kind: str = "ground truth"
+
+
+@dataclass
+class Trial:
+    id: str
+    inputs: dict[str, InputStream] = field(default_factory=dict)
+    sensors: dict[str, SensorStream] = field(default_factory=dict)
+    truth: TruthStream | None = None
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def end_time(self) -> float:
+        ends = [float(s.t[-1]) for s in self.sensors.values() if s.t.size]
+        ends += [float(s.t[-1]) for s in self.inputs.values() if s.t.size]
+        if self.truth is not None and self.truth.t.size:
+            ends.append(float(self.truth.t[-1]))
+        return max(ends) if ends else 0.0
+
+
+@dataclass
+class Log:
+    trials: list[Trial]
+    attrs: dict[str, Any] = field(default_factory=dict)
+    path: str = "<memory>"
+
+
+# ---------------------------------------------------------------------------------------------- writing
+def log_tree(log: Log) -> Group:
+    root = Group(attrs={
+        "format": LOG_FORMAT,
+        "version": LOG_VERSION,
+        "needlecli_version": __version__,
+        "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        **{k: v for k, v in log.attrs.items() if k not in ("format", "version")},
+    })
+    trials = Group()
+    for tr in log.trials:
+        g = Group(attrs=_meta_attrs(tr.meta))
+        ins = Group()
+        for name, s in tr.inputs.items():
+            ins.data[name] = Group(data={"t": s.t, "value": s.value}, attrs={"unit": s.unit, "kind": s.kind})
+        g.data["inputs"] = ins
+        sens = Group()
+        for name, s in tr.sensors.items():
+            sens.data[name] = Group(
+                data={"t": s.t, "value": s.value, "valid": s.valid.astype(bool)},
+                attrs={"names": list(s.names), "units": list(s.units), "sensor": json.dumps(s.settings)},
+                dataset_attrs={"value": {"names": list(s.names), "units": list(s.units)}},
+            )
+        g.data["sensors"] = sens
+        if tr.truth is not None:
+            g.data["truth"] = Group(
+                data={"t": tr.truth.t, "state": tr.truth.state},
+                attrs={"names": list(tr.truth.names), "units": list(tr.truth.units), "kind": tr.truth.kind},
+            )
+        trials.data[tr.id] = g
+    root.data["trials"] = trials
+    return root
+
+
+def _meta_attrs(meta: dict) -> dict:
+    out = {}
+    for k, v in meta.items():
+        if isinstance(v, np.generic):
+            v = v.item()
+        out[k] = v if isinstance(v, (str, int, float, bool)) else json.dumps(v, default=str)
+    return out
+
+
+def write_log(path: str | Path, log: Log) -> Path:
+    """Write a log atomically (temporary file, then rename)."""
+    return write_atomic(path, log_tree(log))
+
+
+# ---------------------------------------------------------------------------------------------- reading
+def _fail(path, where: str, msg: str) -> DataError:
+    return DataError(f"{path}: [{where}] {msg}")
+
+
+def _check_times(path, where: str, t: np.ndarray) -> None:
+    if t.ndim != 1:
+        raise _fail(path, where, f"t must be one-dimensional, has shape {t.shape}")
+    bad = np.nonzero(~np.isfinite(t))[0]
+    if bad.size:
+        raise _fail(path, where, f"timestamp of sample {bad[0]} is not finite ({t[bad[0]]})")
+    d = np.diff(t)
+    back = np.nonzero(d < 0)[0]
+    if back.size:
+        i = back[0] + 1
+        raise _fail(path, where, f"timestamps go backwards at sample {i} ({t[i - 1]:.6g} -> {t[i]:.6g} s)")
+    rep = np.nonzero(d == 0)[0]
+    if rep.size:
+        i = rep[0] + 1
+        raise _fail(path, where, f"timestamp repeated at sample {i} ({t[i]:.6g} s)")
+
+
+def _dataset(path, g: h5py.Group, name: str, where: str) -> np.ndarray:
+    if name not in g:
+        raise _fail(path, where, f"missing dataset {name!r}")
+    obj = g[name]
+    if not isinstance(obj, h5py.Dataset):
+        raise _fail(path, where, f"{name!r} is not a dataset")
+    try:
+        return obj[()]
+    except (OSError, ValueError, TypeError) as e:
+        raise _fail(path, where, f"cannot read {name!r} ({e})") from None
+
+
+def _strings(v) -> tuple[str, ...]:
+    v = _decode(v)
+    if isinstance(v, str):
+        return (v,)
+    return tuple(str(x) for x in np.atleast_1d(v))
+
+
+def _read_trial(path, tid: str, g: h5py.Group) -> Trial:
+    meta = {k: _decode(v) for k, v in g.attrs.items()}
+    tr = Trial(id=tid, meta=meta)
+    for name, s in (g["inputs"].items() if "inputs" in g else []):
+        where = f"trial {tid} -> input {name}"
+        t = np.asarray(_dataset(path, s, "t", where), dtype=float)
+        v = np.asarray(_dataset(path, s, "value", where), dtype=float)
+        _check_times(path, where, t)
+        v = v.reshape(len(t), -1) if v.ndim == 1 and v.size == len(t) else v
+        if v.ndim != 2 or v.shape[0] != len(t):
+            raise _fail(path, where, f"value has shape {v.shape} for {len(t)} timestamps")
+        bad = np.nonzero(~np.isfinite(v).all(-1))[0]
+        if bad.size:
+            raise _fail(path, where, f"sample {bad[0]} is not finite ({v[bad[0]].tolist()})")
+        tr.inputs[name] = InputStream(t=t, value=v, unit=str(_decode(s.attrs.get("unit", ""))),
+                                      kind=str(_decode(s.attrs.get("kind", "commanded"))))
+    if "sensors" not in g:
+        raise _fail(path, f"trial {tid}", "missing group 'sensors'")
+    for name, s in g["sensors"].items():
+        where = f"trial {tid} -> sensor {name}"
+        t = np.asarray(_dataset(path, s, "t", where), dtype=float)
+        v = np.asarray(_dataset(path, s, "value", where), dtype=float)
+        _check_times(path, where, t)
+        if v.ndim == 1:
+            v = v[:, None]
+        if v.ndim != 2 or v.shape[0] != len(t):
+            raise _fail(path, where, f"value has shape {v.shape} for {len(t)} timestamps")
+        valid = np.asarray(_dataset(path, s, "valid", where), dtype=bool) if "valid" in s else np.ones(len(t), bool)
+        if valid.shape != (len(t),):
+            raise _fail(path, where, f"valid has shape {valid.shape} for {len(t)} timestamps")
+        names = _strings(s.attrs.get("names", ()))
+        units = _strings(s.attrs.get("units", ()))
+        if len(names) != v.shape[1] or len(units) != v.shape[1]:
+            raise _fail(path, where, f"{v.shape[1]} value columns but names {list(names)} and units {list(units)}")
+        bad = np.nonzero(valid & ~np.isfinite(v).all(-1))[0]
+        if bad.size:
+            raise _fail(path, where, f"sample {bad[0]} is marked valid but is not finite ({v[bad[0]].tolist()})")
+        try:
+            settings = json.loads(_decode(s.attrs.get("sensor", "{}")))
+        except (json.JSONDecodeError, TypeError):
+            raise _fail(path, where, "attribute 'sensor' is not valid JSON") from None
+        if not isinstance(settings, dict) or "type" not in settings:
+            raise _fail(path, where, "attribute 'sensor' must give the sensor's settings with its 'type'")
+        tr.sensors[name] = SensorStream(t=t, value=v, valid=valid, names=names, units=units, settings=settings)
+    if "truth" in g:
+        where = f"trial {tid} -> truth"
+        s = g["truth"]
+        t = np.asarray(_dataset(path, s, "t", where), dtype=float)
+        st = np.asarray(_dataset(path, s, "state", where), dtype=float)
+        _check_times(path, where, t)
+        names = _strings(s.attrs.get("names", ()))
+        if st.ndim != 2 or st.shape != (len(t), len(names)):
+            raise _fail(path, where, f"state has shape {st.shape}, expected ({len(t)}, {len(names)}) for names {list(names)}")
+        bad = np.nonzero(~np.isfinite(st).all(-1))[0]
+        if bad.size:
+            raise _fail(path, where, f"sample {bad[0]} is not finite")
+        tr.truth = TruthStream(t=t, state=st, names=names, units=_strings(s.attrs.get("units", ())),
+                               kind=str(_decode(s.attrs.get("kind", "ground truth"))))
+    return tr
+
+
+def read_log(path: str | Path) -> Log:
+    """Read and check a log file completely."""
+    path = Path(path)
+    if not path.exists():
+        raise DataError(f"{path}: no such log file")
+    try:
+        with h5py.File(path, "r") as f:
+            fmt = _decode(f.attrs.get("format", ""))
+            if fmt != LOG_FORMAT:
+                raise DataError(f"{path}: not a needlecli log (format attribute {fmt!r}, expected {LOG_FORMAT!r})")
+            version = int(f.attrs.get("version", 0))
+            if version > LOG_VERSION:
+                raise DataError(f"{path}: log version {version} is newer than this needlecli reads ({LOG_VERSION})")
+            if "trials" not in f or not len(f["trials"]):
+                raise DataError(f"{path}: the log holds no trials")
+            trials = [_read_trial(path, tid, g) for tid, g in f["trials"].items()]
+            attrs = {k: _decode(v) for k, v in f.attrs.items()}
+    except DataError:
+        raise
+    except (OSError, KeyError, ValueError, TypeError) as e:
+        raise DataError(f"{path}: cannot read the log ({e.__class__.__name__}: {e})") from None
+    return Log(trials=trials, attrs=attrs, path=str(path))
+
+
+# ---------------------------------------------------------------------------------------------- from results
+def log_from_results(res: Group, *, description: str = "", truth_every: int = 1, prefix: str = "run") -> Log:
+    """A simulated experiment's streams as a log, one trial per run: inputs on the simulation grid,
+    every sensor's samples with their validity, and the truth (every ``truth_every``-th step, as a
+    tracker at a lower rate would record it). Marked synthetic, with its config and seed."""
+    import yaml
+
+    time = res.data["time"]
+    truth = res.data["truth"]
+    names = tuple(truth.attrs["names"])
+    units = tuple(truth.attrs["units"])
+    cfg = yaml.safe_load(res.attrs.get("config", "")) or {}
+    sensor_cfg = {(s.get("name") or s.get("type")): s for s in cfg.get("sensors", [])}
+    n_runs = truth.data["state"].shape[0]
+    trials = []
+    for r in range(n_runs):  # writing a file: one group per trial is the format, not a computation
+        tr = Trial(id=f"{prefix}{r:04d}", meta={"run": r, "seed": int(res.attrs.get("seed", 0)),
+                                                "experiment": str(res.attrs.get("name", "")), "synthetic": True})
+        for name, v in res.data["inputs"].data.items():
+            if name == "case":
+                continue
+            arr = np.asarray(v[r])
+            tr.inputs[name] = InputStream(t=time, value=arr.reshape(len(time), -1),
+                                          unit=str(res.data["inputs"].attrs.get(f"{name}_unit", "")))
+        for name, g in res.data["measurements"].data.items():
+            settings = dict(sensor_cfg.get(name, {"type": g.attrs.get("type", "unknown")}))
+            settings["name"] = name
+            val = g.data["value"][r]
+            tr.sensors[name] = SensorStream(
+                t=g.data["t"], value=np.where(g.data["valid"][r][:, None], val, 0.0), valid=g.data["valid"][r],
+                names=tuple(g.attrs["names"]), units=tuple(g.attrs["units"]), settings=settings,
+            )
+        ok = np.isfinite(truth.data["state"][r]).all(-1)
+        ok &= (np.arange(len(time)) % truth_every) == 0
+        end = truth.data["event_time"][r]
+        if np.isfinite(end):
+            ok &= time <= end
+        tr.truth = TruthStream(t=time[ok], state=truth.data["state"][r][ok], names=names, units=units)
+        trials.append(tr)
+    return Log(trials=trials, attrs={
+        "description": description or f"synthetic: needle simulate of {res.attrs.get('name', '')}",
+        "synthetic": True,
+        "source": f"needlecli {res.attrs.get('needlecli_version', '')} simulate, seed {res.attrs.get('seed', '')}",
+        "config": res.attrs.get("config", ""),
+    })
+
+
+def merge_logs(logs: list[Log], description: str = "") -> Log:
+    """One log with the trials of several (ids must differ); each trial keeps where it came from."""
+    trials, seen = [], set()
+    for log in logs:
+        for tr in log.trials:
+            if tr.id in seen:
+                raise DataError(f"{log.path}: [trial {tr.id}] a trial with this id is already in the merged log")
+            seen.add(tr.id)
+            tr.meta.setdefault("source", str(log.attrs.get("source", "")))
+            if log.attrs.get("config"):
+                tr.meta.setdefault("config", str(log.attrs["config"]))
+            trials.append(tr)
+    synthetic = all(bool(log.attrs.get("synthetic", False)) for log in logs)
+    return Log(trials=trials, attrs={
+        "description": description or "; ".join(str(lg.attrs.get("description", "")) for lg in logs),
+        "synthetic": synthetic,
+        "source": "needle log merge: " + ", ".join(lg.path for lg in logs),
+    })

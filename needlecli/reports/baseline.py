@@ -1,0 +1,153 @@
+"""Regression baselines: stored expectations for table cells (value and tolerance), checked by
+``needle evaluate RESULTS --baseline FILE.yaml`` (exit code 1 and a readable diff on a regression) and
+written by ``--write-baseline FILE.yaml``::
+
+    results: seed003_table1            # the experiment's name (checked)
+    cells:
+      - table: seed003_table1
+        row: {Observer: ukf, Error: E_x,y,z (mm)}   # the table's text columns identify the row
+        column: Mean
+        value: 0.3595
+        tol: 0.036                     # absolute tolerance
+        check: both                    # both: |x - value| <= tol; max: x <= value + tol; min: x >= value - tol
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import pandas as pd
+import yaml
+from pydantic import Field, ValidationError
+
+from needlecli.errors import ConfigError
+from needlecli.schema import NonNeg, Strict
+
+
+class Cell(Strict):
+    table: str
+    row: dict[str, str | int | float]
+    column: str
+    value: float
+    tol: NonNeg
+    check: Literal["both", "max", "min"] = "both"
+
+
+class Baseline(Strict):
+    results: str | None = None
+    cells: list[Cell] = Field(min_length=1)
+
+
+@dataclass
+class Failure:
+    cell: Cell
+    got: float | None
+    why: str
+
+    def line(self) -> str:
+        key = ", ".join(f"{k}={v}" for k, v in self.cell.row.items())
+        got = "missing" if self.got is None else f"{self.got:.6g}"
+        return f"  {self.cell.table} [{key}] {self.cell.column}: expected {self.cell.value:.6g} +- {self.cell.tol:.3g} ({self.cell.check}), got {got}: {self.why}"
+
+
+def load_baseline(path: str | Path) -> Baseline:
+    from needlecli.experiments.config import _message, parse_yaml
+
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as e:
+        raise ConfigError(str(path), (), f"cannot read the baseline: {e}") from None
+    try:
+        return Baseline.model_validate(parse_yaml(text, str(path)))
+    except ValidationError as e:
+        err = e.errors()[0]
+        raise ConfigError(str(path), tuple(err["loc"]), _message(err)) from None
+
+
+def _key_columns(df: pd.DataFrame) -> list[str]:
+    """Columns that identify a row: the table's ``attrs["keys"]`` if it declares them, else its text
+    columns (counts such as ``Runs`` are values, not keys)."""
+    if df.attrs.get("keys"):
+        return list(df.attrs["keys"])
+    return [c for c in df.columns if not pd.api.types.is_numeric_dtype(df[c]) and c != "Runs"]
+
+
+def _value(v) -> float | None:
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return None
+
+
+def _find(df: pd.DataFrame, row: dict) -> pd.DataFrame:
+    sel = np.ones(len(df), dtype=bool)
+    for k, v in row.items():
+        if k not in df.columns:
+            return df.iloc[0:0]
+        col = df[k]
+        sel &= (col.astype(str) == str(v)).to_numpy() | (
+            pd.api.types.is_numeric_dtype(col) and isinstance(v, (int, float)) and np.isclose(col.to_numpy(dtype=float), v)
+        )
+    return df[sel]
+
+
+def compare(tables: dict[str, pd.DataFrame], baseline: Baseline, name: str | None = None) -> list[Failure]:
+    """Cells that regress (or are missing)."""
+    out = []
+    if baseline.results and name and baseline.results != name:
+        raise ConfigError("baseline", ("results",), f"is for experiment {baseline.results!r}, these results are {name!r}")
+    for cell in baseline.cells:
+        df = tables.get(cell.table)
+        if df is None or cell.column not in (df.columns if df is not None else []):
+            out.append(Failure(cell, None, "table or column not computed"))
+            continue
+        rows = _find(df, cell.row)
+        if len(rows) != 1:
+            out.append(Failure(cell, None, f"{len(rows)} rows match"))
+            continue
+        got = _value(rows.iloc[0][cell.column])
+        if got is None:
+            out.append(Failure(cell, None, f"not a number ({rows.iloc[0][cell.column]!r})"))
+        elif not math.isfinite(got):
+            out.append(Failure(cell, got, "not finite"))
+        elif cell.check == "both" and abs(got - cell.value) > cell.tol:
+            out.append(Failure(cell, got, "outside the tolerance"))
+        elif cell.check == "max" and got > cell.value + cell.tol:
+            out.append(Failure(cell, got, "worse than allowed"))
+        elif cell.check == "min" and got < cell.value - cell.tol:
+            out.append(Failure(cell, got, "worse than allowed"))
+    return out
+
+
+def make_baseline(tables: dict[str, pd.DataFrame], name: str, rel: float, abs_tol: float) -> dict:
+    """Expectations for every finite numeric cell: tolerance ``max(abs_tol, rel * |value|)``."""
+    cells = []
+    for tname, df in tables.items():
+        keys = _key_columns(df)
+        for _, r in df.iterrows():
+            row = {k: (r[k].item() if hasattr(r[k], "item") else r[k]) for k in keys}
+            for col in df.columns:
+                if col in keys:
+                    continue
+                v = _value(r[col])
+                if v is not None and math.isfinite(v):
+                    cells.append({"table": tname, "row": row, "column": col, "value": float(f"{v:.6g}"),
+                                  "tol": float(f"{max(abs_tol, rel * abs(v)):.3g}"), "check": "both"})
+    return {"results": name, "cells": cells}
+
+
+def write_baseline(path: str | Path, data: dict) -> None:
+    from needlecli.reports.tables import _atomic_text
+
+    header = "# needle evaluate --baseline: expected table cells (value, tolerance); written by --write-baseline\n"
+
+    class _NoAliases(yaml.SafeDumper):
+        def ignore_aliases(self, data):
+            return True
+
+    _atomic_text(Path(path), header + yaml.dump(data, Dumper=_NoAliases, sort_keys=False, allow_unicode=True))

@@ -97,7 +97,8 @@ class Mapping(Strict):
 
 
 def read_csv(path: Path, columns: list[str]) -> dict[str, np.ndarray]:
-    """Numeric columns of a CSV with a header row; a bad row is an error naming file and line."""
+    """Numeric columns of a CSV with a header row; a bad row is an error naming file and line. Empty
+    cells (and nan, NA) are missing values (NaN): a lost sensor sample, an error in an input or truth."""
     if not path.exists():
         raise DataError(f"{path}: no such CSV file")
     try:
@@ -122,6 +123,9 @@ def read_csv(path: Path, columns: list[str]) -> dict[str, np.ndarray]:
             low = cell.lower()
             if low in ("true", "false"):
                 out[r, j] = 1.0 if low == "true" else 0.0
+                continue
+            if low in ("", "nan", "na", "n/a", "null"):  # a missing value: the caller decides what it means
+                out[r, j] = np.nan
                 continue
             try:
                 out[r, j] = float(cell)

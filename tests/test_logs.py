@@ -182,3 +182,19 @@ def test_regression_baseline_holds_and_a_tightened_one_fails(tmp_path):
     assert res.exit_code == 1
     assert "REGRESSION: 1 of" in res.output
     assert "outside the tolerance" in res.output and cell["table"] in res.output
+
+
+def test_polynomial_reference_agrees_with_the_logged_truth():
+    """Seed 000's reference (polynomials fitted to the 2D ultrasound) against the synthetic set's own
+    ground truth: the fit recovers x within 0.03 mm and beta within 0.005 rad on average."""
+    cfg, text = load_config(ROOT / "configs/replay/seed000_like_polynomial.yaml")
+    poly = run_experiment(cfg, text, write=False, base_dir=ROOT / "configs/replay").truth
+    cfg2, text2 = load_config(ROOT / "configs/replay/seed000_like.yaml", overrides=["observers=[]"])
+    true = run_experiment(cfg2, text2, write=False, base_dir=ROOT / "configs/replay").truth
+    assert poly.truth_kind.startswith("polynomial fit of us2d")
+    for name, tol in (("x", 0.03), ("beta", 0.005)):
+        i = poly.model.index(name)
+        both = np.isfinite(poly.states[..., i]) & np.isfinite(true.states[..., i])
+        assert both.sum() > 1000
+        assert np.mean(np.abs(poly.states[..., i] - true.states[..., i])[both]) < tol
+    assert np.isnan(poly.states[..., poly.model.index("z")]).all()  # the fit gives no z: not invented

@@ -69,12 +69,25 @@ class Stop(Strict):
         return self
 
 
+class PolynomialReference(Strict):
+    """Seed 000's reference where nothing better was recorded: polynomials in the inserted depth fitted
+    to a position sensor's samples; x, y from the fits, beta = asin(dx/ds) and alpha = asin(-dy/ds / cos
+    beta) from their slopes (s the depth, an arc length)."""
+
+    kind: Literal["polynomial"]
+    sensor: str = Field(description="position sensor whose x (and y) samples are fitted")
+    degree: int = Field(3, ge=1, le=12)
+
+
 class Source(Strict):
     """Take the insertions from recorded logs instead of simulating them (paths relative to the config
     file). Inputs, sensor streams and (where recorded) the truth come from the logs."""
 
     logs: list[str] = Field(min_length=1)
     trials: list[str] | None = Field(None, description="trial ids to use (default: all)")
+    reference: PolynomialReference | None = Field(
+        None, description="what errors are computed against when the logs have no truth (default: the logs' truth)"
+    )
 
 
 class Simulation(Strict):
@@ -461,6 +474,10 @@ def check_consistency(cfg, source: str) -> None:
 
         base = Path(source).parent if source != "<string>" else Path(".")
         names.update({sn.name: sn for sn in replay_sensors(cfg, base)})
+        ref = cfg.source.reference
+        if ref is not None and (ref.sensor not in names or names[ref.sensor].registered_name != "position"
+                                or "x" not in names[ref.sensor].channel_names):
+            raise ConfigError(source, ("source", "reference", "sensor"), f"needs a position sensor with x in the logs, not {ref.sensor!r}")
     for i, s in enumerate(cfg.sensors):
         try:
             sensor = SENSORS.get(s.type)(s, model)

@@ -126,13 +126,17 @@ def replay_truth(cfg, base_dir: Path):
         keep = (g >= 0) & (g < T)
         for j, c in cols:
             states[i, g[keep], c] = tr.truth.state[keep, j]
+    truth_kind = _truth_kind(trials)
+    if cfg.source.reference is not None:
+        states = polynomial_reference(cfg.source.reference, model, streams, depth, time)
+        truth_kind = f"polynomial fit of {cfg.source.reference.sensor} (degree {cfg.source.reference.degree})"
     params = {k: np.broadcast_to(np.asarray(v, dtype=float), (N, T)) for k, v in model.param_arrays().items()}
     truth = Truth(
         model=model, time=time, states=states, inputs=inputs, depth=depth,
         base_angle=np.zeros((N, T)), params=params,
         interfaces=np.zeros(0), status=np.full(N, STATUS_OK), reason=np.full(N, ""),
         event_time=np.full(N, np.nan), end_time=end,
-        trial_ids=[tr.id for tr in trials], truth_kind=_truth_kind(trials),
+        trial_ids=[tr.id for tr in trials], truth_kind=truth_kind,
     )
     return truth, sensors, streams
 
@@ -179,6 +183,35 @@ def replay_sensors(cfg, base_dir: Path) -> list:
     """The sensors a replay config will have (reads and checks the logs)."""
     model = MODELS.get(cfg.model.type)(cfg.model.params)
     return _sensors(load_trials(cfg, base_dir), model)
+
+
+def polynomial_reference(ref, model, streams, depth: np.ndarray, time: np.ndarray) -> np.ndarray:
+    """Reference states ``(N, T, n)`` from polynomial fits ``x(s)``, ``y(s)`` of a position sensor's valid
+    samples against the depth ``s`` (seed 000); NaN for what the fit does not give and outside the
+    depths the samples cover."""
+    st = streams[ref.sensor]
+    N, T = depth.shape
+    out = np.full((N, T, model.n), np.nan)
+    cols = {c: st.names.index(c) for c in ("x", "y") if c in st.names}
+    for i in range(N):  # one least-squares fit per trial and axis (numpy.polynomial has no batch fit)
+        ok = st.valid[i]
+        if ok.sum() <= ref.degree:
+            continue
+        s_meas = depth[i, st.index[ok]]
+        lo, hi = s_meas.min(), s_meas.max()
+        inside = (depth[i] >= lo) & (depth[i] <= hi)
+        slopes = {}
+        for c, j in cols.items():
+            fit = np.polynomial.Polynomial.fit(s_meas, st.value[i, ok, j], ref.degree)
+            if c in model.state_names:
+                out[i, inside, model.index(c)] = fit(depth[i, inside])
+            slopes[c] = fit.deriv()(depth[i, inside])
+        beta = np.arcsin(np.clip(slopes["x"], -1.0, 1.0))
+        if "beta" in model.state_names:
+            out[i, inside, model.index("beta")] = beta
+        if "y" in slopes and "alpha" in model.state_names:
+            out[i, inside, model.index("alpha")] = np.arcsin(np.clip(-slopes["y"] / np.cos(beta), -1.0, 1.0))
+    return out
 
 
 def _truth_kind(trials: list[Trial]) -> str:

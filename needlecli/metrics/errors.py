@@ -135,11 +135,20 @@ def compute_errors(res: Group) -> dict[str, ErrorSet]:
                 es.quantities[f"E_{k}"] = QuantityError(f"E_{k}", unit, np.abs(col(e_names, xs, k) - tv), keep)
         es.not_estimated = [k for k in t_names if k not in e_names and k not in used]
         kind = str(res.attrs.get("truth_kind", "simulation"))
+        if "E_xyz" in es.quantities and not np.isfinite(es.quantities["E_xyz"].values).any() and pos_t:
+            # the reference lacks an axis (e.g. a fit of a 2D image): report the axes it has
+            for a in pos_t:
+                err = scale * np.abs(col(e_names, xs, a) - col(t_names, ts, a))
+                if np.isfinite(err).any():
+                    es.quantities[f"E_{a}"] = QuantityError(f"E_{a}", "mm", err, keep)
         for q in list(es.quantities):
             if not np.isfinite(es.quantities[q].values).any():
-                es.not_computable[q] = (
-                    "the logs have no ground truth" if kind == "none" else "no truth sample where it was estimated"
-                )
+                if kind == "none":
+                    es.not_computable[q] = "the logs have no ground truth"
+                elif kind in ("simulation", "ground truth", "manual segmentation"):
+                    es.not_computable[q] = "no truth sample where it was estimated"
+                else:
+                    es.not_computable[q] = f"not given by the reference, a {kind}"
                 del es.quantities[q]
         out[name] = es
     return out

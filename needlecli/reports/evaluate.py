@@ -50,6 +50,8 @@ def evaluate_results(
         stem = res.attrs.get("name", path.stem)
         for name, df in out.items():
             doc = " ".join((TABLES.get(name).__doc__ or "").strip().split("\n\n")[0].split())
+            if res.attrs.get("source") == "replay":
+                doc += f" Replayed logs; errors against: {res.attrs.get('truth_kind', 'the logs')}."
             write_table(df, out_dir / f"{stem}_{name}", formats or ["md", "csv", "tex"], caption=doc)
         if plots:
             from needlecli.reports.plots import PLOTS

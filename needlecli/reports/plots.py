@@ -44,6 +44,8 @@ def error_vs_depth(res: Group, errors: dict[str, ErrorSet], path_stem: Path) -> 
     if not quantities:
         return None
     depth = res.data["depth"]
+    if depth.ndim == 2:  # replayed trials each have their own depth: the axis is their mean
+        depth = np.nanmean(depth, 0)
     unit = res.attrs.get("length_unit", "mm")
     fig, axes = plt.subplots(len(quantities), 1, figsize=(7, 2.2 * len(quantities)), sharex=True, squeeze=False)
     for ax, q in zip(axes[:, 0], quantities):

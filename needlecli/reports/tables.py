@@ -22,7 +22,7 @@ from needlecli.registry import Registry
 TableFn = Callable[[Group, dict[str, ErrorSet]], pd.DataFrame]
 TABLES: Registry[TableFn] = Registry("table")
 
-_QUANTITY_ORDER = ["E_xyz", "E_alpha", "E_beta", "E_gamma", "E_R", "E_h", "E_B", "E_kappa"]
+_QUANTITY_ORDER = ["E_xyz", "E_x", "E_y", "E_z", "E_alpha", "E_beta", "E_gamma", "E_R", "E_h", "E_B", "E_kappa"]
 
 
 def order_quantities(names):

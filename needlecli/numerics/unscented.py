@@ -73,7 +73,7 @@ def robust_cholesky(p: np.ndarray, floor: float = 1e-12) -> tuple[np.ndarray, np
         # factor the rebuilt matrices the eigen way: any square root serves for sigma points
         w2, v2 = np.linalg.eigh(q)
         root = v2 * np.sqrt(np.maximum(w2, 0.0))[..., None, :]
-        return root, np.ones_like(bad)
+        return root, bad
 
 
 def _select(angles: np.ndarray) -> slice | np.ndarray | None:

@@ -242,6 +242,7 @@ class UnscentedKalmanFilter(Observer):
 
         # samples available at t = 0 serve the initialisation only; updates start with the first tick
         x_good, P_good = x, P
+        x_held, P_held = x, P  # the estimate of the last tick, stored until the next one
         emit(0, 0, x, P)
         every = max(1, len(ticks) // 100)
         with np.errstate(all="ignore"):
@@ -272,7 +273,15 @@ class UnscentedKalmanFilter(Observer):
                         resets += crossed
                 # ---- update with what arrived in (t_k0, t_k1]
                 if schedule[i]:
+                    # from sigma points of the predicted (x, P): the propagated ones carry neither Q nor the
+                    # kappa reset, and Pyy, Pxy without them give a gain that is not the Kalman gain
+                    root, bad = robust_cholesky(P)
+                    repairs += bad & alive
+                    X = sigma_points(x, root, w, angles)
+                    dX = residual(X, x[..., None, :], angles)
                     x, P = self._update(x, P, X, dX, schedule[i], w, alive, gated, used)
+                    if angles.any():  # the update may carry an angle across the cut
+                        x[:, angles] = wrap_angle(x[:, angles])
                 # ---- curvature constraint: keep the previous estimate outside [0, kappa_max]
                 if kappa_i is not None and s.kappa_max is not None:
                     kk = x[:, kappa_i]
@@ -297,7 +306,10 @@ class UnscentedKalmanFilter(Observer):
                     x = np.where(alive[:, None], x, x_good)
                     P = np.where(alive[:, None, None], P, P_good)
                 x_good, P_good = x, P
-                emit(k0 + 1, k1, x, P)
+                if k1 > k0 + 1:  # grid steps between ticks hold the last estimate: nothing is known earlier
+                    emit(k0 + 1, k1 - 1, x_held, P_held)
+                emit(k1, k1, x, P)
+                x_held, P_held = x, P
                 # ---- final-position prediction from the observation depths reached now
                 if depths.size:
                     dnow = problem.depth[0, k1]

@@ -29,6 +29,7 @@ test:
 bench:
 	$(PY) benchmarks/bench_simulate.py
 	$(PY) benchmarks/bench_ukf.py
+	$(PY) benchmarks/bench_observers.py
 
 lint:
 	$(PY) -m ruff check needlecli tests benchmarks

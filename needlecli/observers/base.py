@@ -24,6 +24,7 @@ from needlecli.schema import Strict
 STATUS_OK = "ok"
 STATUS_DIVERGED = "diverged"
 STATUS_SINGULAR = "singular"
+STATUS_UNOBSERVABLE = "unobservable"  # the inputs cannot make the estimate converge (seed 001)
 
 
 class ObserverSettings(Strict):

@@ -1,0 +1,191 @@
+"""Seeds 000 and 001: Table I of seed 000 (x, pitch and roll errors of the high-gain observer); seed
+001's rotation error against insertion distance (a convergence table, the reduction per half turn of
+the arc, and the Fig. 3 plot of the error against distance per input case)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from needlecli.io.results import Group
+from needlecli.metrics import ErrorSet
+from needlecli.reports.plots import PLOTS, plt, save_figure
+from needlecli.reports.tables import TABLES
+
+_TABLE1_STATS = ("Average Absolute Estimation Error", "RMSE", "Standard Deviation")
+
+
+def _kept(res: Group, obs: str) -> np.ndarray:
+    truth = res.data["truth"]
+    g = res.data["estimates"].data[obs]
+    return np.nonzero((truth.data["status"] == "ok") & (g.data["status"] == "ok"))[0]
+
+
+def _x_error(res: Group, obs: str) -> np.ndarray | None:
+    """``|x_hat - x|`` ``(N_kept, T)`` in the model's length unit, when both carry x."""
+    truth = res.data["truth"]
+    g = res.data["estimates"].data[obs]
+    tn, en = list(truth.attrs["names"]), list(g.attrs["names"])
+    if "x" not in tn or "x" not in en:
+        return None
+    keep = _kept(res, obs)
+    return np.abs(g.data["state"][keep, :, en.index("x")] - truth.data["state"][keep, :, tn.index("x")])
+
+
+@TABLES.register("seed000_table1")
+def seed000_table1(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
+    """Seed 000 Table I: average absolute estimation error, RMSE and standard deviation (of the absolute
+    error) of x [mm], beta and gamma [rad], over all kept runs and time steps; Final: mean absolute error
+    at the last step. Paper (experiments): e_x 2e-14 / 5e-13 / 5e-13 mm, e_beta 0.02 / 0.04 / 0.037 rad."""
+    unit = res.attrs.get("length_unit", "mm")
+    rows = []
+    for obs, es in errors.items():
+        items = []
+        ex = _x_error(res, obs)
+        if ex is not None:
+            items.append((f"e_x [{unit}]", ex, len(_kept(res, obs))))
+        for q, label in (("E_beta", "e_beta [rad]"), ("E_gamma", "e_gamma [rad]")):
+            if q in es.quantities:
+                qe = es.quantities[q]
+                items.append((label, np.deg2rad(qe.values), len(qe.runs)))
+        for label, v, kept in items:
+            finite = v[np.isfinite(v)]
+            last = v[:, -1][np.isfinite(v[:, -1])] if v.ndim == 2 and v.shape[1] else finite
+            row = {"Observer": obs, "Error": label}
+            if finite.size:
+                row.update({_TABLE1_STATS[0]: float(np.mean(finite)), _TABLE1_STATS[1]: float(np.sqrt(np.mean(finite**2))),
+                            _TABLE1_STATS[2]: float(np.std(finite))})
+            else:
+                row.update({k: np.nan for k in _TABLE1_STATS})
+            row["Final"] = float(np.mean(last)) if last.size else np.nan
+            row["Runs"] = f"{kept}/{es.n_runs}"
+            rows.append(row)
+    return pd.DataFrame(rows, columns=["Observer", "Error", *_TABLE1_STATS, "Final", "Runs"])
+
+
+# ---------------------------------------------------------------------------------------------- seed 001
+def _cases(res: Group, runs: np.ndarray) -> list[tuple[str, np.ndarray]]:
+    """Positions in ``runs`` grouped by input case (all together when the inputs have no cases)."""
+    inputs = res.data.get("inputs", Group())
+    labels = inputs.attrs.get("case_labels")
+    case = inputs.data.get("case")
+    if labels is None or case is None:
+        return [("all runs", np.arange(len(runs)))]
+    out = []
+    for i, lbl in enumerate(labels):
+        sel = np.nonzero(np.asarray(case)[runs] == i)[0]
+        if sel.size:
+            out.append((str(lbl), sel))
+    return out
+
+
+def _half_turn(res: Group) -> float | None:
+    """Insertion distance of half a turn of the arc, ``pi / kappa`` (truth's mean curvature)."""
+    k = res.data["truth"].data.get("params", Group()).data.get("kappa")
+    if k is None:
+        return None
+    k = float(np.nanmean(k))
+    return float(np.pi / k) if k > 0 else None
+
+
+def _rotation_groups(res: Group, errors: dict[str, ErrorSet]):
+    """``(observer, case label, E_R (n, T) deg)`` for every observer with a rotation error."""
+    for obs, es in errors.items():
+        qe = es.quantities.get("E_R")
+        if qe is None or qe.values.shape[0] == 0:
+            continue
+        for label, sel in _cases(res, qe.runs):
+            yield obs, label, qe.values[sel], es.n_runs
+
+
+def _first_below(depth: np.ndarray, curve: np.ndarray, level: float) -> float:
+    """Depth from which ``curve`` stays below ``level`` (NaN if it does not end below it)."""
+    above = np.nonzero(~(curve < level))[0]
+    if above.size == 0:
+        return float(depth[0])
+    if above[-1] == len(curve) - 1:
+        return np.nan
+    return float(depth[above[-1] + 1])
+
+
+@TABLES.register("seed001_convergence")
+def seed001_convergence(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
+    """Seed 001: rotation error E_R (mean over the case's kept runs, deg) against insertion distance, and
+    the distance from which it stays under 10 and 5 deg. Paper: about 7 cm of insertion from 90 deg."""
+    depth = np.asarray(res.data["depth"], dtype=float)
+    unit = res.attrs.get("length_unit", "mm")
+    marks = [d for d in (50.0, 70.0, 100.0, 150.0, 200.0, 300.0) if d <= depth[-1] + 1e-9]
+    rows = []
+    for obs, label, e, n_runs in _rotation_groups(res, errors):
+        m = np.nanmean(e, 0)
+        row = {"Observer": obs, "Case": label, "Runs": f"{e.shape[0]}/{n_runs}", "E_R at 0 [deg]": float(m[0])}
+        for d in marks:
+            row[f"at {d:g} {unit}"] = float(m[min(np.searchsorted(depth, d - 1e-9), len(m) - 1)])
+        row["final [deg]"] = float(m[-1])
+        row[f"under 10 deg from [{unit}]"] = _first_below(depth, m, 10.0)
+        row[f"under 5 deg from [{unit}]"] = _first_below(depth, m, 5.0)
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+@TABLES.register("seed001_half_turns")
+def seed001_half_turns(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
+    """Seed 001: rotation error after each half turn of the arc (pi / kappa of insertion) and its
+    reduction per half turn, 1 - E_R(j) / E_R(j - 1), from the case's mean error (at most 12 rows per
+    case: with more half turns, every k-th and the mean reduction per half turn over the k). Paper:
+    about 80 % per half turn with a hand-tuned gain."""
+    depth = np.asarray(res.data["depth"], dtype=float)
+    unit = res.attrs.get("length_unit", "mm")
+    half = _half_turn(res)
+    cols = ["Observer", "Case", "Half turns", f"Distance [{unit}]", "E_R mean [deg]", "E_R max [deg]",
+            "Reduction [%]", "Runs"]
+    if half is None:
+        return pd.DataFrame(columns=cols)
+    n_half = int(np.floor(depth[-1] / half + 1e-9))
+    step = max(1, int(np.ceil(n_half / 12)))  # at most 12 rows per case; reductions stay per half turn
+    rows = []
+    for obs, label, e, n_runs in _rotation_groups(res, errors):
+        prev = None
+        for j in range(0, n_half + 1, step):
+            i = min(np.searchsorted(depth, j * half - 1e-9), len(depth) - 1)
+            m = float(np.nanmean(e[:, i]))
+            red = 100.0 * (1.0 - (m / prev) ** (1.0 / step)) if prev else np.nan
+            rows.append({"Observer": obs, "Case": label, "Half turns": j, f"Distance [{unit}]": float(depth[i]),
+                         "E_R mean [deg]": m, "E_R max [deg]": float(np.nanmax(e[:, i])),
+                         "Reduction [%]": red, "Runs": f"{e.shape[0]}/{n_runs}"})
+            prev = m
+    return pd.DataFrame(rows, columns=cols)
+
+
+@PLOTS.register("seed001_rotation_error")
+def rotation_error_plot(res: Group, errors: dict[str, ErrorSet], path_stem: Path, max_runs: int = 20) -> Path | None:
+    """Seed 001 Fig. 3: rotation error against insertion distance, one panel per input case, one colour
+    per observer (thin: single runs, thick: mean)."""
+    groups = list(_rotation_groups(res, errors))
+    if not groups:
+        return None
+    cases = list(dict.fromkeys(label for _, label, _, _ in groups))
+    observers = list(dict.fromkeys(obs for obs, _, _, _ in groups))
+    depth = np.asarray(res.data["depth"], dtype=float)
+    unit = res.attrs.get("length_unit", "mm")
+    fig, axs = plt.subplots(1, len(cases), figsize=(5.5 * len(cases), 3.8), squeeze=False, sharey=True)
+    for obs, label, e, _ in groups:
+        ax = axs[0, cases.index(label)]
+        color = f"C{observers.index(obs) % 10}"
+        for r in range(min(e.shape[0], max_runs)):
+            ax.plot(depth, e[r], color=color, lw=0.5, alpha=0.4)
+        ax.plot(depth, np.nanmean(e, 0), color=color, lw=1.8, label=obs)
+    half = _half_turn(res)
+    for c, ax in zip(cases, axs[0]):
+        if half is not None:
+            for j in range(1, int(depth[-1] / half) + 1):
+                ax.axvline(j * half, color="grey", lw=0.6, ls=":")
+        ax.set_title(c)
+        ax.set_xlabel(f"insertion distance [{unit}]")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize="small")
+    axs[0, 0].set_ylabel("rotation error [deg]")
+    fig.suptitle(f"{res.attrs.get('name', '')}: rotation error against distance (dotted: half turns of the arc)")
+    return save_figure(fig, Path(f"{path_stem}_rotation_error.png"))

@@ -143,11 +143,11 @@ def compute_errors(res: Group) -> dict[str, ErrorSet]:
                     es.quantities[f"E_{a}"] = QuantityError(f"E_{a}", "mm", err, keep)
         for q in list(es.quantities):
             if not np.isfinite(es.quantities[q].values).any():
-                if keep.size == 0:
+                if kind == "none":
+                    es.not_computable[q] = "the logs have no ground truth"
+                elif keep.size == 0:
                     why = ", ".join(f"{k}: {v}" for k, v in es.excluded.items())
                     es.not_computable[q] = f"no run kept ({why})"
-                elif kind == "none":
-                    es.not_computable[q] = "the logs have no ground truth"
                 elif kind in ("simulation", "ground truth", "manual segmentation"):
                     es.not_computable[q] = "no truth sample where it was estimated"
                 else:

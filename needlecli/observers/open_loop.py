@@ -68,10 +68,10 @@ class OpenLoop(Observer):
         n_runs, T, n = problem.n_runs, len(problem.time), model.n
         params = {k: np.asarray(v, dtype=float) for k, v in problem.params.items()}
         params.update({k: np.asarray(v, dtype=float) for k, v in s.params.items()})
+        x = np.broadcast_to(model.initial_state(params), (n_runs, n)).astype(float)
         if s.init.from_ == "truth" and problem.initial_truth is not None:
-            x = np.array(problem.initial_truth, dtype=float)
-        else:
-            x = np.broadcast_to(model.initial_state(params), (n_runs, n)).astype(float)
+            # where the truth is unknown (a replayed log without it) the nominal start stands
+            x = np.where(np.isfinite(problem.initial_truth), problem.initial_truth, x)
         std = np.array([s.init.std.get(k, 0.0) for k in model.state_names])
         x = model.normalize(x + std * rng.standard_normal(x.shape))
         P = np.broadcast_to(np.diag(std**2 + s.init.p0_floor), (n_runs, n, n)).copy()

@@ -382,7 +382,8 @@ class UnscentedKalmanFilter(Observer):
         if s.init.from_ == "truth" and problem.initial_truth is not None:
             for i, name in enumerate(model.state_names):
                 if name in problem.model.state_names:
-                    x[:, i] = problem.initial_truth[:, problem.model.index(name)]
+                    known = problem.initial_truth[:, problem.model.index(name)]
+                    x[:, i] = np.where(np.isfinite(known), known, x[:, i])  # unknown truth: nominal
         for name, v in s.init.values.items():
             x[:, model.index(name)] = v
         std = np.array([s.init.std.get(k, 0.0) for k in model.state_names])

@@ -30,6 +30,7 @@ bench:
 	$(PY) benchmarks/bench_simulate.py
 	$(PY) benchmarks/bench_ukf.py
 	$(PY) benchmarks/bench_observers.py
+	$(PY) benchmarks/bench_sweep.py
 
 lint:
 	$(PY) -m ruff check needlecli tests benchmarks

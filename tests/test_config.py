@@ -16,7 +16,7 @@ from needlecli.experiments.config import experiment_schema, load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 BAD = sorted((Path(__file__).parent / "bad_configs").glob("*.yaml"))
-SHIPPED = sorted((ROOT / "configs").glob("**/*.yaml"))
+SHIPPED = sorted(p for p in (ROOT / "configs").glob("**/*.yaml") if "sweeps" not in p.parts)  # sweeps: grids
 
 GOOD = """\
 name: good

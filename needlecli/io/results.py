@@ -27,9 +27,7 @@ file"); change it only with a version bump of :data:`RESULTS_FORMAT`.
 from __future__ import annotations
 
 import datetime as _dt
-import os
 import subprocess
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -39,6 +37,7 @@ import numpy as np
 
 from needlecli import __version__
 from needlecli.errors import DataError
+from needlecli.io.atomic import atomic_path
 
 RESULTS_FORMAT = 1
 _STR = h5py.string_dtype("utf-8")
@@ -95,24 +94,9 @@ def _write_group(g: h5py.Group, grp: Group) -> None:
 def write_atomic(path: str | Path, root: Group) -> Path:
     """Write ``root`` to ``path`` through a temporary file in the same folder and a rename, so that a
     reader never sees a half-written file."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes the file private (0600); results are ordinary files
-        with h5py.File(tmp, "w") as f:
-            _write_group(f, root)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
-    return path
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+        _write_group(f, root)
+    return Path(path)
 
 
 def root_attrs(config_text: str, seed: int, extra: dict | None = None) -> dict:

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import matplotlib
@@ -12,6 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from needlecli.io.atomic import atomic_path  # noqa: E402
 from needlecli.io.results import Group  # noqa: E402
 from needlecli.metrics import ErrorSet  # noqa: E402
 from needlecli.registry import Registry  # noqa: E402
@@ -22,16 +21,11 @@ PLOTS: Registry = Registry("plot")
 
 def save_figure(fig, path: Path) -> Path:
     """Save a figure as PNG through a temporary file and a rename; close it."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".png", dir=path.parent)
-    os.close(fd)
     try:
-        fig.savefig(tmp, dpi=110, bbox_inches="tight")
-        os.replace(tmp, path)
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
     finally:
         plt.close(fig)
-        if os.path.exists(tmp):
-            os.unlink(tmp)
     return path
 
 

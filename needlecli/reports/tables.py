@@ -7,14 +7,13 @@ Table I, seed 003 Table 1, seed 004 Tables 1-3) register here from their own mod
 
 from __future__ import annotations
 
-import os
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
+from needlecli.io.atomic import write_text_atomic
 from needlecli.io.results import Group
 from needlecli.metrics import ErrorSet
 from needlecli.registry import Registry
@@ -106,16 +105,7 @@ def to_markdown(df: pd.DataFrame) -> str:
 
 
 def _atomic_text(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    write_text_atomic(path, text)
 
 
 def write_table(df: pd.DataFrame, stem: Path, formats: list[str], caption: str = "") -> list[Path]:

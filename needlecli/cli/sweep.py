@@ -1,0 +1,85 @@
+"""``needle sweep CONFIG --grid GRID.yaml``: one experiment per cell of a parameter grid, in parallel."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from needlecli.cli.app import app
+from needlecli.cli.common import fail, log, progress_bar, setup_logging, user_errors
+from needlecli.reports.tables import to_markdown
+
+
+@app.command()
+@user_errors
+def sweep(
+    config: Path = typer.Argument(..., help="Experiment config (YAML): the base of every cell."),
+    grid: Path = typer.Option(..., "--grid", "-g", help="Grid file: axes, cells or random samples of dotted overrides."),
+    executor: str = typer.Option("local", "--executor", "-e", help="local (processes), dask (a distributed cluster) or inline."),
+    scheduler: str = typer.Option(None, "--scheduler", help="Dask scheduler address, e.g. tcp://10.0.0.5:8786 (default: start a LocalCluster)."),
+    workers: int = typer.Option(None, "--workers", "-w", min=1, help="Local worker processes (default: the CPU count)."),
+    out: Path = typer.Option(None, "--out", "-o", help="Sweep folder (default: results/sweeps/<config>_<grid>)."),
+    resume: bool = typer.Option(False, "--resume", help="Skip cells whose complete results already exist."),
+    set_: list[str] = typer.Option([], "--set", help="Override a key in every cell: --set runs.count=10"),
+    plot_metric: str = typer.Option(None, "--plot-metric", help="Metric column to plot (default: E_xyz_mean)."),
+    plot_param: str = typer.Option(None, "--plot-param", help="Swept parameter on the x axis (default: the first)."),
+    dry_run: bool = typer.Option(False, "--dry-run", help="Validate every cell and list them; run nothing."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar or log lines; print only the paths."),
+) -> None:
+    """Run one experiment per cell of a grid (each validated first), write DIR/cells/<id>.h5, the table
+    DIR/sweep.csv and DIR/sweep.md (one row per cell and observer) and a plot of a metric against a
+    parameter. Exit code 1 when a cell failed (the others still ran), 2 for a bad config or grid."""
+    from needlecli.experiments.sweep import (
+        default_plot_choice,
+        load_grid,
+        plan_sweep,
+        plot_name,
+        plot_sweep,
+        run_sweep,
+    )
+
+    setup_logging(quiet)
+    if executor not in ("local", "dask", "inline"):
+        fail(f"--executor: unknown executor {executor!r}; use local, dask or inline")
+    if scheduler and executor != "dask":
+        fail("--scheduler needs --executor dask")
+    g = load_grid(grid)
+    out_dir = out if out is not None else Path("results") / "sweeps" / f"{config.stem}_{grid.stem}"
+    cells = plan_sweep(config, g, out_dir=out_dir, overrides=set_, grid_source=str(grid))
+    if dry_run:
+        typer.echo(f"{grid}: {len(cells)} valid cell(s) of {config} -> {out_dir}")
+        for c in cells:
+            typer.echo(f"  {c.id}  seed {c.seed} ({c.seed_from})  {c.label()}")
+        return
+    log.info("sweep: %d cell(s) on %s -> %s", len(cells), executor, out_dir)
+    manifest = {"config": str(config), "grid": str(grid), "grid_spec": g.model_dump(mode="json"), "set": list(set_)}
+    try:
+        with progress_bar(not quiet) as bar:
+            result = run_sweep(cells, out_dir=out_dir, executor=executor, workers=workers, scheduler=scheduler,
+                               resume=resume, progress=bar, manifest=manifest)
+    except KeyboardInterrupt:
+        typer.echo(f"interrupted: the complete cells are kept in {out_dir / 'cells'}; run again with --resume "
+                   "to finish the others", err=True)
+        raise typer.Exit(130) from None
+    table = result.table
+    metric, param = default_plot_choice(table, plot_metric, plot_param)
+    plot = None
+    if metric is not None and param is not None and (table["status"] == "ok").any():
+        plot = plot_sweep(table, metric=metric, param=param, path=out_dir / plot_name(metric, param),
+                          units=result.units, title=g.description or config.stem)
+    elif plot_metric or plot_param:
+        fail("nothing to plot: no cell succeeded" if not (table["status"] == "ok").any() else
+             "nothing to plot: the sweep varies no parameter besides runs.seed")
+    if not quiet:
+        typer.echo(to_markdown(table) + "\n")
+        typer.echo(f"cells: {len(cells)} ({result.ran} run, {result.skipped} skipped as complete, "
+                   f"{result.failed} failed) in {result.seconds:.1f} s")
+        for o in result.outcomes.values():
+            if o.status == "failed":
+                typer.echo(f"failed: {o.id}: {o.error} (see {out_dir / 'cells' / (o.id + '.error.txt')})")
+    typer.echo(f"table: {out_dir / 'sweep.csv'}, {out_dir / 'sweep.md'}")
+    if plot is not None:
+        typer.echo(f"plot: {plot}")
+    if result.failed:
+        raise typer.Exit(1)

@@ -1,0 +1,157 @@
+"""``needle compare``: every applicable observer on the same simulated (or replayed) insertions, the table in
+the form of seed 003's appendix A, skipped observers with their reasons."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+import needlecli.cli.commands  # noqa: F401  (registers the subcommands)
+from needlecli.cli.app import app
+from needlecli.experiments.compare import (
+    Context,
+    candidates,
+    compare_observers,
+    compare_table,
+    direct_components,
+    ukf_defaults,
+)
+from needlecli.experiments.config import load_config
+from needlecli.experiments.runner import build_sensors
+from needlecli.models import MODELS
+from needlecli.observers import OBSERVERS
+
+# seed 003's Table 1 set-up, tiny: 3 insertions of 15 mm, no observers (every one comes from defaults)
+TINY003 = """\
+name: tiny003
+model: {type: modified_unicycle, params: {kappa: 0.005, beta_cut: 0.035}, param_std: {kappa: 0.001}}
+inputs: {v: 1.5, u: 0.0}
+process_noise: {std: {x: 0.02, y: 0.02, z: 0.02, alpha: 2.0e-4, beta: 2.0e-4, gamma: 5.0e-3}}
+sensors:
+  - {name: us3d, type: position, rate: 2.0, sigma: 0.3, growth: {transducer: [0.0, 0.0, 90.0], a: 1.0, d_max: 80.0}}
+  - {name: robot, type: encoder, rate: 50.0, channels: [roll], sigma: 0.0035}
+  - {name: swe, type: elastography, rate: 1.0, sigma: 0.001}
+runs: {count: 3, seed: 3}
+stop: {depth: 15.0}
+simulation: {dt: 0.02}
+output: {store_every: 10, covariance: diag}
+"""
+
+
+def invoke(*args):
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory) -> Path:
+    d = tmp_path_factory.mktemp("compare")
+    (d / "tiny.yaml").write_text(TINY003)
+    return d / "tiny.yaml"
+
+
+def test_compare_prints_the_appendix_table_with_ukf_and_open_loop(tiny, tmp_path):
+    r = invoke("compare", tiny, "--out", tmp_path, "--quiet")
+    assert r.exit_code == 0, r.output
+    header = next(line for line in r.output.splitlines() if line.startswith("|"))
+    assert "ukf" in header and "open_loop" in header
+    for row in ("Sensor frequency", "Online curvature estimation", "Instantaneous error", "Prediction error* (mm)",
+                "Runtime per step", "Runs that failed", "Number of insertions"):
+        assert f"| {row}" in r.output
+    assert "1 Hz" in r.output and "50 Hz" in r.output and "2 Hz" in r.output
+    assert "skipped: so3_invariant" in r.output and "tangent sensor" in r.output  # no tangent sensor here
+    df = pd.read_csv(tmp_path / "compare.csv").set_index("observer")
+    assert df.loc["ukf", "online_curvature"] == "yes"
+    assert df.loc["open_loop", "online_curvature"].startswith("no")
+    assert df.loc["ukf", "pred_depth"] == pytest.approx(3.75)  # 25 % of 15 mm
+    assert np.isfinite(df.loc["ukf", "pred_mean_mm"]) and np.isnan(df.loc["open_loop", "pred_mean_mm"])
+    assert (df["runs"] == 3).all() and (df["runs_failed"] == 0).all() and (df["ms_per_step"] > 0).all()
+    assert df.loc["ukf", "inst_quantity"] == "E_xyz"
+    # the UKF beats the open loop on the same insertions
+    assert df.loc["ukf", "inst_mean"] < df.loc["open_loop", "inst_mean"]
+    assert "Skipped:" in (tmp_path / "compare.md").read_text()
+    assert (tmp_path / "tiny003_compare.h5").exists()
+    r = invoke("evaluate", tmp_path / "tiny003_compare.h5", "--out", tmp_path / "ev", "--no-plots", "--quiet")
+    assert r.exit_code == 0, r.output
+
+
+def test_same_insertions_for_every_observer_and_config_settings_kept(tiny, tmp_path):
+    text = tiny.read_text() + """observers:
+  - name: my_ukf
+    type: ukf
+    q: {x: 2.0e-3, y: 2.0e-3, z: 2.0e-3, alpha: 2.0e-5, beta: 2.0e-5, gamma: 5.0e-4, kappa: 2.0e-6}
+    p0: {x: 1.0, y: 1.0, z: 1.0, alpha: 5.0e-3, beta: 5.0e-3, gamma: 0.1, kappa: 2.0e-6}
+    init: {from: truth, std: {alpha: 0.0873, beta: 0.0873}, first_measurement: {x: us3d.x, y: us3d.y, z: us3d.z}}
+    predict_at_depths: [3.0]
+"""
+    cfg_path = tmp_path / "own.yaml"
+    cfg_path.write_text(text)
+    res = compare_observers(cfg_path, observers=["my_ukf", "open_loop"], out_dir=tmp_path / "o")
+    df = compare_table(res).set_index("observer")
+    assert list(df.index) == ["my_ukf", "open_loop"]
+    assert df.loc["my_ukf", "settings"] == "config" and df.loc["open_loop", "settings"] == "defaults"
+    assert res.cfg.observers[0].predict_at_depths == [3.0, 3.75]  # 25 % added to its own depths
+    from needlecli.io.results import read_results
+
+    f = read_results(res.path)
+    assert set(f.data["estimates"].data) == {"my_ukf", "open_loop"}
+    # the same truth as a plain simulation of the config: simulated once, shared by the observers
+    plain, _ = load_config(cfg_path)
+    from needlecli.experiments.runner import run_experiment
+
+    ref = run_experiment(plain, text, write=False)
+    np.testing.assert_array_equal(f.data["truth"].data["state"], ref.truth.states)
+    np.testing.assert_array_equal(f.data["estimates"].data["my_ukf"].data["state"][:, :1],
+                                  ref.estimates["my_ukf"].state[:, :1])
+
+
+def test_ukf_defaults_from_the_sensors(tiny):
+    cfg, _ = load_config(tiny)
+    model = MODELS.get(cfg.model.type)(cfg.model.params)
+    sensors = {s.name: s for s in build_sensors(cfg, model)}
+    assert direct_components(sensors["us3d"], model) == {"x": (0, "x"), "y": (1, "y"), "z": (2, "z")}
+    assert direct_components(sensors["robot"], model) == {"gamma": (0, "roll")}
+    assert direct_components(sensors["swe"], model) == {"kappa": (0, "kappa")}
+    ctx = Context(cfg=cfg, model=model, sensors=sensors, replay=False, final_depth=15.0, dt=0.02)
+    s = ukf_defaults(ctx)
+    assert s["measurements"]["us3d"]["sigma"] == 0.3 and s["measurements"]["us3d"]["growth"]["a"] == 1.0
+    assert s["init"]["first_measurement"] == {"x": "us3d.x", "y": "us3d.y", "z": "us3d.z", "gamma": "robot.roll",
+                                              "kappa": "swe.kappa"}
+    assert s["init"]["std"] == {"alpha": 0.0873, "beta": 0.0873}
+    assert s["p0"]["x"] == pytest.approx((2 * 0.3) ** 2) and s["p0"]["kappa"] == pytest.approx(1e-6)
+    assert s["q"]["x"] == pytest.approx(0.02 * np.sqrt(0.02))  # the truth's process noise per tick
+    assert s["predict_at_depths"] == [3.75]
+    OBSERVERS.get("ukf").Settings.model_validate(s)
+    # without a sensor with a nominal sigma that the model predicts, the UKF is skipped with the reason
+    bare = Context(cfg=cfg, model=model, sensors={}, replay=False, final_depth=15.0, dt=0.02)
+    cands = {c.type: c for c in candidates(bare, [], None)}
+    assert "no sensor" in cands["ukf"].skip and not cands["open_loop"].skip
+
+
+def test_compare_replays_a_log_with_the_model_given(tiny, tmp_path):
+    r = invoke("simulate", tiny, "--out", tmp_path / "sim.h5", "--quiet")
+    assert r.exit_code == 0, r.output
+    r = invoke("log", "from-results", tmp_path / "sim.h5", "--out", tmp_path / "tiny.log.h5", "--truth-every", "5")
+    assert r.exit_code == 0, r.output
+    r = invoke("compare", tmp_path / "tiny.log.h5", "--quiet")
+    assert r.exit_code == 2 and "needs --model" in r.output
+    r = invoke("compare", tmp_path / "tiny.log.h5", "--model", "modified_unicycle", "--runs", "2",
+               "--observers", "ukf,open_loop", "--out", tmp_path / "rp", "--quiet")
+    assert r.exit_code == 0, r.output
+    df = pd.read_csv(tmp_path / "rp" / "compare.csv").set_index("observer")
+    assert set(df.index) == {"ukf", "open_loop"} and (df["runs"] == 2).all()
+    assert np.isfinite(df.loc["ukf", "inst_mean"])  # against the logged truth
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--observers", "kalman"], "unknown observer 'kalman'"),
+    (["--model", "unicycle"], "--model is for log files"),
+    (["--set", "runs.count=0"], "[runs -> count]"),
+])
+def test_compare_user_errors(tiny, tmp_path, args, message):
+    r = invoke("compare", tiny, "--out", tmp_path, "--quiet", *args)
+    assert r.exit_code == 2 and message in r.output, r.output
+    assert "Traceback" not in r.output

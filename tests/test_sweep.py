@@ -1,0 +1,258 @@
+"""``needle sweep``: grid files, cells validated up front, seeds, executors that agree cell by cell
+(local processes, a Dask cluster, inline), resume after an interrupted sweep, failing cells."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pandas as pd
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+import needlecli.cli.commands  # noqa: F401  (registers the subcommands)
+import needlecli.experiments.runner as runner
+from needlecli.cli.app import app
+from needlecli.errors import ConfigError
+from needlecli.experiments.sweep import (
+    SEED_KEY,
+    Grid,
+    SweepError,
+    derived_seed,
+    grid_overrides,
+    load_grid,
+    plan_sweep,
+    results_complete,
+    run_sweep,
+)
+
+TINY = """\
+name: tiny_sweep
+model: {type: modified_unicycle, params: {kappa: 0.005, beta_cut: 0.035}, param_std: {kappa: 0.001}}
+inputs: {v: 1.5, u: 0.0}
+sensors:
+  - {name: us3d, type: position, rate: 2.0, sigma: 0.3}
+  - {name: robot, type: encoder, rate: 50.0, channels: [roll], sigma: 0.0035}
+  - {name: swe, type: elastography, rate: 1.0, sigma: 0.001}
+observers:
+  - name: ukf
+    type: ukf
+    q: {x: 2.0e-3, y: 2.0e-3, z: 2.0e-3, alpha: 2.0e-5, beta: 2.0e-5, gamma: 5.0e-4, kappa: 2.0e-6}
+    p0: {x: 1.0, y: 1.0, z: 1.0, alpha: 5.0e-3, beta: 5.0e-3, gamma: 0.1, kappa: 2.0e-6}
+    init: {from: truth, std: {alpha: 0.0873, beta: 0.0873}, first_measurement: {x: us3d.x, y: us3d.y, z: us3d.z}}
+  - {name: ol, type: open_loop}
+runs: {count: 2, seed: 5}
+stop: {depth: 3.0}
+simulation: {dt: 0.02}
+output: {store_every: 10, covariance: diag}
+"""
+GRID = """\
+description: tiny curvature process noise sweep
+grid:
+  observers.0.q.kappa: [1.0e-6, 8.0e-6]
+  runs.seed: range(2)
+"""
+
+
+def invoke(*args):
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+@pytest.fixture()
+def files(tmp_path: Path) -> tuple[Path, Path]:
+    (tmp_path / "tiny.yaml").write_text(TINY)
+    (tmp_path / "grid.yaml").write_text(GRID)
+    return tmp_path / "tiny.yaml", tmp_path / "grid.yaml"
+
+
+def table(out: Path) -> pd.DataFrame:
+    return pd.read_csv(out / "sweep.csv").drop(columns=["seconds"])
+
+
+def mtimes(out: Path) -> dict[str, int]:
+    return {p.name: p.stat().st_mtime_ns for p in (out / "cells").glob("*.h5")}
+
+
+# ---------------------------------------------------------------------------------------------- grid file
+def test_grid_axes_cells_and_random_samples_make_the_product():
+    g = Grid.model_validate({
+        "cells": [{"observers.0.alpha": 1e-3}, {"observers.0.alpha": 1e-2}],
+        "random": {"count": 3, "seed": 1, "params": {"observers.0.q.kappa": {"loguniform": [1e-7, 1e-5]}}},
+        "grid": {"runs.seed": "range(1, 3)", "sensors.0.rate": {"linspace": [1.0, 2.0, 3]}},
+    })
+    ov = grid_overrides(g)
+    assert len(ov) == 2 * 3 * 2 * 3
+    assert ov[0] == {"observers.0.alpha": 1e-3, "observers.0.q.kappa": ov[0]["observers.0.q.kappa"],
+                     "runs.seed": 1, "sensors.0.rate": 1.0}
+    assert [o["sensors.0.rate"] for o in ov[:3]] == [1.0, 1.5, 2.0]  # the last axis varies fastest
+    assert all(1e-7 <= o["observers.0.q.kappa"] < 1e-5 for o in ov)
+    assert ov == grid_overrides(g)  # random samples are reproducible
+    assert Grid.model_validate({"grid": {"a.b": {"geomspace": [1.0, 100.0, 3]}}}).grid["a.b"] == pytest.approx([1, 10, 100])
+
+
+def test_seed_rule(files, tmp_path):
+    config, _ = files
+    g = Grid.model_validate({"seed": 11, "grid": {"observers.0.q.kappa": [1e-6, 2e-6]}})
+    cells = plan_sweep(config, g, out_dir=tmp_path / "out")
+    assert [c.seed_from for c in cells] == ["derived", "derived"]
+    assert cells[0].seed == derived_seed(11, {"observers.0.q.kappa": 1e-6}) != cells[1].seed
+    assert cells == plan_sweep(config, g, out_dir=tmp_path / "out")  # deterministic: ids, seeds, configs
+    common = plan_sweep(config, g.model_copy(update={"seeds": "common"}), out_dir=tmp_path / "out")
+    assert {c.seed for c in common} == {11}
+    explicit = plan_sweep(config, Grid.model_validate({"grid": {SEED_KEY: [4, 9]}}), out_dir=tmp_path / "out")
+    assert [(c.seed, c.seed_from) for c in explicit] == [(4, "grid"), (9, "grid")]
+    assert yaml.safe_load(explicit[1].config_text)["runs"]["seed"] == 9
+
+
+BAD_GRIDS = {
+    "unknown key": ("grid: {runs.seed: [1]}\ncells_: []\n", "[cells_] unknown key"),
+    "empty": ("seed: 3\n", "give at least one of grid, cells, random"),
+    "bad range": ("grid: {runs.seed: 'range(x)'}\n", "range(stop)"),
+    "empty axis": ("grid: {runs.seed: []}\n", "at least one value"),
+    "key twice": ("fixed: {runs.count: 2}\ngrid: {runs.count: [1, 2]}\n", "runs.count is set in both fixed and grid"),
+    "bad distribution": ("random: {count: 2, params: {runs.seed: {uniform: [2, 1]}}}\n", "lo < hi"),
+    "not a path": ("grid: {'observers[0]': [1]}\n", "not a dotted config path"),
+    "invalid value": ("grid: {observers.0.q.kappa: [1.0e-6, -1.0]}\n",
+                      "cell 1 of 2 (observers.0.q.kappa = -1)"),
+    "no such entry": ("grid: {observers.5.q.kappa: [1.0e-6]}\n", "[observers -> 5] no such list entry"),
+    "unknown state": ("grid: {observers.0.q.kapa: [1.0e-6]}\n", "[observers -> 0 -> q -> kapa]"),
+    "yaml": ("grid: {a: [1, 2}\n", "YAML syntax error"),
+}
+
+
+@pytest.mark.parametrize("name", list(BAD_GRIDS))
+def test_bad_grid_is_one_clear_error_and_runs_nothing(files, tmp_path, name):
+    config, _ = files
+    text, expected = BAD_GRIDS[name]
+    grid = tmp_path / "bad.yaml"
+    grid.write_text(text)
+    r = invoke("sweep", config, "--grid", grid, "--out", tmp_path / "out", "--executor", "inline", "--quiet")
+    assert r.exit_code == 2, r.output
+    assert expected in r.output and str(grid) in r.output
+    assert "Traceback" not in r.output and len(r.output.strip().splitlines()) == 1
+    assert not (tmp_path / "out").exists()
+
+
+def test_missing_grid_file(files, tmp_path):
+    with pytest.raises(ConfigError, match="no such file"):
+        load_grid(tmp_path / "nope.yaml")
+
+
+# ---------------------------------------------------------------------------------------------- executors
+def test_local_processes_and_dask_cluster_give_the_same_table(files, tmp_path):
+    distributed = pytest.importorskip("distributed", reason="needs dask[distributed] (pip install 'needlecli[dask]')")
+    config, grid = files
+    local = tmp_path / "local"
+    r = invoke("sweep", config, "--grid", grid, "--out", local, "--workers", "2", "--quiet")
+    assert r.exit_code == 0, r.output
+    assert "sweep_E_xyz_mean_vs_observers.0.q.kappa.png" in r.output
+    assert (local / "sweep_E_xyz_mean_vs_observers.0.q.kappa.png").stat().st_size > 1000
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False, protocol="tcp", host="127.0.0.1",
+                                  dashboard_address=":0") as cluster:
+        dask = tmp_path / "dask"
+        r = invoke("sweep", config, "--grid", grid, "--out", dask, "--executor", "dask",
+                   "--scheduler", cluster.scheduler_address, "--quiet")
+        assert r.exit_code == 0, r.output
+    a, b = table(local), table(dask)
+    assert len(a) == 4 * 2 and set(a["status"]) == {"ok"}  # 4 cells x 2 observers
+    pd.testing.assert_frame_equal(a, b)  # cell by cell, to the last digit
+    assert sorted(mtimes(local)) == sorted(mtimes(dask))  # the same cell ids
+    md = (local / "sweep.md").read_text()
+    assert "E_xyz_mean" in md and "observers.0.q.kappa" in md
+
+
+def test_dask_without_a_scheduler_reports_it(files, tmp_path, monkeypatch):
+    pytest.importorskip("distributed", reason="needs dask[distributed]")
+    monkeypatch.setattr("needlecli.experiments.sweep.CONNECT_TIMEOUT", "1s")
+    config, grid = files
+    r = invoke("sweep", config, "--grid", grid, "--out", tmp_path / "o", "--executor", "dask",
+               "--scheduler", "tcp://127.0.0.1:9", "--quiet")
+    assert r.exit_code == 2 and "cannot reach the Dask scheduler at tcp://127.0.0.1:9" in r.output
+
+
+# ---------------------------------------------------------------------------------------------- resume, failures
+def test_failing_cells_are_recorded_and_resume_reruns_only_unfinished_cells(files, tmp_path, monkeypatch):
+    config, grid = files
+    out = tmp_path / "out"
+    real = runner.run_experiment
+    calls: list[int] = []
+
+    def aborting(cfg, text, **kw):  # the sweep is "killed" before the cells with seed 1 finish
+        calls.append(cfg.runs.seed)
+        if cfg.runs.seed == 1:
+            raise RuntimeError("simulated crash of the cell")
+        return real(cfg, text, **kw)
+
+    monkeypatch.setattr(runner, "run_experiment", aborting)
+    r = invoke("sweep", config, "--grid", grid, "--out", out, "--executor", "inline", "--quiet")
+    assert r.exit_code == 1, r.output  # failed cells: exit 1, after every cell ran
+    assert sorted(calls) == [0, 0, 1, 1]
+    t = table(out)
+    failed = t[t["status"] == "failed"]
+    assert len(failed) == 4 and set(failed[SEED_KEY]) == {1}  # 2 cells x 2 observers
+    assert failed["error"].str.contains("RuntimeError: simulated crash").all()
+    assert set(t[t["status"] == "ok"][SEED_KEY]) == {0} and t[t["status"] == "ok"]["E_xyz_mean"].notna().all()
+    errors = sorted((out / "cells").glob("*.error.txt"))
+    assert len(errors) == 2 and "simulated crash" in errors[0].read_text() and "Traceback" in errors[0].read_text()
+    before = mtimes(out)
+    assert len(before) == 2
+
+    calls.clear()
+    monkeypatch.setattr(runner, "run_experiment", lambda cfg, text, **kw: (calls.append(cfg.runs.seed), real(cfg, text, **kw))[1])
+    r = invoke("sweep", config, "--grid", grid, "--out", out, "--executor", "inline", "--resume")
+    assert r.exit_code == 0, r.output
+    assert sorted(calls) == [1, 1]  # only the unfinished cells ran again
+    assert "2 run, 2 skipped as complete, 0 failed" in r.output
+    after = mtimes(out)
+    assert {k: after[k] for k in before} == before  # complete cells untouched
+    assert not list((out / "cells").glob("*.error.txt"))
+    t2 = table(out)
+    assert set(t2["status"]) == {"ok"} and len(t2) == 8
+    cols = [c for c in t.columns if c not in ("error", "failures")]
+    pd.testing.assert_frame_equal(t2[t2[SEED_KEY] == 0][cols].reset_index(drop=True),
+                                  t[t[SEED_KEY] == 0][cols].reset_index(drop=True))
+
+    # a results file deleted or from another config is not complete; a truncated one neither
+    victim = sorted((out / "cells").glob("*.h5"))[0]
+    victim.unlink()
+    other = sorted((out / "cells").glob("*.h5"))[0]
+    other.write_bytes(other.read_bytes()[:1000])
+    calls.clear()
+    r = invoke("sweep", config, "--grid", grid, "--out", out, "--executor", "inline", "--resume", "--quiet")
+    assert r.exit_code == 0 and len(calls) == 2, r.output
+    calls.clear()
+    r = invoke("sweep", config, "--grid", grid, "--out", out, "--executor", "inline", "--resume", "--quiet",
+               "--set", "runs.count=1")  # every cell's config changed: all run again
+    assert r.exit_code == 0 and len(calls) == 4, r.output
+
+
+def test_library_result_and_completeness(files, tmp_path):
+    config, grid = files
+    cells = plan_sweep(config, load_grid(grid), out_dir=tmp_path / "o", overrides=["runs.count=1"])
+    res = run_sweep(cells[:1], out_dir=tmp_path / "o", executor="inline")
+    assert res.ran == 1 and res.failed == 0 and results_complete(cells[0]) and not results_complete(cells[1])
+    assert set(res.table["observer"]) == {"ukf", "ol"} and (res.table["runs"] == 1).all()
+    assert res.units["E_xyz"] == "mm"
+    with pytest.raises(SweepError, match="unknown executor"):
+        run_sweep(cells[1:2], out_dir=tmp_path / "o", executor="threads")
+    assert os.path.exists(tmp_path / "o" / "sweep.json")
+
+
+def test_shipped_grid_makes_valid_cells(tmp_path):
+    root = Path(__file__).resolve().parents[1]
+    cells = plan_sweep(root / "configs/seed003/table1.yaml", load_grid(root / "configs/sweeps/seed003_q_kappa.yaml"),
+                       out_dir=tmp_path)
+    assert len(cells) == 50 and {c.seed for c in cells} == set(range(10))
+    assert sorted({c.overrides["observers.0.q.kappa"] for c in cells}) == pytest.approx(
+        [2e-7, 2e-7 * 10**0.5, 2e-6, 2e-6 * 10**0.5, 2e-5])
+    assert all(yaml.safe_load(c.config_text)["runs"]["count"] == 10 for c in cells)
+
+
+def test_dask_not_installed_is_a_clear_error(files, tmp_path, monkeypatch):
+    import sys
+
+    config, grid = files
+    monkeypatch.setitem(sys.modules, "distributed", None)  # import distributed -> ImportError
+    r = invoke("sweep", config, "--grid", grid, "--out", tmp_path / "o", "--executor", "dask", "--quiet")
+    assert r.exit_code == 2 and "pip install 'needlecli[dask]'" in r.output, r.output

@@ -31,6 +31,7 @@ bench:
 	$(PY) benchmarks/bench_ukf.py
 	$(PY) benchmarks/bench_observers.py
 	$(PY) benchmarks/bench_sweep.py
+	$(PY) benchmarks/bench_imaging.py
 
 lint:
 	$(PY) -m ruff check needlecli tests benchmarks

@@ -250,7 +250,7 @@ def _strip_tags(loc: tuple, data: Any) -> tuple:
     shorthand = False  # a constant signal written as a bare number or list: no 'value' key to name
     for part in loc:
         if not (isinstance(cur, dict) and part in cur):
-            if isinstance(cur, dict) and isinstance(part, str) and part in (cur.get("type"), cur.get("kind")):
+            if isinstance(cur, dict) and isinstance(part, str) and part in (cur.get("type"), cur.get("kind"), cur.get("device")):
                 continue
             if _member_tag(part) or part == "constant" or (shorthand and part == "value"):
                 shorthand = part == "constant" and not isinstance(cur, dict)

@@ -1,5 +1,6 @@
 """Tables and plots, built from results files only."""
 
+import needlecli.reports.imaging  # noqa: F401  (registers the imaging sensors' plot and table)
 from needlecli.reports import seed000_001, seed003  # noqa: F401  (register the seeds' tables and plots)
 from needlecli.reports.tables import TABLES, write_table
 

@@ -167,7 +167,7 @@ class Sensor:
             names=self.channel_names,
             units=self.channel_units,
             attrs={"type": self.registered_name, "rate": self.settings.rate, "latency": self.settings.latency,
-                   "dropout": self.settings.dropout, "pipeline": self.settings.pipeline},
+                   "dropout": self.settings.dropout, "pipeline": self.settings.pipeline, **pipeline.extras},
         )
 
 
@@ -176,6 +176,10 @@ class Pipeline:
 
     supports: ClassVar[tuple[str, ...]] = ("*",)
     registered_name: ClassVar[str] = ""
+
+    def __init__(self) -> None:
+        #: further arrays of the last ``measure`` (e.g. saved frames), stored beside the stream's values
+        self.extras: dict[str, np.ndarray] = {}
 
     def measure(
         self, sensor: Sensor, truth: Truth, idx: np.ndarray, rng: np.random.Generator

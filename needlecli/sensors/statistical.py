@@ -14,6 +14,7 @@ from pydantic import Field, field_validator
 from needlecli.models import NotMeasurable
 from needlecli.schema import DistanceGrowth, NonNeg
 from needlecli.sensors.base import SENSORS, Sensor, SensorSettings
+from needlecli.sensors.imaging import DEVICES, ImageSection
 
 Sigma = NonNeg | list[NonNeg]
 
@@ -35,12 +36,29 @@ class PositionSettings(SensorSettings):
     axes: list[Literal["x", "y", "z"]] = Field(default_factory=lambda: ["x", "y", "z"], min_length=1)
     sigma: Sigma = Field(0.3, description="noise std per axis at the transducer, model length unit")
     growth: DistanceGrowth | None = None
+    image: ImageSection | None = Field(
+        None, validate_default=True, description="with pipeline: image, the imaging device (sensors/imaging)")
 
     @field_validator("axes")
     @classmethod
     def _unique(cls, v):
         if len(set(v)) != len(v):
             raise ValueError("axes must not repeat")
+        return v
+
+    @field_validator("image")
+    @classmethod
+    def _image(cls, v, info):
+        if info.data.get("pipeline") != "image":
+            if v is not None:
+                raise ValueError("is used only with pipeline: image")
+            return v
+        if v is None:
+            raise ValueError("required with pipeline: image (device: us2d, us3d or camera)")
+        has = DEVICES.get(v.device).axes
+        missing = [a for a in info.data.get("axes") or [] if a not in has]
+        if missing:
+            raise ValueError(f"device {v.device!r} measures {', '.join(has)}, not {', '.join(missing)}: set axes")
         return v
 
 

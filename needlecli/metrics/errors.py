@@ -58,6 +58,13 @@ class ErrorSet:
         return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
 
 
+def depth_axis(res: Group) -> np.ndarray:
+    """The inserted depth ``(T,)`` of a results file; for replayed trials, whose depths differ (``(N, T)``),
+    their mean."""
+    depth = np.asarray(res.data["depth"], dtype=float)
+    return np.nanmean(depth, 0) if depth.ndim == 2 else depth
+
+
 def _rotation(names: list[str], state: np.ndarray) -> np.ndarray | None:
     if all(a in names for a in ("alpha", "beta", "gamma")):
         i = [names.index(a) for a in ("alpha", "beta", "gamma")]

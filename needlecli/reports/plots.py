@@ -12,7 +12,7 @@ import numpy as np  # noqa: E402
 
 from needlecli.io.atomic import atomic_path  # noqa: E402
 from needlecli.io.results import Group  # noqa: E402
-from needlecli.metrics import ErrorSet  # noqa: E402
+from needlecli.metrics import ErrorSet, depth_axis  # noqa: E402
 from needlecli.registry import Registry  # noqa: E402
 
 #: plot functions ``(results, errors, path_stem) -> Path | None`` (None: not applicable to this file)
@@ -37,9 +37,7 @@ def error_vs_depth(res: Group, errors: dict[str, ErrorSet], path_stem: Path) -> 
     quantities = order_quantities({q for es in errors.values() for q in es.quantities})
     if not quantities:
         return None
-    depth = res.data["depth"]
-    if depth.ndim == 2:  # replayed trials each have their own depth: the axis is their mean
-        depth = np.nanmean(depth, 0)
+    depth = depth_axis(res)  # replayed trials each have their own depth: the axis is their mean
     unit = res.attrs.get("length_unit", "mm")
     fig, axes = plt.subplots(len(quantities), 1, figsize=(7, 2.2 * len(quantities)), sharex=True, squeeze=False)
     for ax, q in zip(axes[:, 0], quantities):

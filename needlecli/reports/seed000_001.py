@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 
 from needlecli.io.results import Group
-from needlecli.metrics import ErrorSet
+from needlecli.metrics import ErrorSet, depth_axis
 from needlecli.reports.plots import PLOTS, plt, save_figure
 from needlecli.reports.tables import TABLES
 
@@ -114,7 +114,7 @@ def _first_below(depth: np.ndarray, curve: np.ndarray, level: float) -> float:
 def seed001_convergence(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
     """Seed 001: rotation error E_R (mean over the case's kept runs, deg) against insertion distance, and
     the distance from which it stays under 10 and 5 deg. Paper: about 7 cm of insertion from 90 deg."""
-    depth = np.asarray(res.data["depth"], dtype=float)
+    depth = depth_axis(res)
     unit = res.attrs.get("length_unit", "mm")
     marks = [d for d in (50.0, 70.0, 100.0, 150.0, 200.0, 300.0) if d <= depth[-1] + 1e-9]
     rows = []
@@ -136,7 +136,7 @@ def seed001_half_turns(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
     reduction per half turn, 1 - E_R(j) / E_R(j - 1), from the case's mean error (at most 12 rows per
     case: with more half turns, every k-th and the mean reduction per half turn over the k). Paper:
     about 80 % per half turn with a hand-tuned gain."""
-    depth = np.asarray(res.data["depth"], dtype=float)
+    depth = depth_axis(res)
     unit = res.attrs.get("length_unit", "mm")
     half = _half_turn(res)
     cols = ["Observer", "Case", "Half turns", f"Distance [{unit}]", "E_R mean [deg]", "E_R max [deg]",
@@ -168,7 +168,7 @@ def rotation_error_plot(res: Group, errors: dict[str, ErrorSet], path_stem: Path
         return None
     cases = list(dict.fromkeys(label for _, label, _, _ in groups))
     observers = list(dict.fromkeys(obs for obs, _, _, _ in groups))
-    depth = np.asarray(res.data["depth"], dtype=float)
+    depth = depth_axis(res)
     unit = res.attrs.get("length_unit", "mm")
     fig, axs = plt.subplots(1, len(cases), figsize=(5.5 * len(cases), 3.8), squeeze=False, sharey=True)
     for obs, label, e, _ in groups:

@@ -3,7 +3,7 @@ PY ?= python
 
 STUDIES := results/studies
 
-.PHONY: help install demo test bench lint clean seed003 datasets regress
+.PHONY: help install demo test bench lint clean seed003 seed004 datasets regress real
 
 help:
 	@echo "make install  - install needlecli with test extras (editable)"
@@ -14,6 +14,8 @@ help:
 	@echo "make seed003  - seed 003's simulation study: Table 1, Figs. 6-8 (results and tables in $(STUDIES))"
 	@echo "make datasets - rebuild the synthetic logs in datasets/ from configs/datasets/"
 	@echo "make regress  - replay every bundled data set and check its tables against datasets/baselines/"
+	@echo "make real     - import the recorded ultrasteer insertions (../shared/real-data) and make their tables in $(REAL)"
+	@echo "make seed004  - seed 004's synthetic study and T2prelim: EM fits, Tables 1-3, Figs. 5, 10 (in $(STUDIES))"
 	@echo "make clean    - remove results/ and caches"
 
 install:
@@ -29,9 +31,10 @@ test:
 bench:
 	$(PY) benchmarks/bench_simulate.py
 	$(PY) benchmarks/bench_ukf.py
-	$(PY) benchmarks/bench_observers.py
 	$(PY) benchmarks/bench_sweep.py
+	$(PY) benchmarks/bench_observers.py
 	$(PY) benchmarks/bench_imaging.py
+	$(PY) benchmarks/bench_em.py
 
 lint:
 	$(PY) -m ruff check needlecli tests benchmarks
@@ -43,6 +46,12 @@ seed003:
 	@for c in table1 fig6 fig7 fig8; do \
 	  needle simulate configs/seed003/$$c.yaml --out $(STUDIES)/seed003_$$c.h5 --quiet > /dev/null && \
 	  needle evaluate $(STUDIES)/seed003_$$c.h5 --out $(STUDIES)/seed003 || exit 1; \
+	done
+
+seed004:
+	@for c in study t2prelim; do \
+	  needle fit-em configs/seed004/$$c.yaml --model both --out $(STUDIES)/seed004_$$c.h5 && \
+	  needle evaluate $(STUDIES)/seed004_$$c.h5 --out $(STUDIES)/seed004 || exit 1; \
 	done
 
 DSTMP := results/datasets
@@ -66,3 +75,25 @@ regress:
 	  needle simulate $$c --out results/regress/$$n.h5 --quiet > /dev/null && \
 	  needle evaluate results/regress/$$n.h5 --out results/regress/$$n --no-plots --quiet --baseline datasets/baselines/$$n.yaml || exit 1; \
 	done
+
+# Recorded insertions (issue 8): the data stay outside the repository; not part of CI (about 3 minutes
+# on 2 cores, half of it EM). NEEDLECLI_REAL_DATA overrides where they are.
+REAL := results/real
+REAL_DATA ?= $(or $(NEEDLECLI_REAL_DATA),../shared/real-data/ultrasteer)
+
+real:
+	@mkdir -p $(REAL)
+	needle import ultrasteer $(REAL_DATA) --out $(REAL)/ultrasteer.h5
+	@for c in ukf_resultsorig so3_9_18_15 so3_1_7_16; do \
+	  needle simulate configs/real/$$c.yaml --out $(REAL)/$$c.h5 --quiet > /dev/null && \
+	  needle evaluate $(REAL)/$$c.h5 --out $(REAL)/tables --no-plots --quiet || exit 1; \
+	done
+	@if needle fit-em --help > /dev/null 2>&1; then \
+	  needle fit-em configs/real/em_tracker.yaml --out $(REAL)/em_tracker.h5 --quiet && \
+	  needle evaluate $(REAL)/em_tracker.h5 --out $(REAL)/tables --tables fit_status --no-plots --quiet && \
+	  $(PY) -c "from needlecli.reports.real import write_fit_tables; write_fit_tables('$(REAL)/em_tracker.h5', '$(REAL)/tables')" \
+	  || exit 1; \
+	else \
+	  echo "needle fit-em is not available: table (c), EM on the 18 tracker trials, is skipped"; \
+	fi
+	@echo "tables: $(REAL)/tables"

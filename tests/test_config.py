@@ -16,7 +16,9 @@ from needlecli.experiments.config import experiment_schema, load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 BAD = sorted((Path(__file__).parent / "bad_configs").glob("*.yaml"))
-SHIPPED = sorted(p for p in (ROOT / "configs").glob("**/*.yaml") if "sweeps" not in p.parts)  # sweeps: grids
+# sweeps: grids; real: replays of logs made by `make real` from data outside the repository (validated by
+# tests/test_real_data.py against a freshly imported log)
+SHIPPED = sorted(p for p in (ROOT / "configs").glob("**/*.yaml") if "sweeps" not in p.parts and "real" not in p.parts)
 
 GOOD = """\
 name: good

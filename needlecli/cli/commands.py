@@ -1,3 +1,3 @@
 """Import every command module so that it registers on the app."""
 
-from needlecli.cli import characterize, compare, evaluate, listing, log, simulate, sweep, validate  # noqa: F401
+from needlecli.cli import characterize, compare, evaluate, fit_em, imports, listing, log, simulate, sweep, validate  # noqa: F401

@@ -8,15 +8,14 @@ import typer
 
 from needlecli.cli.app import app
 from needlecli.cli.common import fail, setup_logging, user_errors
-from needlecli.io.results import read_results
-from needlecli.reports.evaluate import configured_tables, evaluate_results
+from needlecli.reports.evaluate import configured_tables_of, evaluate_results, experiment_name
 from needlecli.reports.tables import TABLES, to_markdown
 
 
 @app.command()
 @user_errors
 def evaluate(
-    results: Path = typer.Argument(..., help="Results file written by needle simulate."),
+    results: Path = typer.Argument(..., help="Results file of needle simulate, or fit file of needle fit-em."),
     out: Path = typer.Option(None, "--out", "-o", help="Folder for tables and plots (default: beside the results)."),
     format_: str = typer.Option("md,csv,tex", "--format", "-f", help="Table formats: md, csv, tex."),
     tables: str = typer.Option(None, "--tables", "-t", help="Tables to write (default: the config's output.tables)."),
@@ -43,9 +42,9 @@ def evaluate(
 
     expected = load_baseline(baseline) if baseline is not None else None
     if expected is not None and names is None:  # compute every table the baseline names
-        names = sorted({c.table for c in expected.cells} | set(configured_tables(read_results(results))))
+        names = sorted({c.table for c in expected.cells} | set(configured_tables_of(results)))
     written = evaluate_results(results, tables=names, out_dir=out_dir, formats=formats, plots=plots)
-    name = str(read_results(results).attrs.get("name", ""))
+    name = experiment_name(results)
     if write_baseline is not None:
         store(write_baseline, make_baseline(written, name, rel_tol, abs_tol))
         typer.echo(f"baseline: {write_baseline}", err=quiet)

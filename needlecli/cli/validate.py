@@ -7,7 +7,7 @@ from pathlib import Path
 import typer
 
 from needlecli.cli.app import app
-from needlecli.errors import ConfigError
+from needlecli.errors import NeedleError
 from needlecli.experiments.config import load_config
 
 
@@ -21,7 +21,7 @@ def validate(
     for path in configs:
         try:
             load_config(path, overrides=set_)
-        except ConfigError as e:
+        except NeedleError as e:  # a bad config, or a replay config whose logs are missing or bad
             typer.echo(f"error: {e}", err=True)
             bad += 1
         else:

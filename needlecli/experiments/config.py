@@ -18,6 +18,7 @@ from pydantic import Field, ValidationError, create_model, field_validator, mode
 
 from needlecli.errors import ConfigError
 from needlecli.experiments.schedule import Signal, as_signal, signal_size
+from needlecli.fitting.settings import FitSettings
 from needlecli.models import MODELS, Model
 from needlecli.observers import OBSERVERS
 from needlecli.schema import NonNeg, Positive, Strict
@@ -102,6 +103,28 @@ class Output(Strict):
     formats: list[Literal["md", "csv", "tex"]] = Field(default_factory=lambda: ["md", "csv", "tex"])
 
 
+class ParamCases(Strict):
+    """Per-run parameter cases (a factor of the experiment design, e.g. seed 004's field strengths, each
+    with its own true ``c``). Runs cycle through the input cases fastest, then through these: run ``i``
+    has input case ``i mod K_in`` and parameter case ``(i div K_in) mod K_p`` (``K_in = 1`` without input
+    cases), so every combination occurs once in each block of ``K_in * K_p`` runs. A case sets some of
+    the model's parameters; the others keep ``params``; ``param_std`` adds its spread on top."""
+
+    cases: list[dict[str, float]] = Field(min_length=1)
+    labels: list[str] | None = None
+
+    @model_validator(mode="after")
+    def _check(self):
+        if self.labels is not None and len(self.labels) != len(self.cases):
+            raise ValueError(f"labels has {len(self.labels)} entries for {len(self.cases)} cases")
+        return self
+
+    def case_labels(self) -> list[str]:
+        if self.labels is not None:
+            return list(self.labels)
+        return [", ".join(f"{k} = {v:g}" for k, v in c.items()) or "nominal" for c in self.cases]
+
+
 def _model_spec(name: str, cls: type[Model]):
     """Config schema of ``model:`` for one registered model."""
 
@@ -119,6 +142,25 @@ def _model_spec(name: str, cls: type[Model]):
         param_std: dict[str, NonNeg] = Field(default_factory=dict, description="per-run spread of params")
         initial_state: dict[str, float] = Field(default_factory=dict)
         initial_std: dict[str, NonNeg] = Field(default_factory=dict, description="per-run spread, truth")
+        param_cases: ParamCases | None = Field(None, description="per-run parameter cases (design factor)")
+
+        @field_validator("param_cases")
+        @classmethod
+        def _pc(cls_, v):
+            if v is None:
+                return v
+            known = list(cls.Params.model_fields)
+            for i, case in enumerate(v.cases):
+                for k in case:
+                    if k not in known:
+                        raise ValueError(f"case {i}: unknown parameter {k!r}; parameters are {', '.join(known) or 'none'}")
+                try:
+                    cls.Params(**case)
+                except ValidationError as e:
+                    err = e.errors()[0]
+                    where = ".".join(str(p) for p in err["loc"])
+                    raise ValueError(f"case {i}: {where}: {_message(err)}") from None
+            return v
 
         @field_validator("initial_state")
         @classmethod
@@ -174,6 +216,7 @@ def _schema(registry_key: tuple) -> type[Strict]:
         source: Source | None = None
         simulation: Simulation = Field(default_factory=Simulation)
         output: Output = Field(default_factory=Output)
+        fit: FitSettings | None = Field(None, description="how needle fit-em fits the trials (seed 004)")
 
         @field_validator("inputs", mode="before")
         @classmethod
@@ -450,6 +493,8 @@ def check_consistency(cfg, source: str) -> None:
                 raise ConfigError(source, (key,), "comes from the logs when the config has a source; remove it")
         if cfg.process_noise.std:
             raise ConfigError(source, ("process_noise",), "comes from the logs when the config has a source; remove it")
+        if cfg.model.param_cases is not None:
+            raise ConfigError(source, ("model", "param_cases"), "describes simulated runs; a config with a source has none")
     elif cfg.stop is None:
         raise ConfigError(source, ("stop",), "required key is missing (or give a source of recorded logs)")
     elif model_cls.insertion_input not in cfg.inputs:
@@ -460,6 +505,11 @@ def check_consistency(cfg, source: str) -> None:
             raise ConfigError(source, ("stop", "depth"), "the insertion speed is not positive: the depth is never reached")
         if not _depth_reachable(cfg.inputs[model_cls.insertion_input], cfg.stop.depth):
             raise ConfigError(source, ("stop", "depth"), "the insertion schedule ends without reaching this depth")
+    # parameter cases: the curvature parameter cannot follow tissue layers and cases at once
+    pc = cfg.model.param_cases
+    if pc is not None and cfg.tissue is not None and any(model_cls.curvature_param in c for c in pc.cases):
+        raise ConfigError(source, ("model", "param_cases"),
+                          f"{model_cls.curvature_param!r} follows the tissue layers; it cannot also differ by case")
     # process noise
     for k in cfg.process_noise.std:
         if k not in model_cls.state_names:
@@ -509,3 +559,9 @@ def check_consistency(cfg, source: str) -> None:
         obs_names.add(name)
         for loc, msg in cls.check(o, model, names):
             raise ConfigError(source, ("observers", i) + tuple(loc), msg)
+    # the fit section (needle fit-em)
+    if cfg.fit is not None:
+        from needlecli.fitting.problem import check_fit
+
+        for loc, msg in check_fit(cfg.fit, names):
+            raise ConfigError(source, ("fit",) + tuple(loc), msg)

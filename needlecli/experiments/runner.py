@@ -155,6 +155,9 @@ def results_tree(cfg, config_text, truth: Truth, streams, estimates, sensors) ->
     root.data["inputs"] = inputs
     if truth.trial_ids is not None:
         root.data["truth"].data["trial_id"] = np.array(truth.trial_ids)
+    if truth.param_case is not None:
+        root.data["truth"].data["param_case"] = truth.param_case
+        root.data["truth"].dataset_attrs["param_case"] = {"labels": truth.param_case_labels}
     meas = Group()
     for s in sensors:
         st = streams[s.name]

@@ -28,8 +28,9 @@ class Truth:
     time (T,) s; states (N, T, n); inputs (N, T, m) flat (a broadcast view when every run has the same
     schedule); case (N,) index of the input case of each run (``case_labels``); depth (T,) inserted
     length; base_angle (N, T) integral of the rotation input; params name -> (N, T) (curvature follows
-    the tissue layers); status / reason (N,) str; event_time (N,) time a run stopped (NaN if it did
-    not); valid_until (N,) last time with a valid state.
+    the tissue layers); param_case (N,) index of the parameter case of each run (``param_case_labels``);
+    status / reason (N,) str; event_time (N,) time a run stopped (NaN if it did not); valid_until (N,)
+    last time with a valid state.
     """
 
     model: Model
@@ -45,6 +46,8 @@ class Truth:
     event_time: np.ndarray
     case: np.ndarray | None = None
     case_labels: list[str] | None = None
+    param_case: np.ndarray | None = None
+    param_case_labels: list[str] | None = None
     end_time: np.ndarray | None = None  # (N,) end of each run (replayed trials differ)
     trial_ids: list[str] | None = None  # replayed trials' ids
     truth_kind: str = "simulation"  # or what the logs recorded: ground truth, manual segmentation, none
@@ -130,13 +133,19 @@ def simulate_truth(cfg, *, runs: int | None = None, progress: Callable[[int, int
     case_labels = next((cfg.inputs[k].case_labels() for k in model.input_names
                         if k in cfg.inputs and getattr(cfg.inputs[k], "kind", "") == "cases"), None)
 
-    # parameters: per run (param_std), per step (tissue layers)
+    # parameters: per run (parameter cases, param_std), per step (tissue layers)
     rng_p = stream(seed, "truth/params")
     base = model.param_arrays()
+    pc = cfg.model.param_cases
+    param_case = (np.arange(n_runs) // max(n_cases, 1)) % len(pc.cases) if pc is not None else None
     params_run: dict[str, np.ndarray] = {}
     for k, v in base.items():
         std = cfg.model.param_std.get(k, 0.0)
-        params_run[k] = np.full(n_runs, float(v)) + (std * rng_p.standard_normal(n_runs) if std > 0 else 0.0)
+        value = np.full(n_runs, float(v))
+        if pc is not None:
+            per_case = np.array([c.get(k, float(v)) for c in pc.cases])
+            value = per_case[param_case]
+        params_run[k] = value + (std * rng_p.standard_normal(n_runs) if std > 0 else 0.0)
     kappa_t = curvature_schedule(cfg, depth)
     cname = model.curvature_param
     params_t = dict(params_run)
@@ -226,5 +235,7 @@ def simulate_truth(cfg, *, runs: int | None = None, progress: Callable[[int, int
         event_time=event,
         case=case,
         case_labels=case_labels,
+        param_case=param_case,
+        param_case_labels=pc.case_labels() if pc is not None else None,
     )
 

@@ -110,6 +110,12 @@ class Model:
         x = np.asarray(x)
         return complex_step_jacobian(lambda uu: self.f(x[..., None, :], uu, _expand(p)), u)
 
+    def param_jacobian(self, x: np.ndarray, u: np.ndarray, p: Params, name: str) -> np.ndarray:
+        """``df/dp`` of shape ``(..., n)`` for the parameter ``name`` (complex step unless analytic)."""
+        pc = {k: np.asarray(v) for k, v in p.items()}
+        pc[name] = pc[name] + 1e-30j
+        return self.f(np.asarray(x), np.asarray(u), pc).imag / 1e-30
+
     def step(self, x: np.ndarray, u: np.ndarray, p: Params, dt: float) -> np.ndarray:
         """Advance by ``dt`` with RK4, inputs and parameters held over the step."""
         return self.normalize(rk4_step(lambda xx: self.f(xx, u, p), x, dt))

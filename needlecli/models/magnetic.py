@@ -24,6 +24,24 @@ def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
 
 
+def _skew(w: np.ndarray) -> np.ndarray:
+    """``[w]_x`` ``(..., 3, 3)`` with ``[w]_x b = w x b``."""
+    z = np.zeros_like(w[..., 0])
+    return np.stack(
+        [np.stack([z, -w[..., 2], w[..., 1]], -1), np.stack([w[..., 2], z, -w[..., 0]], -1),
+         np.stack([-w[..., 1], w[..., 0], z], -1)], -2)
+
+
+def _turn_parts(h: np.ndarray, b: np.ndarray):
+    """``T = (h x B) x h = B (h.h) - h (h.B)`` and its Jacobians ``dT/dh``, ``dT/dB`` ``(..., 3, 3)``."""
+    hh, hb = _dot(h, h), _dot(h, b)
+    t = b * hh[..., None] - h * hb[..., None]
+    eye = np.eye(3)
+    dth = 2.0 * b[..., :, None] * h[..., None, :] - hb[..., None, None] * eye - h[..., :, None] * b[..., None, :]
+    dtb = hh[..., None, None] * eye - h[..., :, None] * h[..., None, :]
+    return t, dth, dtb, hb
+
+
 class MNMParams(ModelParams):
     c: float = Field(20.0, ge=0.0, description="steering constant, 1/m")
 
@@ -46,6 +64,36 @@ class _MagneticBase(Model):
         dh = self._turn(h, b, v, p) + h * (1.0 - _dot(h, h))[..., None]
         db = _cross(wb, b) + b * (1.0 - _dot(b, b))[..., None]
         return np.concatenate([dp, dh, db], -1)
+
+    def _turn_jacobian(self, h, b, v, p):
+        """``(d turn/d h, d turn/d B, d turn/d param)``: ``(..., 3, 3)``, ``(..., 3, 3)``, ``(..., 3)``."""
+        raise NotImplementedError
+
+    def jacobian(self, x, u, p: Params):
+        """Analytic ``df/dx`` ``(..., 9, 9)`` (the complex step is 20 times slower on large batches)."""
+        x, u = np.asarray(x), np.asarray(u)
+        h, b = x[..., 3:6], x[..., 6:9]
+        v, wb = u[..., 0], u[..., 1:4]
+        shape = np.broadcast_shapes(x.shape[:-1], u.shape[:-1], *(np.shape(a) for a in p.values()))
+        eye = np.eye(3)
+        J = np.zeros(shape + (9, 9), dtype=np.result_type(x, u, *p.values()))
+        J[..., 0:3, 3:6] = v[..., None, None] * eye
+        jh, jb, _ = self._turn_jacobian(h, b, v, p)
+        hh = _dot(h, h)[..., None, None]
+        J[..., 3:6, 3:6] = jh + (1.0 - hh) * eye - 2.0 * h[..., :, None] * h[..., None, :]
+        J[..., 3:6, 6:9] = jb
+        bb = _dot(b, b)[..., None, None]
+        J[..., 6:9, 6:9] = _skew(wb) + (1.0 - bb) * eye - 2.0 * b[..., :, None] * b[..., None, :]
+        return J
+
+    def param_jacobian(self, x, u, p: Params, name: str):
+        if name != self.curvature_param:
+            return super().param_jacobian(x, u, p, name)
+        x, u = np.asarray(x), np.asarray(u)
+        _, _, dp = self._turn_jacobian(x[..., 3:6], x[..., 6:9], u[..., 0], p)
+        out = np.zeros(dp.shape[:-1] + (9,), dtype=dp.dtype)
+        out[..., 3:6] = dp
+        return out
 
     def initial_state(self, p: Params) -> np.ndarray:
         # tip along +y in the camera plane, field along the tip
@@ -80,6 +128,11 @@ class MagneticNeedleModel(_MagneticBase):
     def _turn(self, h, b, v, p):
         return (p["c"] * v)[..., None] * _cross(_cross(h, b), h)
 
+    def _turn_jacobian(self, h, b, v, p):
+        t, dth, dtb, _ = _turn_parts(h, b)
+        cv = (p["c"] * v)[..., None, None]
+        return cv * dth, cv * dtb, v[..., None] * t
+
 
 class BiNMParams(ModelParams):
     l_inv: float = Field(20.0, ge=0.0, description="inverse bicycle length, 1/m")
@@ -101,6 +154,14 @@ class BicycleNeedleModel(_MagneticBase):
 
     def _turn(self, h, b, v, p):
         return ((p["l_inv"] * v) / _dot(b, h))[..., None] * _cross(_cross(h, b), h)
+
+    def _turn_jacobian(self, h, b, v, p):
+        t, dth, dtb, s = _turn_parts(h, b)
+        lv = (p["l_inv"] * v)[..., None, None]
+        s2 = s[..., None, None]
+        jh = lv * (dth / s2 - t[..., :, None] * b[..., None, :] / s2**2)
+        jb = lv * (dtb / s2 - t[..., :, None] * h[..., None, :] / s2**2)
+        return jh, jb, (v / s)[..., None] * t
 
     singular_threshold = 1e-3  # |cos| of the angle between B and h
     near_singular_threshold = 5e-2

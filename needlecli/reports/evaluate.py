@@ -9,11 +9,30 @@ import pandas as pd
 import yaml
 
 from needlecli.errors import DataError
+from needlecli.io.fit import is_fit_file
 from needlecli.io.results import read_results
 from needlecli.metrics import compute_errors
 from needlecli.reports.tables import TABLES, write_table
 
 log = logging.getLogger("needlecli")
+
+
+def configured_tables_of(path: str | Path) -> list[str]:
+    """The tables a results file's config asks for, or every fit table of a fit file."""
+    if is_fit_file(path):
+        from needlecli.reports.seed004 import FIT_TABLES
+
+        return list(FIT_TABLES)
+    return configured_tables(read_results(path))
+
+
+def experiment_name(path: str | Path) -> str:
+    """The ``name`` attribute of a results or fit file."""
+    if is_fit_file(path):
+        from needlecli.io.fit import read_fit
+
+        return str(read_fit(path).attrs.get("name", ""))
+    return str(read_results(path).attrs.get("name", ""))
 
 
 def configured_tables(res) -> list[str]:
@@ -34,8 +53,13 @@ def evaluate_results(
     formats: list[str] | None = None,
     plots: bool = False,
 ) -> dict[str, pd.DataFrame]:
-    """Compute the tables of a results file; write them (and plots) to ``out_dir`` when given."""
+    """Compute the tables of a results file (or of a fit file of ``needle fit-em``: seed 004's tables);
+    write them (and plots) to ``out_dir`` when given."""
     path = Path(path)
+    if is_fit_file(path):
+        from needlecli.reports.seed004 import evaluate_fit
+
+        return evaluate_fit(path, tables=tables, out_dir=out_dir, formats=formats, plots=plots)
     res = read_results(path)
     try:
         errors = compute_errors(res)

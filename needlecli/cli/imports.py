@@ -1,0 +1,37 @@
+"""``needle import ...``: turn a public data set's own file layout into a log file."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from needlecli.cli.app import app
+from needlecli.cli.common import user_errors
+
+import_app = typer.Typer(help="Import recorded data sets (their own file layouts) into log files.", no_args_is_help=True)
+app.add_typer(import_app, name="import")
+
+
+@import_app.command("ultrasteer")
+@user_errors
+def ultrasteer_cmd(
+    data_dir: Path = typer.Argument(..., help="The data set's folder (with trials/ and resultsOrig/)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Log file to write (HDF5)."),
+    align: bool = typer.Option(True, "--align/--no-align",
+                               help="Register the tracker's rotations to its positions (one rotation per session) "
+                                    "and roll the body frame so the needle bends toward -y."),
+    frame: str = typer.Option("trial", "--frame",
+                              help="trial: origin and axes of each trial's first tracker frame; tracker: the tracker's."),
+) -> None:
+    """Import the ultrasteer insertions (EM tracker ground truth, ultrasound tip positions) into a log."""
+    from needlecli.errors import DataError
+    from needlecli.io.logs import write_log
+    from needlecli.io.ultrasteer import import_ultrasteer
+
+    if frame not in ("trial", "tracker"):
+        raise DataError(f"--frame: {frame!r} is not one of trial, tracker")
+    log = import_ultrasteer(data_dir, align=align, frame=frame)
+    write_log(out, log)
+    us = sum(1 for tr in log.trials if "us" in tr.sensors)
+    typer.echo(f"log: {out} ({len(log.trials)} trial(s), {us} with ultrasound)")

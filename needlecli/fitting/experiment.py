@@ -1,0 +1,343 @@
+"""``needle fit-em``: EM for every trial of an experiment and every model, into one fit file.
+
+Where the trials come from is the one seam (:func:`load_trials`): a config that simulates them (truth
+from its model, its sensors), or a config whose ``source: {logs: [...]}`` replays recorded ones. Other
+files are refused with a message that says what to do. Everything after that point sees only the
+:class:`~needlecli.observers.EstimationProblem` (inputs, measurement channels), never the truth.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import multiprocessing as mp
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from needlecli.errors import DataError
+from needlecli.experiments.config import load_config
+from needlecli.experiments.runner import build_problem, build_sensors
+from needlecli.experiments.truth import Truth, simulate_truth, stream
+from needlecli.fitting.em import EMOptions, EMResult, fit_em
+from needlecli.fitting.problem import System, build_system, fit_augment, own_model
+from needlecli.fitting.settings import FitSettings
+from needlecli.io.fit import FIT_FORMAT, FIT_VERSION
+from needlecli.io.results import Group, root_attrs
+from needlecli.models import MODELS
+
+CONFIG_SUFFIXES = (".yaml", ".yml")
+
+
+@dataclass
+class Trials:
+    """The trials to fit: the config, the truth where known (simulation), sensors and their streams."""
+
+    cfg: object
+    text: str
+    source: Path
+    truth: Truth
+    sensors: list
+    streams: dict
+    simulated: bool
+
+
+def load_trials(path: str | Path, *, overrides: list[str] | None = None) -> Trials:
+    """Read a config and simulate (or replay) its trials.
+
+    Raises
+    ------
+    ConfigError for a bad config; DataError for a file that is not a config (with what to do instead).
+    """
+    path = Path(path)
+    if path.suffix.lower() not in CONFIG_SUFFIXES:
+        raise DataError(_not_a_config(path))
+    cfg, text = load_config(path, overrides=overrides)
+    if cfg.source is not None:  # recorded trials through the replay machinery
+        from needlecli.experiments.replay import replay_truth
+
+        truth, sensors, streams = replay_truth(cfg, path.parent)
+        return Trials(cfg, text, path, truth, sensors, streams, simulated=False)
+    truth = simulate_truth(cfg)
+    sensors = build_sensors(cfg, truth.model)
+    streams = {s.name: s.measure(truth, stream(cfg.runs.seed, f"sensor/{s.name}")) for s in sensors}
+    return Trials(cfg, text, path, truth, sensors, streams, simulated=True)
+
+
+def _not_a_config(path: Path) -> str:
+    if not path.exists():
+        return f"{path}: no such file (fit-em takes experiment configs, .yaml)"
+    kind = ""
+    try:
+        with h5py.File(path, "r") as f:
+            fmt = f.attrs.get("format")
+            fmt = fmt.decode() if isinstance(fmt, bytes) else fmt
+            kind = "log" if fmt == "needlecli-log" else "fit" if fmt == FIT_FORMAT else "results" if "truth" in f else "hdf5"
+    except (OSError, ValueError):
+        pass
+    if kind == "log":
+        return (f"{path}: is a log file; fit-em takes a config: write one with `source: {{logs: [{path.name}]}}`, "
+                "the model and a `fit:` section (see configs/replay/seed004_like.yaml) and pass that")
+    if kind == "results":
+        return f"{path}: is a results file; fit-em takes the experiment's config (.yaml)"
+    if kind == "fit":
+        return f"{path}: is a fit file already; evaluate it with `needle evaluate {path}`"
+    return f"{path}: not an experiment config (.yaml); fit-em takes configs (recorded trials through `source: logs`)"
+
+
+_BLAS_SETTERS = ("scipy_openblas_set_num_threads64_", "scipy_openblas_set_num_threads",
+                 "openblas_set_num_threads64_", "openblas_set_num_threads")
+
+
+@contextlib.contextmanager
+def single_blas_thread():
+    """Run with one OpenBLAS thread per loaded OpenBLAS (restored after): with one EM process per core,
+    OpenBLAS's own threads would only compete with them (the arithmetic is on stacks of 10 x 10
+    matrices, which OpenBLAS does not split). A no-op where the library or its setter cannot be found
+    (not Linux, another BLAS)."""
+    found = []
+    try:
+        with open("/proc/self/maps", encoding="utf-8") as f:
+            paths = sorted({line.split()[-1] for line in f if "openblas" in line.lower() and "/" in line})
+        for path in paths:
+            lib = ctypes.CDLL(path)
+            for name in _BLAS_SETTERS:
+                if hasattr(lib, name):
+                    getter = getattr(lib, name.replace("set_num_threads", "get_num_threads"), None)
+                    before = int(getter()) if getter is not None else None
+                    getattr(lib, name)(1)
+                    found.append((getattr(lib, name), before))
+                    break
+    except OSError:
+        pass
+    try:
+        yield
+    finally:
+        for setter, before in found:
+            if before is not None:
+                setter(before)
+
+
+def em_options(fit: FitSettings, system: System) -> EMOptions:
+    e = fit.em
+    return EMOptions(
+        max_iter=e.max_iter, tol=e.tol, estep_max=e.estep_max, estep_tol=e.estep_tol, update_x0=e.update_x0,
+        q_index=system.q_index, q_floor=e.q_floor, r_floor=tuple(system.floors), ll_noise=e.ll_noise,
+        accelerate=e.accelerate, relin_tol=e.relin_tol,
+    )
+
+
+@dataclass
+class ModelFit:
+    name: str
+    system: System
+    result: EMResult
+    seconds: float = 0.0
+
+
+@dataclass
+class FitOutput:
+    trials: Trials
+    fits: dict[str, ModelFit] = field(default_factory=dict)
+
+
+def fit_trials(
+    trials: Trials,
+    *,
+    models: list[str] | None = None,
+    progress: Callable[[str, int, int], None] | None = None,
+    workers: int = 2,
+) -> FitOutput:
+    """EM (seed 004, Algorithm 1) on every trial for each model, all trials of a model at once; with
+    ``workers > 1`` the models run in parallel processes (one per model, at most ``workers``)."""
+    import time
+
+    cfg = trials.cfg
+    if cfg.fit is None:
+        raise DataError(f"{trials.source}: [fit] required key is missing: fit-em needs the initial guesses of "
+                        "Q, R and the constant (see configs/seed004/study.yaml)")
+    fit = cfg.fit
+    names = models or list(fit.models)
+    problem = build_problem(cfg, trials.truth, trials.sensors, trials.streams)
+    out = FitOutput(trials)
+    systems = {}
+    for name in names:
+        if name not in MODELS:
+            raise DataError(f"unknown model {name!r}; known: {', '.join(MODELS.names())}")
+        model = own_model(fit, trials.truth.model, name)
+        try:
+            systems[name] = build_system(problem, fit, model, fit_augment(type(model)))
+        except ValueError as e:
+            raise DataError(f"{trials.source}: [fit] {e}") from None
+
+    def run(name, cb):
+        S = systems[name]
+        t0 = time.perf_counter()
+        res = fit_em(S.dm, S.meas, S.m0, S.P0, S.Qc, S.R, em_options(fit, S), progress=cb)
+        return res, time.perf_counter() - t0
+
+    # models are independent: all but the first go to child processes (forked, so nothing is pickled
+    # but the results), the first runs here; the children report progress through a queue
+    with single_blas_thread() if workers > 1 and len(names) > 1 else contextlib.nullcontext():
+        _run_models(names, workers, run, systems, out, progress)
+    out.fits = {name: out.fits[name] for name in names}
+    return out
+
+
+def _run_models(names, workers, run, systems, out, progress) -> None:
+    children = {}
+    if workers > 1 and len(names) > 1 and "fork" in mp.get_all_start_methods():
+        ctx = mp.get_context("fork")
+        queue = ctx.Queue()
+        for name in names[1 : workers]:
+            conn, child_conn = ctx.Pipe(duplex=False)
+
+            def child(name=name, child_conn=child_conn):
+                try:
+                    res = run(name, lambda k, n, _m=name: queue.put((f"EM {_m}", k, n)))
+                    child_conn.send(("ok", res))
+                except BaseException as e:  # noqa: BLE001  (reported in the parent)
+                    child_conn.send(("error", repr(e)))
+                finally:
+                    child_conn.close()
+
+            p = ctx.Process(target=child, daemon=True)
+            p.start()
+            children[name] = (p, conn)
+
+        def drain():
+            while True:
+                try:
+                    msg = queue.get_nowait()
+                except Exception:  # noqa: BLE001  (queue.Empty)
+                    return
+                if progress is not None:
+                    progress(*msg)
+    else:
+        def drain():
+            return None
+
+    try:
+        for name in names:
+            if name in children:
+                continue
+            def cb(k, n, _m=name):
+                if progress is not None:
+                    progress(f"EM {_m}", k, n)
+                drain()
+            res, secs = run(name, cb)
+            out.fits[name] = ModelFit(name, systems[name], res, secs)
+        for name, (p, conn) in children.items():
+            while not conn.poll(0.2):
+                drain()
+                if not p.is_alive() and not conn.poll(0.0):
+                    raise RuntimeError(f"the EM of model {name!r} stopped without a result (exit code {p.exitcode})")
+            kind, payload = conn.recv()
+            p.join()
+            drain()
+            if kind != "ok":
+                raise RuntimeError(f"the EM of model {name!r} failed: {payload}")
+            res, secs = payload
+            out.fits[name] = ModelFit(name, systems[name], res, secs)
+    finally:
+        for p, _ in children.values():
+            if p.is_alive():
+                p.terminate()
+
+
+# ---------------------------------------------------------------------------------------------- the file
+def fit_tree(out: FitOutput) -> Group:
+    """The fit file's content (README, "Fit file")."""
+    tr = out.trials
+    cfg, truth = tr.cfg, tr.truth
+    fit = cfg.fit if cfg.fit is not None else FitSettings()
+    model0 = truth.model
+    N, T = truth.states.shape[:2]
+    root = Group(attrs=root_attrs(tr.text, cfg.runs.seed, {
+        "format": FIT_FORMAT, "version": FIT_VERSION, "name": cfg.name, "source": str(tr.source),
+        "trials_from": "simulation" if tr.simulated else "replay", "model": model0.registered_name,
+        "length_unit": model0.length_unit, "runs": N, "dt": float(truth.time[1] - truth.time[0]) if T > 1 else 0.0,
+        "models": list(out.fits), "repeats": fit.repeats,
+    }))
+    root.data["time"] = truth.time
+    inputs = Group()
+    for k, v in truth.input_dict().items():
+        inputs.data[k] = np.ascontiguousarray(v[..., 0] if v.shape[-1] == 1 else v)
+        inputs.dataset_attrs[k] = {"unit": model0.input_units[k]}
+    if truth.case is not None:
+        inputs.data["case"] = truth.case
+        inputs.attrs["case_labels"] = truth.case_labels
+    root.data["inputs"] = inputs
+    tg = Group(attrs={"names": model0.state_names, "units": model0.state_units, "kind": truth.truth_kind})
+    if tr.simulated:
+        tg.data["state"] = truth.states
+        tg.data["params"] = Group(data={k: np.ascontiguousarray(np.asarray(v)[:, 0]) for k, v in truth.params.items()})
+        tg.data["status"] = truth.status
+        tg.data["reason"] = truth.reason
+        qstd = cfg.process_noise.std
+        tg.data["q_std"] = np.array([qstd.get(s, 0.0) for s in model0.state_names])
+        sig = Group()
+        for s in tr.sensors:
+            sig.data[s.name] = np.broadcast_to(np.asarray(getattr(s.settings, "sigma", 0.0), dtype=float),
+                                               (len(s.channel_names),)).copy()
+        tg.data["sigma"] = sig
+    if truth.param_case is not None:
+        tg.data["param_case"] = truth.param_case
+        tg.attrs["param_case_labels"] = truth.param_case_labels
+    if truth.trial_ids is not None:
+        tg.data["trial_id"] = np.array(truth.trial_ids)
+    root.data["truth"] = tg
+    meas = Group()
+    for name, st in tr.streams.items():
+        meas.data[name] = Group(data={"t": st.t, "index": st.index, "value": st.value, "valid": st.valid},
+                                attrs={"names": st.names, "units": st.units, "type": st.attrs.get("type", "")})
+    root.data["measurements"] = meas
+    fits = Group()
+    for name, mf in out.fits.items():
+        fits.data[name] = _model_group(mf, fit)
+    root.data["fit"] = fits
+    return root
+
+
+def _model_group(mf: ModelFit, fit: FitSettings) -> Group:
+    S, r = mf.system, mf.result
+    dm = S.dm
+    consts = dm.augment
+    g = Group(attrs={
+        "model": mf.name, "names": dm.names, "units": dm.units, "constants": consts,
+        "q_states": [dm.names[i] for i in S.q_index], "channels": [m.name for m in S.meas],
+        "max_iter": fit.em.max_iter, "tol": fit.em.tol, "seconds": mf.seconds,
+        "singular_reason": dm.model.singular_reason,
+    })
+    g.data["ticks"] = dm.ticks
+    g.data["constant"] = Group(data={c: r.x0[:, dm.nx + i] for i, c in enumerate(consts)})
+    g.data["x0"] = r.x0
+    g.data["x0_guess"] = S.m0
+    g.data["Q"] = r.Qc
+    g.data["Q0"] = S.Qc
+    Rg = Group()
+    for mm, Rj, R0 in zip(S.meas, r.R, S.R):
+        Rg.data[mm.name] = Rj
+        Rg.data[f"{mm.name}_guess"] = R0
+        Rg.dataset_attrs[mm.name] = {"coordinates": "tangent plane (2 components across the direction)"
+                                     if mm.tangent else "components " + ", ".join(mm.names)}
+    g.data["R"] = Rg
+    g.data["state"] = r.m
+    g.data["var" if fit.store == "diag" else "cov"] = (np.diagonal(r.P, axis1=-2, axis2=-1).copy()
+                                                     if fit.store == "diag" else r.P)
+    g.data["filtered"] = r.filtered
+    g.data["ekf_state"] = r.ekf
+    for k in ("status", "reason", "iterations", "estep_passes", "ll_decreases", "ll_worst_drop", "floor_hits",
+              "repairs", "extrapolations", "rejections"):
+        v = getattr(r, k)
+        if v is not None:
+            g.data[k] = v
+    g.data["history"] = Group(data={k.replace("/", "_"): v for k, v in r.history.items()})
+    return g
+
+
+def default_fit_output(cfg) -> Path:
+    return Path("results") / f"{cfg.name}_fit.h5"

@@ -1,0 +1,255 @@
+"""From an :class:`~needlecli.observers.EstimationProblem` and a :class:`KalmanSetup` to the arrays the
+filters need: the discrete system, the measurement channels on its ticks, and the initial guesses
+(``x0``, ``P0``, ``Q_c``, each ``R_j``). Shared by the ``ekf``/``eks`` observers and ``needle fit-em``."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from needlecli.fitting.settings import KalmanSetup
+from needlecli.fitting.statespace import DiscreteModel, MeasurementModel, make_ticks
+from needlecli.models import MODELS, Model
+from needlecli.observers.base import EstimationProblem
+
+
+@dataclass
+class System:
+    """Everything a filter, smoother or EM run needs, for all runs.
+
+    dm : the discrete system; meas : the channels used; m0 (N, n), P0 (n, n); Qc (n, n) per second;
+    R : per channel (m, m); floors : per channel, an eigenvalue floor of R (EM) or None;
+    q_index : states with process noise.
+    """
+
+    dm: DiscreteModel
+    meas: list[MeasurementModel]
+    m0: np.ndarray
+    P0: np.ndarray
+    Qc: np.ndarray
+    R: list[np.ndarray]
+    floors: list[float | None]
+    q_index: tuple[int, ...]
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return self.dm.names
+
+
+def own_model(setup: KalmanSetup, experiment_model: Model, name: str | None = None) -> Model:
+    """The filter's model: ``name`` (or ``setup.model``, or the experiment's), with the setup's parameters
+    (over the experiment's when it is the same model). Keys of ``setup.params`` the model lacks are
+    ignored (a fit section may name several models' parameters)."""
+    cls = MODELS.get(name or setup.model) if (name or setup.model) else type(experiment_model)
+    base = experiment_model.params.model_dump() if cls is type(experiment_model) else {}
+    base.update({k: v for k, v in setup.params.items() if k in cls.Params.model_fields})
+    return cls(cls.Params(**base))
+
+
+def _component(problem: EstimationProblem, spec: str) -> tuple[np.ndarray, np.ndarray]:
+    """First valid sample ``(N,)`` of ``channel.component`` and whether a run has one."""
+    ch_name, comp = spec.rsplit(".", 1)
+    if ch_name not in problem.channels:
+        raise ValueError(f"no channel {ch_name!r}; channels: {', '.join(problem.channels)}")
+    ch = problem.channels[ch_name]
+    if comp not in ch.names:
+        raise ValueError(f"channel {ch_name!r} has no component {comp!r}; it has {', '.join(ch.names)}")
+    first = np.argmax(ch.valid, axis=1)
+    has = ch.valid.any(axis=1)
+    return ch.value[np.arange(ch.value.shape[0]), first, ch.names.index(comp)], has
+
+
+def build_system(
+    problem: EstimationProblem,
+    setup: KalmanSetup,
+    model: Model,
+    augment: Sequence[str] = (),
+    rng: np.random.Generator | None = None,
+) -> System:
+    """Build the system of ``model`` (the filter's own) on ``problem`` as ``setup`` says.
+
+    Raises ValueError for settings that do not fit the problem (unknown channel, a channel the model
+    cannot predict).
+    """
+    time = problem.time
+    T = len(time)
+    grid_dt = float(time[1] - time[0]) if T > 1 else 1.0
+    # ---- channels
+    names = list(setup.measurements) or [c for c, ch in problem.channels.items() if ch.h_for(model) is not None]
+    chans = []
+    for name in names:
+        if name not in problem.channels:
+            raise ValueError(f"no channel {name!r}; channels: {', '.join(problem.channels) or 'none'}")
+        ch = problem.channels[name]
+        h = ch.h_for(model)
+        if h is None:
+            raise ValueError(f"model {model.registered_name!r} cannot predict channel {name!r}")
+        chans.append((name, ch, h))
+    ticks = make_ticks(T, [ch.index for _, ch, _ in chans], setup.ticks, grid_dt)
+    # ---- model inputs by name from the experiment's
+    cols: list[int] = []
+    for k in model.input_names:
+        if k not in problem.model.input_names:
+            raise ValueError(f"model {model.registered_name!r} needs input {k!r}, which the experiment lacks")
+        sl = problem.model.input_slice(k)
+        cols.extend(range(sl.start, sl.stop))
+    inputs = np.ascontiguousarray(problem.inputs[..., cols])
+    params = model.param_arrays()
+    dm = DiscreteModel(model, params, augment, grid_dt, ticks, inputs, setup.substeps)
+    meas, R, floors = [], [], []
+    for name, ch, h in chans:
+        tick = np.searchsorted(ticks, ch.index)
+        ok = (tick < len(ticks)) & (ticks[np.minimum(tick, len(ticks) - 1)] == ch.index)
+        if not ok.all():  # cannot happen with make_ticks (every sample is a tick), kept as a guard
+            raise ValueError(f"channel {name!r}: samples off the filter's ticks")
+        m = len(ch.names)
+        mm = MeasurementModel(name, h, model.n, tick, ch.value, ch.valid, np.asarray(ch.angle, dtype=bool),
+                              tuple(ch.names), tuple(ch.units), bool(ch.unit_vector))
+        meas.append(mm)
+        spec = setup.measurements.get(name)
+        sigma = spec.sigma if spec is not None and spec.sigma is not None else ch.sigma
+        sig = np.asarray(sigma, dtype=float)
+        if sig.size not in (1, m):
+            raise ValueError(f"channel {name!r}: sigma has {sig.size} entries for {m} components")
+        sig = np.broadcast_to(sig, (m,))
+        if mm.tangent:  # a measured direction: its 2 components across the direction, mean sigma
+            sig = np.full(2, float(np.sqrt(np.mean(sig**2))))
+        R.append(np.diag(sig**2))
+        floors.append(spec.floor if spec is not None else None)
+    # ---- process noise and initial guesses
+    q = setup.q
+    if q:
+        q_index = tuple(i for i, s in enumerate(dm.names) if s in q)
+    else:
+        q_index = tuple(range(dm.nx))
+    Qc = np.diag([q.get(s, 0.0) ** 2 for s in dm.names])
+    m0 = initial_mean(problem, setup, model, dm, rng)
+    p0 = np.array([setup.p0.get(s, setup.init.std.get(s, 0.0) ** 2) for s in dm.names], dtype=float)
+    P0 = np.diag(np.maximum(p0, 1e-18))
+    return System(dm, meas, m0, P0, Qc, R, floors, q_index)
+
+
+def initial_mean(problem, setup: KalmanSetup, model: Model, dm: DiscreteModel, rng=None) -> np.ndarray:
+    """``x0 (N, n)`` as ``setup.init`` says (augmented constants from ``values`` or the model's parameters)."""
+    N, n = problem.n_runs, dm.n
+    params = model.param_arrays()
+    x = np.broadcast_to(np.asarray(model.initial_state(params), dtype=float), (N, model.n)).copy()
+    init = setup.init
+    if init.from_ == "truth" and problem.initial_truth is not None:
+        for i, name in enumerate(model.state_names):
+            if name in problem.model.state_names:
+                x[:, i] = problem.initial_truth[:, problem.model.index(name)]
+    aug = np.stack([np.broadcast_to(params[a], (N,)) for a in dm.augment], -1) if dm.augment else np.zeros((N, 0))
+    z = np.concatenate([x, aug], -1)
+    for name, v in init.values.items():
+        if name in dm.names:
+            z[:, dm.names.index(name)] = v
+    for state, spec in init.first_measurement.items():
+        if state in dm.names:
+            vals, has = _component(problem, spec)
+            z[has, dm.names.index(state)] = vals[has]
+    std = np.array([init.std.get(s, 0.0) for s in dm.names])
+    if rng is not None and np.any(std > 0):
+        z = z + std * rng.standard_normal(z.shape)
+    ang = dm.angles
+    if ang.any():
+        from needlecli.numerics import wrap_angle
+
+        z[:, ang] = wrap_angle(z[:, ang])
+    if n != z.shape[1]:
+        raise AssertionError("state size")
+    return z
+
+
+def check_setup(setup: KalmanSetup, model_cls: type[Model], sensors: dict, augment: Sequence[str] = ()) -> list:
+    """Config problems of a setup for one model: ``[(loc, message)]`` (the observers' ``check``)."""
+    out = []
+    names = tuple(model_cls.state_names) + tuple(augment)
+    for a in augment:
+        if a not in model_cls.Params.model_fields:
+            out.append((("augment",), f"model {model_cls.registered_name!r} has no parameter {a!r}"))
+        elif a in model_cls.state_names:
+            out.append((("augment",), f"{a!r} is already a state of model {model_cls.registered_name!r}"))
+    for where, keys in (("q", setup.q), ("p0", setup.p0), (("init", "std"), setup.init.std),
+                        (("init", "values"), setup.init.values), (("init", "first_measurement"), setup.init.first_measurement)):
+        for k in keys:
+            if k not in names:
+                loc = (where, k) if isinstance(where, str) else (*where, k)
+                out.append((loc, f"model {model_cls.registered_name!r} has no state {k!r}"
+                            + (" (augment it to estimate a parameter)" if k in model_cls.Params.model_fields else "")))
+    for k in setup.params:
+        if k not in model_cls.Params.model_fields:
+            out.append((("params", k), f"model {model_cls.registered_name!r} has no parameter {k!r}"))
+    out += check_channels(setup, model_cls, sensors)
+    return out
+
+
+def check_channels(setup: KalmanSetup, model_cls: type[Model], sensors: dict) -> list:
+    from needlecli.experiments.runner import measurement_function
+
+    out = []
+    try:
+        own = model_cls(model_cls.Params(**{k: v for k, v in setup.params.items() if k in model_cls.Params.model_fields}))
+    except Exception as e:  # parameters out of the model's range
+        return [(("params",), str(e).splitlines()[-1].strip())]
+    for name, spec in setup.measurements.items():
+        if name not in sensors:
+            out.append((("measurements", name), f"no sensor named {name!r}; sensors: {', '.join(sensors) or 'none'}"))
+            continue
+        if measurement_function(sensors[name], own) is None:
+            out.append((("measurements", name), f"model {model_cls.registered_name!r} cannot predict what sensor {name!r} measures"))
+            continue
+        m = len(sensors[name].channel_names)
+        if spec.sigma is not None and np.size(spec.sigma) not in (1, m):
+            out.append((("measurements", name, "sigma"), f"has {np.size(spec.sigma)} entries for {m} components"))
+    for state, spec in setup.init.first_measurement.items():
+        ch, comp = spec.rsplit(".", 1)
+        if ch not in sensors:
+            out.append((("init", "first_measurement", state), f"no sensor named {ch!r}"))
+        elif comp not in sensors[ch].channel_names:
+            out.append((("init", "first_measurement", state),
+                        f"sensor {ch!r} has no component {comp!r}; it has {', '.join(sensors[ch].channel_names)}"))
+    return out
+
+
+def fit_augment(model_cls: type[Model]) -> tuple[str, ...]:
+    """The constants EM estimates as augmented states: the model's curvature parameter (seed 004: ``c``
+    of the MNM, ``l_inv`` of the BiNM), unless the model already carries it as a state."""
+    c = model_cls.curvature_param
+    return (c,) if c is not None and c not in model_cls.state_names else ()
+
+
+def check_fit(fit, sensors: dict) -> list:
+    """Problems of a config's ``fit:`` section: ``[(loc, message)]``. Keys of ``q``, ``p0`` and
+    ``init`` may name the states and constants of any fitted model."""
+    out = []
+    classes = []
+    for i, name in enumerate(fit.models):
+        if name not in MODELS:
+            out.append((("models", i), f"unknown model {name!r}; known: {', '.join(MODELS.names())}"))
+        else:
+            classes.append(MODELS.get(name))
+    if fit.model is not None:
+        out.append((("model",), "use 'models' (the models fit-em fits) in a fit section"))
+    if not fit.q:
+        out.append((("q",), "required key is missing: the initial guess of the process noise (std per state, "
+                    "unit/sqrt(s)); the states it lists have process noise"))
+    if out:
+        return out
+    known = set()
+    for cls in classes:
+        known |= set(cls.state_names) | set(fit_augment(cls))
+    for where, keys in (("q", fit.q), ("p0", fit.p0), (("init", "std"), fit.init.std),
+                        (("init", "values"), fit.init.values), (("init", "first_measurement"), fit.init.first_measurement)):
+        for k in keys:
+            if k not in known:
+                loc = (where, k) if isinstance(where, str) else (*where, k)
+                out.append((loc, f"no fitted model ({', '.join(fit.models)}) has a state or fitted constant {k!r}"))
+    for k in fit.params:
+        if not any(k in cls.Params.model_fields for cls in classes):
+            out.append((("params", k), f"no fitted model has a parameter {k!r}"))
+    for cls in classes:
+        out += check_channels(fit, cls, sensors)
+    return out

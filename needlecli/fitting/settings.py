@@ -1,0 +1,102 @@
+"""Config schemas of the extended Kalman filter/smoother observers (``ekf``, ``eks``) and of the ``fit:``
+section that ``needle fit-em`` reads. Every setting is an explicit, documented key.
+
+Units: process noise as a standard deviation per square-root second (``Q_c = diag(q^2)``, the interval
+``dt`` gets ``Q_c dt``), as the truth's ``process_noise``; measurement noise as a standard deviation per
+component; ``p0`` and ``floor`` as variances.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field, field_validator
+
+from needlecli.schema import NonNeg, Positive, Strict
+
+
+class KalmanInit(Strict):
+    """Initial estimate. ``from: nominal`` starts from the model's default state with the config's
+    ``model.initial_state`` (what the experiment commands), ``from: truth`` from the true initial state
+    (simulations only); ``values`` then fix states (and augmented constants), ``first_measurement``
+    takes states from the first valid sample of a channel component (``{px: camera.x}``), and ``std``
+    adds Gaussian noise per state (observers only)."""
+
+    from_: Literal["truth", "nominal"] = Field("nominal", alias="from")
+    values: dict[str, float] = Field(default_factory=dict)
+    first_measurement: dict[str, str] = Field(default_factory=dict)
+    std: dict[str, NonNeg] = Field(default_factory=dict)
+
+    @field_validator("first_measurement")
+    @classmethod
+    def _spec(cls, v):
+        for state, spec in v.items():
+            if "." not in spec:
+                raise ValueError(f"{state}: {spec!r} is not of the form channel.component")
+        return v
+
+
+class ChannelNoise(Strict):
+    """How a filter treats one measurement channel (a sensor, by name)."""
+
+    sigma: NonNeg | list[NonNeg] | None = Field(
+        None, description="noise std per component (R = diag(sigma^2)); default: the sensor's nominal sigma")
+    floor: NonNeg | None = Field(None, description="EM: floor on the eigenvalues of R (variance, unit^2)")
+
+
+Ticks = Literal["grid", "measurements"] | Positive
+
+
+class KalmanSetup(Strict):
+    """What the EKF, the EKS and EM share: the filter's model, its discretisation, initial guesses."""
+
+    model: str | None = Field(None, description="the filter's model (default: the experiment's)")
+    params: dict[str, float] = Field(default_factory=dict, description="the filter's model parameters")
+    ticks: Ticks = Field("grid", description="where the filter has a state: grid, measurements, or a rate (Hz)")
+    substeps: int | None = Field(
+        None, ge=1, le=1000,
+        description="RK4 steps per tick interval with the interval's mean input (default: one per grid step)")
+    q: dict[str, NonNeg] = Field(default_factory=dict, description="process noise std per state, unit/sqrt(s)")
+    p0: dict[str, NonNeg] = Field(default_factory=dict, description="initial variance per state (and constant)")
+    measurements: dict[str, ChannelNoise] = Field(
+        default_factory=dict, description="channels used (default: every channel the model can predict)")
+    init: KalmanInit = Field(default_factory=KalmanInit)
+
+
+class EMSettings(Strict):
+    """Expectation-maximisation (seed 004, Algorithm 1)."""
+
+    max_iter: int = Field(100, ge=1, le=10_000, description="EM iterations at most (seed 004: 100)")
+    tol: Positive = Field(1e-3, description="stop when no variance of Q or any R_j changed by more than this "
+                          "relative amount (largest |log| eigenvalue of old^-1 new)")
+    estep_max: int = Field(10, ge=1, le=1000, description="IEKS passes per E-step at most")
+    estep_tol: Positive = Field(0.05, description="the IEKS has settled when x0 and the trajectory move less "
+                                "than this many standard deviations")
+    update_x0: bool = Field(True, description="x0 <- x_0|N in the E-step (seed 004)")
+    relin_tol: NonNeg = Field(0.5, description="re-linearise when the trajectory moved more than this many "
+                              "standard deviations from the last linearisation point (0: every iteration); "
+                              "the last E-step is always exact")
+    q_floor: NonNeg = Field(0.0, description="floor on the eigenvalues of the fitted Q block, unit^2/s")
+    ll_noise: Positive = Field(1e-8, description="a log-likelihood decrease larger than this relative amount "
+                               "is reported")
+    accelerate: bool = Field(True, description="SQUAREM extrapolation of Q and R_j (log-matrices), with a "
+                             "fall-back to the plain EM step when it lowers the likelihood")
+
+
+class FitSettings(KalmanSetup):
+    """The ``fit:`` section of a config: how ``needle fit-em`` fits every trial.
+
+    The model's curvature constant (``c`` of the MNM, ``l_inv`` of the BiNM) is an augmented state;
+    ``q`` holds the initial guess of the process noise and names the states that have process noise
+    (the others' rows and columns of Q stay zero; default: every model state); ``measurements`` the
+    initial guesses of each R_j and their floors; ``init.values`` and ``p0`` may name any fitted model's
+    states and constants (each model takes those it has).
+    """
+
+    models: list[str] = Field(default_factory=lambda: ["mnm", "binm"], min_length=1,
+                              description="models fitted by default (needle fit-em --model)")
+    ticks: Ticks = "measurements"
+    substeps: int | None = Field(1, ge=1, le=1000)
+    em: EMSettings = Field(default_factory=EMSettings)
+    store: Literal["full", "diag"] = Field("diag", description="smoothed covariances in the fit file")
+    repeats: int = Field(100, ge=1, le=100_000, description="re-simulations per parameter for 'SD as trajectory error'")

@@ -1,0 +1,46 @@
+"""The fit file of ``needle fit-em`` (README, "Fit file"): root attribute ``format = "needlecli-fit"``,
+``version``. Written by :func:`needlecli.fitting.experiment.fit_tree` through
+:func:`~needlecli.io.results.write_atomic`; read here."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import h5py
+
+from needlecli.errors import DataError
+from needlecli.io.results import Group, _read
+
+FIT_FORMAT = "needlecli-fit"
+FIT_VERSION = 1
+
+
+def is_fit_file(path: str | Path) -> bool:
+    """Whether ``path`` is an HDF5 file with the fit format (False for anything else, unreadable too)."""
+    try:
+        with h5py.File(path, "r") as f:
+            fmt = f.attrs.get("format")
+            return (fmt.decode() if isinstance(fmt, bytes) else fmt) == FIT_FORMAT
+    except (OSError, ValueError):
+        return False
+
+
+def read_fit(path: str | Path) -> Group:
+    """Load a fit file completely. Raises :class:`DataError` for missing, corrupt or newer files."""
+    path = Path(path)
+    if not path.exists():
+        raise DataError(f"{path}: no such fit file")
+    try:
+        with h5py.File(path, "r") as f:
+            fmt = f.attrs.get("format")
+            fmt = fmt.decode() if isinstance(fmt, bytes) else fmt
+            if fmt != FIT_FORMAT or "fit" not in f or "time" not in f:
+                raise DataError(f"{path}: not a needlecli fit file (format {fmt!r}, no /fit or /time)")
+            if int(f.attrs.get("version", 0)) > FIT_VERSION:
+                raise DataError(f"{path}: fit file version {int(f.attrs['version'])} is newer than this needlecli "
+                                f"reads ({FIT_VERSION})")
+            return _read(f)
+    except DataError:
+        raise
+    except (OSError, KeyError, ValueError) as e:
+        raise DataError(f"{path}: cannot read the fit file ({e.__class__.__name__}: {e})") from None

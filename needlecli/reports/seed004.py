@@ -1,0 +1,520 @@
+"""Seed 004's tables and figures from a fit file of ``needle fit-em``.
+
+* ``seed004_table1`` (MNM) and ``seed004_table2`` (BiNM): the constant (``c``, ``l_inv``) per parameter case
+  (field strength), ``tr(Q_p)``, ``tr(Q_h)``, ``tr(Q_B)`` and ``tr(R_j)`` of every channel, each trace
+  divided by its dimension as the seed reports them; rows Mean, SD and "SD as Traj. Err. (mm)": the
+  input cases (T1, T2, mirrored) re-simulated with the mean parameters and with each parameter moved by
+  one SD up and down, ``repeats`` times with the same process noise for nominal and moved, the RMS
+  distance of the tip path to the nominal one averaged (R does not enter the path: 0).
+* ``seed004_table3``: % difference of the BiNM from the MNM, by the mean trace and block-wise by the
+  Frobenius norm of the difference of the element-wise median matrices.
+* ``seed004_recovery``: the fits against the truth of a simulated study.
+* ``fit_status``: statuses, reasons, iterations, log-likelihood decreases.
+
+Trials whose fit failed for any model (singular, diverged) are left out for every model (seed 004: 3 of
+44 trials). Figures: ``seed004_fig5`` (a trial's paths and measurements, both models), ``seed004_fig10``
+(``h . B`` against time through the BiNM singularity).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from needlecli.errors import DataError
+from needlecli.io.results import Group
+from needlecli.models import MODELS
+from needlecli.reports.plots import PLOTS, plt, save_figure
+from needlecli.reports.tables import TABLES, write_table
+
+log = logging.getLogger("needlecli")
+
+FIT_TABLES = ("seed004_table1", "seed004_table2", "seed004_table3", "seed004_recovery", "fit_status")
+FIT_PLOTS = ("seed004_fig5", "seed004_fig10")
+FAILED = ("singular", "diverged")
+_TO_MM = {"m": 1000.0, "mm": 1.0, "cm": 10.0}
+
+
+def is_fit(res: Group) -> bool:
+    return res.attrs.get("format") == "needlecli-fit" and "fit" in res.data
+
+
+def kept_trials(res: Group) -> np.ndarray:
+    """Trials no model failed on (``(N,)`` bool): compared for every model, as in seed 004."""
+    fits = res.data["fit"].data
+    keep = None
+    for g in fits.values():
+        ok = ~np.isin(np.asarray(g.data["status"]).astype(str), FAILED)
+        keep = ok if keep is None else keep & ok
+    return keep
+
+
+def state_blocks(names, skip=()) -> dict[str, list[int]]:
+    """States grouped by their stem (``px, py, pz -> p``), constants left out."""
+    out: dict[str, list[int]] = {}
+    for i, s in enumerate(names):
+        if s in skip:
+            continue
+        stem = s[:-1] if len(s) > 1 and s[-1] in "xyz" else s
+        out.setdefault(stem, []).append(i)
+    return out
+
+
+def _cases(res: Group):
+    """``(index (N,), labels)`` of the parameter cases, or one case for all."""
+    tr = res.data.get("truth", Group())
+    if "param_case" in tr.data:
+        labels = [str(x) for x in np.atleast_1d(tr.attrs.get("param_case_labels", []))]
+        idx = np.asarray(tr.data["param_case"])
+        if not labels:
+            labels = [f"case {i}" for i in range(int(idx.max()) + 1)]
+        return idx, labels
+    N = int(res.attrs.get("runs", 0))
+    return np.zeros(N, dtype=int), ["all"]
+
+
+def _stats(res: Group, model: str, keep: np.ndarray) -> dict:
+    g = res.data["fit"].data[model]
+    names = [str(x) for x in g.attrs["names"]]
+    consts = [str(x) for x in np.atleast_1d(g.attrs.get("constants", []))]
+    Q = np.asarray(g.data["Q"])[keep]
+    out = {"names": names, "constants": consts, "Q": Q, "R": {}, "const": {}}
+    for c in consts:
+        out["const"][c] = np.asarray(g.data["constant"].data[c])[keep]
+    for ch, R in g.data["R"].data.items():
+        if not ch.endswith("_guess"):
+            out["R"][ch] = np.asarray(R)[keep]
+    out["blocks"] = state_blocks(names, skip=consts)
+    out["x0"] = np.asarray(g.data["x0"])[keep]
+    return out
+
+
+def _trace(M: np.ndarray, idx) -> np.ndarray:
+    sub = M[:, idx][:, :, idx]
+    return np.trace(sub, axis1=-2, axis2=-1) / len(idx)
+
+
+def _mean_sd(v: np.ndarray) -> tuple[float, float]:
+    v = v[np.isfinite(v)]
+    if not v.size:
+        return np.nan, np.nan
+    return float(v.mean()), float(v.std(ddof=1)) if v.size > 1 else np.nan
+
+
+# ---------------------------------------------------------------------------------------------- Tables 1, 2
+def parameter_table(res: Group, model: str) -> pd.DataFrame:
+    """Seed 004 Table 1 (MNM) / Table 2 (BiNM) for ``model``."""
+    if not is_fit(res) or model not in res.data["fit"].data:
+        return pd.DataFrame()
+    keep = kept_trials(res)
+    st = _stats(res, model, keep)
+    case, labels = _cases(res)
+    case = case[keep]
+    cols, mean, sd, moves = [], [], [], []
+    for c in st["constants"]:
+        for k, lbl in enumerate(labels):
+            m, s = _mean_sd(st["const"][c][case == k])
+            cols.append(f"{c} @ {lbl}" if len(labels) > 1 else c)
+            mean.append(m)
+            sd.append(s)
+            moves.append(("const", c, k, m, s))
+    for b, idx in st["blocks"].items():
+        if not np.any(st["Q"][:, idx][:, :, idx]):
+            continue  # a block without process noise (not fitted)
+        m, s = _mean_sd(_trace(st["Q"], idx))
+        cols.append(f"tr(Q_{b})")
+        mean.append(m)
+        sd.append(s)
+        moves.append(("Q", b, idx, m, s))
+    for ch, R in st["R"].items():
+        m, s = _mean_sd(np.trace(R, axis1=-2, axis2=-1) / R.shape[-1])
+        cols.append(f"tr(R_{ch})")
+        mean.append(m)
+        sd.append(s)
+        moves.append(("R", ch, None, m, s))
+    err = trajectory_errors(res, model, st, moves, case)
+    df = pd.DataFrame([mean, sd, err], columns=cols)
+    df.insert(0, "", ["Mean", "SD", "SD as Traj. Err. (mm)"])
+    df.attrs["kept"] = int(keep.sum())
+    return df
+
+
+@TABLES.register("seed004_table1")
+def table1(res: Group, errors=None) -> pd.DataFrame:
+    """Seed 004 Table 1, MNM parameterization: c per field strength, tr(Q_p), tr(Q_h), tr(Q_B) (per second)
+    and tr(R_j) of each channel, traces divided by their dimension; mean, SD and the SD as trajectory
+    error. Paper (experiments): c 5.3/9.5/11.9 (SD 3.2/4.8/5.6) 1/m; tr(Q_p) 1.10e-7, tr(Q_h) 6.65e-4,
+    tr(Q_B) 7.32e-9, tr(R_p) 2.70e-9, tr(R_B) 5.6e-12; SD as error 0.002/0.022/0.003, 0.052, 2e-13 mm."""
+    return parameter_table(res, "mnm")
+
+
+@TABLES.register("seed004_table2")
+def table2(res: Group, errors=None) -> pd.DataFrame:
+    """Seed 004 Table 2, BiNM parameterization (l_inv per field strength; as Table 1). Paper: l_inv
+    1.6/3.5/4.9 (SD 1.6/3.0/3.4) 1/m; tr(Q_p) 1.10e-7, tr(Q_h) 6.40e-3, tr(Q_B) 7.37e-9, tr(R_p) 2.72e-9;
+    SD as error 0.114/0.302/0.360, 0.200, 0.001 mm."""
+    return parameter_table(res, "binm")
+
+
+# ---------------------------------------------------------------------------------------------- SD as error
+def trajectory_errors(res: Group, model: str, st: dict, moves: list, case: np.ndarray) -> list[float]:
+    """The "SD as Traj. Err. (mm)" row: per column, the mean RMS distance (mm) between tip paths simulated
+    with the mean parameters and with that one parameter moved by +-SD (same process noise), over every
+    input case of the study and ``repeats`` noise draws."""
+    repeats = int(res.attrs.get("repeats", 100))
+    mcls = MODELS.get(model)
+    nx = len(mcls.state_names)
+    time = np.asarray(res.data["time"])
+    if len(time) < 2 or not st["Q"].shape[0]:
+        return [np.nan] * len(moves)
+    dt = float(time[1] - time[0])
+    k = max(1, int(round(0.05 / dt)))
+    inputs = res.data["inputs"]
+    N = len(np.asarray(inputs.data[mcls.input_names[0]]))
+    in_case = np.asarray(inputs.data["case"]) if "case" in inputs.data else np.zeros(N, dtype=int)
+    cases = np.unique(in_case)
+    first = [int(np.nonzero(in_case == c)[0][0]) for c in cases]
+    us = []
+    for name in mcls.input_names:
+        a = np.asarray(inputs.data[name], dtype=float)
+        us.append(a[..., None] if a.ndim == 2 else a)
+    u = np.concatenate(us, -1)[first]  # (C, T, m)
+    T = (u.shape[1] - 1) // k
+    u = u[:, : T * k].reshape(len(first), T, k, -1).mean(2)  # (C, T', m)
+    h = dt * k
+    x0 = st["x0"][:, :nx].mean(0)
+    Qm = st["Q"][:, :nx, :nx].mean(0)
+    const_all = {c: float(np.nanmean(v)) for c, v in st["const"].items()}
+    # variants: (constants, Q) for nominal and moved parameters
+    variants, pairs = [], []
+
+    def add(consts, Q):
+        variants.append((consts, Q))
+        return len(variants) - 1
+
+    base_all = add(const_all, Qm)
+    out_idx = []
+    for kind, name, where, m, s in moves:
+        if kind == "R" or not np.isfinite(s) or not np.isfinite(m) or m == 0:
+            out_idx.append(None if kind != "R" else "R")
+            continue
+        if kind == "const":
+            consts = dict(const_all)
+            consts[name] = m
+            nom = add(consts, Qm)
+            ups = [add({**consts, name: m + sg * s}, Qm) for sg in (1.0, -1.0)]
+        else:
+            nom = base_all
+            ups = []
+            for sg in (1.0, -1.0):
+                scale = max(1.0 + sg * s / m, 0.0)
+                D = np.ones(nx)
+                D[where] = np.sqrt(scale)
+                ups.append(add(const_all, Qm * D[:, None] * D[None, :]))
+        out_idx.append((nom, ups))
+        pairs.extend((nom, up) for up in ups)
+    V, C, n = len(variants), len(first), nx
+    roots = []
+    for _, Q in variants:
+        w, vec = np.linalg.eigh(0.5 * (Q + Q.T))
+        roots.append(vec * np.sqrt(np.clip(w, 0.0, None)))
+    roots = np.stack(roots)  # (V, n, n)
+    consts = {c: np.array([v[0][c] for v in variants])[:, None, None] for c in st["const"]}
+    params = {**{kk: np.asarray(v, dtype=float) for kk, v in mcls().param_arrays().items()}, **consts}
+    rng = np.random.default_rng([int(res.attrs.get("seed", 0)), 4004])
+    x = np.broadcast_to(x0, (V, repeats, C, n)).copy()
+    acc = np.zeros((len(pairs), repeats, C))
+    pa = np.array([p for p, _ in pairs], dtype=int)
+    pb = np.array([q for _, q in pairs], dtype=int)
+    model_obj = mcls()
+    scale = _TO_MM.get(str(res.attrs.get("length_unit", "m")), 1.0)
+    with np.errstate(all="ignore"):
+        for j in range(T):
+            x = model_obj.step(x, u[None, None, :, j], params, h)
+            xi = rng.standard_normal((repeats, C, n))
+            x = x + np.sqrt(h) * np.einsum("vij,rcj->vrci", roots, xi)
+            d = x[pa, ..., :3] - x[pb, ..., :3]
+            acc += (d**2).sum(-1)
+    rms = scale * np.sqrt(acc / T)  # (pairs, repeats, C)
+    out = []
+    pi = 0
+    for item in out_idx:
+        if item is None:
+            out.append(np.nan)
+        elif item == "R":
+            out.append(0.0)
+        else:
+            _, ups = item
+            out.append(float(np.nanmean(rms[pi : pi + len(ups)])))
+            pi += len(ups)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------- Table 3
+@TABLES.register("seed004_table3")
+def table3(res: Group, errors=None) -> pd.DataFrame:
+    """Seed 004 Table 3: % difference of the BiNM from the MNM, by the mean trace and block-wise (Frobenius
+    norm of the difference of the element-wise median matrices over the norm of the MNM's). Paper: Q_p
+    0.0 %, Q_h 863 %, Q_B 0.6 %, R_p 0.7 % (trace); 5.9 %, 369 %, 2.6 %, 0.0 % (block-wise)."""
+    if not is_fit(res) or not {"mnm", "binm"} <= set(res.data["fit"].data):
+        return pd.DataFrame()
+    keep = kept_trials(res)
+    a, b = _stats(res, "mnm", keep), _stats(res, "binm", keep)
+    cols, trace, block = [], [], []
+
+    def pct(x, y):
+        return 100.0 * (y - x) / x if x else np.nan
+
+    for name, idx in a["blocks"].items():
+        if name not in b["blocks"] or not np.any(a["Q"][:, idx][:, :, idx]):
+            continue
+        ma, mb = a["Q"][:, idx][:, :, idx], b["Q"][:, idx][:, :, idx]
+        cols.append(f"Q_{name}")
+        trace.append(pct(np.mean(_trace(a["Q"], idx)), np.mean(_trace(b["Q"], idx))))
+        block.append(_blockwise(ma, mb))
+    allq = [i for idx in a["blocks"].values() for i in idx]
+    cols.append("Q overall")
+    trace.append(pct(np.mean(_trace(a["Q"], allq)), np.mean(_trace(b["Q"], allq))))
+    block.append(_blockwise(a["Q"][:, allq][:, :, allq], b["Q"][:, allq][:, :, allq]))
+    for ch in a["R"]:
+        if ch in b["R"]:
+            cols.append(f"R_{ch}")
+            trace.append(pct(np.mean(np.trace(a["R"][ch], axis1=-2, axis2=-1)),
+                             np.mean(np.trace(b["R"][ch], axis1=-2, axis2=-1))))
+            block.append(_blockwise(a["R"][ch], b["R"][ch]))
+    df = pd.DataFrame([trace, block], columns=cols)
+    df.insert(0, "% difference", ["Trace", "Blockwise"])
+    return df
+
+
+def _blockwise(ma: np.ndarray, mb: np.ndarray) -> float:
+    if not ma.shape[0]:
+        return np.nan
+    da, db = np.median(ma, 0), np.median(mb, 0)
+    den = np.linalg.norm(da)
+    return float(100.0 * np.linalg.norm(db - da) / den) if den else np.nan
+
+
+# ---------------------------------------------------------------------------------------------- recovery
+@TABLES.register("seed004_recovery")
+def recovery_table(res: Group, errors=None) -> pd.DataFrame:
+    """Fitted against true values of a simulated study (the model that made the truth): the constant per
+    parameter case, tr(Q) per block and tr(R) per channel (traces divided by their dimension), mean and
+    SD over the kept trials and the error of the mean."""
+    if not is_fit(res) or "params" not in res.data.get("truth", Group()).data:
+        return pd.DataFrame()
+    truth = res.data["truth"]
+    true_model = str(res.attrs.get("model", ""))
+    keep = kept_trials(res)
+    case, labels = _cases(res)
+    rows = []
+    for model in res.data["fit"].data:
+        st = _stats(res, model, keep)
+        same = model == true_model
+        for c in st["constants"]:
+            tv = np.asarray(truth.data["params"].data.get(c, np.full(len(keep), np.nan)))[keep] if same else None
+            for k, lbl in enumerate(labels):
+                sel = case[keep] == k
+                m, s = _mean_sd(st["const"][c][sel])
+                t = float(np.mean(tv[sel])) if tv is not None and sel.any() else np.nan
+                rows.append((model, f"{c} @ {lbl}", t, m, s))
+        q_std = np.asarray(truth.data.get("q_std", np.zeros(0)))
+        for b, idx in st["blocks"].items():
+            if not np.any(st["Q"][:, idx][:, :, idx]):
+                continue
+            m, s = _mean_sd(_trace(st["Q"], idx))
+            t = float(np.mean(q_std[idx] ** 2)) if same and q_std.size >= max(idx) + 1 else np.nan
+            rows.append((model, f"tr(Q_{b})", t, m, s))
+        sig = truth.data.get("sigma", Group()).data
+        for ch, R in st["R"].items():
+            m, s = _mean_sd(np.trace(R, axis1=-2, axis2=-1) / R.shape[-1])
+            t = float(np.mean(np.asarray(sig[ch]) ** 2)) if ch in sig else np.nan
+            rows.append((model, f"tr(R_{ch})", t, m, s))
+    df = pd.DataFrame(rows, columns=["Model", "Quantity", "Truth", "Fitted mean", "Fitted SD"])
+    with np.errstate(all="ignore"):
+        df["Error of mean (%)"] = 100.0 * (df["Fitted mean"] - df["Truth"]) / df["Truth"]
+    df["Trials"] = int(keep.sum())
+    return df
+
+
+@TABLES.register("fit_status")
+def fit_status_table(res: Group, errors=None) -> pd.DataFrame:
+    """EM outcome per model: trials per status with the reasons, EM iterations (median, max), E-step
+    passes per iteration, log-likelihood decreases beyond numerical noise, SQUAREM steps rejected."""
+    if not is_fit(res):
+        return pd.DataFrame()
+    rows = []
+    for model, g in res.data["fit"].data.items():
+        status = np.asarray(g.data["status"]).astype(str)
+        reason = np.asarray(g.data["reason"]).astype(str)
+        it = np.asarray(g.data["iterations"])
+        for s in np.unique(status):
+            sel = status == s
+            reasons = sorted({r.split(" (EM iteration")[0] for r in reason[sel] if r})
+            rows.append({
+                "Model": model, "Status": s, "Trials": int(sel.sum()),
+                "Iterations (median)": float(np.median(it[sel])), "Iterations (max)": int(it[sel].max()),
+                "E-step passes / iteration": float(np.mean(np.asarray(g.data["estep_passes"])[sel] / np.maximum(it[sel], 1))),
+                "LL decreases": int(np.asarray(g.data["ll_decreases"])[sel].sum()),
+                "SQUAREM rejected": int(np.asarray(g.data.get("rejections", np.zeros(len(sel))))[sel].sum()),
+                "Reasons": "; ".join(reasons)[:300],
+            })
+    return pd.DataFrame(rows)
+
+
+# ---------------------------------------------------------------------------------------------- figures
+def _position_channel(res: Group):
+    for name, g in res.data.get("measurements", Group()).data.items():
+        if str(g.attrs.get("type", "")) == "position":
+            return name, g
+    return None, None
+
+
+def _pick_trial(res: Group, prefer: tuple[str, ...]) -> int:
+    keep = kept_trials(res)
+    inputs = res.data["inputs"]
+    labels = [str(x) for x in np.atleast_1d(inputs.attrs.get("case_labels", []))]
+    case = np.asarray(inputs.data["case"]) if "case" in inputs.data else None
+    pcase, plabels = _cases(res)
+    cand = np.nonzero(keep)[0] if keep.any() else np.arange(len(keep))
+    if case is not None and labels:
+        good = [i for i in cand if all(p in labels[case[i]] for p in prefer)]
+        if good:
+            last = [i for i in good if pcase[i] == pcase.max()]
+            return int((last or good)[0])
+    return int(cand[0])
+
+
+@PLOTS.register("seed004_fig5")
+def fig5(res: Group, errors, path_stem: Path) -> Path | None:
+    """Seed 004 Fig. 5: one trial's measured positions and the EM position estimates of both models (a),
+    and the distance of each estimate from the measurements with its running RMS (b)."""
+    if not is_fit(res):
+        return None
+    ch, mg = _position_channel(res)
+    if ch is None:
+        return None
+    i = _pick_trial(res, ("T2", "-x"))
+    scale = _TO_MM.get(str(res.attrs.get("length_unit", "m")), 1.0)
+    names = [str(x) for x in mg.attrs["names"]]
+    cols = [names.index(a) for a in ("x", "y") if a in names]
+    y = np.asarray(mg.data["value"])[i][:, cols] * scale
+    valid = np.asarray(mg.data["valid"])[i]
+    t_meas = np.asarray(mg.data["t"])
+    fig, axs = plt.subplots(1, 2, figsize=(12, 4.8))
+    axs[0].plot(y[valid, 0], y[valid, 1], ".", ms=3, color="0.5", label=f"{ch} measurements")
+    tr = res.data.get("truth", Group())
+    if "state" in tr.data:
+        tn = [str(x) for x in tr.attrs["names"]]
+        ts = np.asarray(tr.data["state"])[i]
+        axs[0].plot(ts[:, tn.index("px")] * scale, ts[:, tn.index("py")] * scale, "k--", lw=0.8, label="truth")
+    for j, (model, g) in enumerate(res.data["fit"].data.items()):
+        gn = [str(x) for x in g.attrs["names"]]
+        z = np.asarray(g.data["state"])[i]
+        px, py = z[:, gn.index("px")] * scale, z[:, gn.index("py")] * scale
+        status = str(np.asarray(g.data["status"]).astype(str)[i])
+        axs[0].plot(px, py, color=f"C{j}", lw=1.2, label=f"{model} EM ({status})")
+        ticks = np.asarray(g.data["ticks"])
+        at = np.clip(np.searchsorted(ticks, np.asarray(mg.data["index"])), 0, len(ticks) - 1)
+        d = np.hypot(px[at] - y[:, 0], py[at] - y[:, 1])
+        d = np.where(valid, d, np.nan)
+        run = np.sqrt(np.nancumsum(d**2) / np.maximum(np.cumsum(valid), 1))
+        axs[1].plot(t_meas, d, color=f"C{j}", lw=0.5, alpha=0.5)
+        axs[1].plot(t_meas, run, color=f"C{j}", lw=1.5, label=f"{model}: running RMS {run[-1]:.3f} mm")
+    axs[0].set_xlabel("x [mm]")
+    axs[0].set_ylabel("y [mm]")
+    axs[0].set_aspect("equal", adjustable="datalim")
+    axs[0].legend(fontsize="small")
+    axs[1].set_xlabel("time [s]")
+    axs[1].set_ylabel("distance from the measurement [mm]")
+    axs[1].legend(fontsize="small")
+    for ax in axs:
+        ax.grid(alpha=0.3)
+    labels = [str(x) for x in np.atleast_1d(res.data["inputs"].attrs.get("case_labels", []))]
+    case = res.data["inputs"].data.get("case")
+    pcase, plabels = _cases(res)
+    what = (labels[int(case[i])] + ", " if labels and case is not None else "") + plabels[int(pcase[i])]
+    fig.suptitle(f"{res.attrs.get('name', '')}: trial {i} ({what}): EM estimates of both models")
+    return save_figure(fig, Path(f"{path_stem}_seed004_fig5.png"))
+
+
+def _cos_hb(z: np.ndarray, names: list[str]) -> np.ndarray:
+    h = z[..., [names.index(s) for s in ("hx", "hy", "hz")]]
+    b = z[..., [names.index(s) for s in ("Bx", "By", "Bz")]]
+    with np.errstate(all="ignore"):
+        return (h * b).sum(-1) / (np.linalg.norm(h, axis=-1) * np.linalg.norm(b, axis=-1))
+
+
+@PLOTS.register("seed004_fig10")
+def fig10(res: Group, errors, path_stem: Path) -> Path | None:
+    """Seed 004 Fig. 10: h . B (cosine of the angle between heading and field) against time for one trial:
+    the MNM's EM estimate, the BiNM's first EKF pass and its EM estimate (until it failed), the truth."""
+    if not is_fit(res) or not {"mnm", "binm"} <= set(res.data["fit"].data):
+        return None
+    fits = res.data["fit"].data
+    bst = np.asarray(fits["binm"].data["status"]).astype(str)
+    sing = np.nonzero(bst == "singular")[0]
+    mn = [str(x) for x in fits["mnm"].attrs["names"]]
+    if not all(s in mn for s in ("hx", "Bx")):
+        return None
+    zm = np.asarray(fits["mnm"].data["state"])
+    i = int(sing[0]) if sing.size else int(np.nanargmin(np.nanmin(np.abs(_cos_hb(zm, mn)), 1)))
+    time = np.asarray(res.data["time"])
+    fig, ax = plt.subplots(figsize=(8, 4))
+    tr = res.data.get("truth", Group())
+    if "state" in tr.data:
+        tn = [str(x) for x in tr.attrs["names"]]
+        ax.plot(time, _cos_hb(np.asarray(tr.data["state"])[i], tn), "k--", lw=0.8, label="truth (MNM)")
+    for model, key, style in (("mnm", "state", "-"), ("binm", "ekf_state", ":"), ("binm", "state", "-")):
+        g = fits[model]
+        names = [str(x) for x in g.attrs["names"]]
+        ticks = np.asarray(g.data["ticks"])
+        z = np.asarray(g.data[key])[i]
+        lbl = {"state": "EM estimate", "ekf_state": "EKF forward pass"}[key]
+        st = str(np.asarray(g.data["status"]).astype(str)[i])
+        ax.plot(time[ticks], _cos_hb(z, names), style, lw=1.3, color="C0" if model == "mnm" else "C1",
+                label=f"{model} {lbl}" + (f" ({st})" if key == "state" else ""))
+    ax.axhline(0.0, color="r", lw=0.8, label="BiNM singularity (h . B = 0)")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("h . B / (|h| |B|)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize="small")
+    ax.set_title(f"{res.attrs.get('name', '')}: trial {i}, heading against field through the singularity")
+    return save_figure(fig, Path(f"{path_stem}_seed004_fig10.png"))
+
+
+# ---------------------------------------------------------------------------------------------- evaluate
+def evaluate_fit(
+    path: str | Path,
+    *,
+    tables: list[str] | None = None,
+    out_dir: str | Path | None = None,
+    formats: list[str] | None = None,
+    plots: bool = False,
+) -> dict[str, pd.DataFrame]:
+    """``needle evaluate FIT.h5``: the fit tables (default all of :data:`FIT_TABLES`), written to
+    ``out_dir`` with the figures when asked."""
+    from needlecli.io.fit import read_fit
+
+    path = Path(path)
+    res = read_fit(path)
+    names = tables or list(FIT_TABLES)
+    for n in names:
+        if n not in FIT_TABLES:
+            raise DataError(f"{path}: table {n!r} needs a results file; a fit file has {', '.join(FIT_TABLES)}")
+    out = {n: TABLES.get(n)(res, None) for n in names}
+    if out_dir is not None:
+        out_dir = Path(out_dir)
+        stem = res.attrs.get("name", path.stem)
+        for n, df in out.items():
+            doc = " ".join((TABLES.get(n).__doc__ or "").strip().split("\n\n")[0].split())
+            write_table(df, out_dir / f"{stem}_{n}", formats or ["md", "csv", "tex"], caption=doc)
+        if plots:
+            for n in FIT_PLOTS:
+                p = PLOTS.get(n)(res, None, out_dir / stem)
+                if p is not None:
+                    log.info("plot: %s", p)
+    return out

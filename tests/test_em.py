@@ -1,0 +1,283 @@
+"""EM (seed 004, Algorithm 1): on a linear-Gaussian model with known Q and R it recovers them within
+sampling error and never lowers the log-likelihood; floors hold; the per-run parameter cases of the
+config; ``needle fit-em`` end to end (a fit file, its tables, clear errors); the BiNM fit fails with the
+singularity as the reason where the field crosses the heading."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+import needlecli.cli.commands  # noqa: F401  (registers the subcommands)
+from needlecli.cli.app import app
+from needlecli.errors import ConfigError
+from needlecli.experiments.config import load_config
+from needlecli.experiments.truth import simulate_truth
+from needlecli.fitting.em import EMOptions, fit_em, relative_change
+from needlecli.fitting.statespace import DiscreteModel, MeasurementModel
+from needlecli.models.base import Model
+
+
+class Oscillator(Model):
+    state_names = ("a", "b")
+    state_units = ("1", "1")
+    input_names = ("v",)
+    input_sizes = {"v": 1}
+    input_units = {"v": "1"}
+    F = np.array([[-0.5, 1.0], [-1.0, -0.3]])
+
+    def f(self, x, u, p):
+        return x @ self.F.T + u[..., :1] * np.array([1.0, 0.0])
+
+    def initial_state(self, p):
+        return np.zeros(2)
+
+
+Q_TRUE = np.array([[0.20, 0.05], [0.05, 0.10]])
+R1_TRUE, R2_TRUE = 0.05, 0.08
+DT = 0.05
+
+
+def _linear_data(N=6, T=400, seed=0):
+    rng = np.random.default_rng(seed)
+    u = np.sin(0.02 * np.arange(T))[None, :, None] * np.ones((N, 1, 1))
+    ticks = np.arange(T)
+    dm = DiscreteModel(Oscillator(), {}, (), DT, ticks, u, None)
+    L = np.linalg.cholesky(Q_TRUE * DT)
+    x = np.zeros((N, 2))
+    xs = [x]
+    for k in range(T - 1):
+        x, _ = dm.transition(k, x, with_jacobian=False)
+        x = x + rng.standard_normal((N, 2)) @ L.T
+        xs.append(x)
+    X = np.stack(xs, 1)
+    i1, i2 = np.arange(0, T), np.arange(0, T, 2)
+    y1 = X[:, i1, :1] + np.sqrt(R1_TRUE) * rng.standard_normal((N, len(i1), 1))
+    y2 = X[:, i2, 1:] + np.sqrt(R2_TRUE) * rng.standard_normal((N, len(i2), 1))
+    m1 = MeasurementModel("c1", lambda z: z[..., :1], 2, i1, y1, np.ones(y1.shape[:2], bool), np.zeros(1, bool))
+    m2 = MeasurementModel("c2", lambda z: z[..., 1:], 2, i2, y2, np.ones(y2.shape[:2], bool), np.zeros(1, bool))
+    return dm, [m1, m2]
+
+
+@pytest.fixture(scope="module")
+def linear():
+    return _linear_data()
+
+
+def test_em_recovers_q_and_r_on_a_linear_gaussian_model(linear):
+    dm, meas = linear
+    N = meas[0].y.shape[0]
+    res = fit_em(dm, meas, np.zeros((N, 2)), np.eye(2), np.eye(2) * 0.5, [np.eye(1) * 0.3, np.eye(1) * 0.01],
+                 EMOptions(max_iter=40, tol=2e-3))
+    assert (res.status == "ok").all(), res.reason
+    assert res.ll_decreases.sum() == 0  # never lower along plain EM steps
+    # pooled over the runs, the estimates are within sampling error of the truth (about 5 % here)
+    np.testing.assert_allclose(res.R[0].mean(0)[0, 0], R1_TRUE, rtol=0.12)
+    np.testing.assert_allclose(res.R[1].mean(0)[0, 0], R2_TRUE, rtol=0.15)
+    np.testing.assert_allclose(np.diagonal(res.Qc.mean(0)), np.diag(Q_TRUE), rtol=0.2)
+
+
+def test_plain_em_log_likelihood_never_decreases(linear):
+    dm, meas = linear
+    i = np.arange(2)
+    dm3, meas3 = dm.take(i), [m.take(i) for m in meas]
+    res = fit_em(dm3, meas3, np.zeros((2, 2)), np.eye(2), np.eye(2) * 2.0, [np.eye(1) * 1.0, np.eye(1) * 0.01],
+                 EMOptions(max_iter=10, tol=1e-9, accelerate=False))
+    ll = res.history["loglik"]
+    assert np.isfinite(ll).all()
+    steps = np.diff(ll, axis=1)
+    assert (steps >= -1e-9 * np.abs(ll[:, 1:])).all(), steps.min()
+    assert (ll[:, -1] - ll[:, 0] > 10).all()  # and it did climb from the poor guess
+
+
+def test_floors_and_relative_change(linear):
+    dm, meas = linear
+    i = np.arange(2)
+    res = fit_em(dm.take(i), [m.take(i) for m in meas], np.zeros((2, 2)), np.eye(2), np.eye(2) * 0.2,
+                 [np.eye(1) * 0.05, np.eye(1) * 0.08], EMOptions(max_iter=3, r_floor=(0.5, None)))
+    assert (res.R[0][:, 0, 0] >= 0.5 - 1e-12).all()
+    assert res.floor_hits[0] > 0
+    a = np.array([np.diag([1.0, 4.0])])
+    assert relative_change(a * 1.01, a)[0] == pytest.approx(np.log(1.01))
+    assert relative_change(np.array([np.diag([1.0, 8.0])]), a)[0] == pytest.approx(np.log(2.0))
+    assert relative_change(np.full((1, 2, 2), np.nan), a)[0] == np.inf
+
+
+# ---------------------------------------------------------------------------------------------- configs
+CASES = """\
+name: cases
+model:
+  type: mnm
+  params: {c: 9.5}
+  initial_state: {hy: -1.0, By: -1.0}
+  param_cases: {labels: [low, mid, high], cases: [{c: 5.0}, {c: 9.0}, {c: 12.0}]}
+inputs:
+  v: 0.002
+  omega_B: {kind: cases, labels: [A, B], cases: [[0, 0, 0.01], [0, 0, -0.01]]}
+runs: {count: 12, seed: 1}
+stop: {time: 1.0}
+"""
+
+
+def test_param_cases_cycle_after_the_input_cases():
+    cfg, _ = load_config(text=CASES)
+    tr = simulate_truth(cfg)
+    assert tr.case.tolist() == [0, 1] * 6
+    assert tr.param_case.tolist() == [0, 0, 1, 1, 2, 2] * 2  # every (input, parameter) pair per 6 runs
+    np.testing.assert_array_equal(tr.params["c"][:, 0], np.array([5.0, 5.0, 9.0, 9.0, 12.0, 12.0] * 2))
+    assert tr.param_case_labels == ["low", "mid", "high"]
+
+
+@pytest.mark.parametrize("edit, where, text", [
+    ("cases: [{c: 5.0}, {kappa: 1.0}, {c: 12.0}]", "model -> param_cases", "case 1: unknown parameter 'kappa'"),
+    ("cases: [{c: 5.0}, {c: -1.0}, {c: 12.0}]", "model -> param_cases", "case 1: c:"),
+    ("labels: [low], cases", "model -> param_cases", "labels has 1 entries for 3 cases"),
+])
+def test_param_cases_are_validated(edit, where, text):
+    bad = CASES.replace("cases: [{c: 5.0}, {c: 9.0}, {c: 12.0}]", edit) if "labels" not in edit else \
+        CASES.replace("labels: [low, mid, high], cases", edit)
+    with pytest.raises(ConfigError) as e:
+        load_config(text=bad)
+    assert where in str(e.value) and text in str(e.value)
+
+
+# ---------------------------------------------------------------------------------------------- CLI
+FIT = """\
+name: tiny_fit
+model:
+  type: mnm
+  params: {c: 9.5}
+  initial_state: {hy: -1.0, By: -1.0}
+  param_cases: {labels: [a, b], cases: [{c: 6.0}, {c: 11.0}]}
+inputs:
+  v: 0.002
+  omega_B: {kind: cases, labels: [T2 +x, T2 -x], cases: [[0, 0, 0.05], [0, 0, -0.05]]}
+process_noise: {std: {px: 1.0e-5, py: 1.0e-5, hx: 2.0e-3, hy: 2.0e-3, Bx: 1.0e-4, By: 1.0e-4}}
+sensors:
+  - {name: camera, type: position, rate: 6.0, axes: [x, y], sigma: 5.2e-5}
+  - {name: coils, type: bfield, rate: 6.0, sigma: 1.0e-4}
+runs: {count: 4, seed: 9}
+stop: {time: 4.0}
+fit:
+  q: {px: 3.0e-5, py: 3.0e-5, hx: 5.0e-3, hy: 5.0e-3, Bx: 3.0e-4, By: 3.0e-4}
+  p0: {px: 1.0e-6, py: 1.0e-6, pz: 1.0e-8, hx: 1.0e-2, hy: 1.0e-6, hz: 1.0e-4, Bx: 1.0e-6, By: 1.0e-6, Bz: 1.0e-6, c: 100.0, l_inv: 100.0}
+  measurements: {camera: {sigma: 1.0e-4, floor: 2.5e-9}, coils: {sigma: 3.0e-4}}
+  init:
+    values: {hx: 0.0, hy: -1.0, c: 8.0, l_inv: 8.0}
+    first_measurement: {px: camera.x, py: camera.y, Bx: coils.bx, By: coils.by, Bz: coils.bz}
+  em: {max_iter: 4}
+  repeats: 3
+"""
+
+
+def invoke(*args):
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory):
+    d = tmp_path_factory.mktemp("fit")
+    (d / "tiny.yaml").write_text(FIT)
+    out = d / "tiny_fit.h5"
+    r = invoke("fit-em", d / "tiny.yaml", "--model", "both", "--out", out, "--quiet")
+    assert r.exit_code == 0, r.output + repr(r.exception)
+    return d, out
+
+
+def test_fit_em_writes_the_fit_file(fitted):
+    d, out = fitted
+    with h5py.File(out) as f:
+        assert f.attrs["format"] == "needlecli-fit" and int(f.attrs["version"]) == 1
+        assert set(f["fit"]) == {"mnm", "binm"} and list(f.attrs["models"]) == ["mnm", "binm"]
+        for m, c in (("mnm", "c"), ("binm", "l_inv")):
+            g = f[f"fit/{m}"]
+            assert g[f"constant/{c}"].shape == (4,)
+            assert g["Q"].shape == (4, 10, 10) and g["R/camera"].shape == (4, 2, 2)
+            assert g["R/coils"].shape == (4, 2, 2)  # a measured direction: across it
+            assert g["state"].shape[0] == 4 and g["state"].shape[2] == 10
+            assert g["history/loglik"].shape == (4, 4)
+            assert set(g["status"][()].astype(str)) <= {"ok", "max_iter"}
+            assert (np.linalg.eigvalsh(g["R/camera"][()]) >= 2.5e-9 - 1e-18).all()
+        assert f["truth/param_case"][()].tolist() == [0, 0, 1, 1]
+
+
+def test_evaluate_reads_the_fit_file(fitted):
+    d, out = fitted
+    r = invoke("evaluate", out, "--out", d / "tables")
+    assert r.exit_code == 0, r.output + repr(r.exception)
+    for t in ("seed004_table1", "seed004_table2", "seed004_table3", "seed004_recovery", "fit_status"):
+        assert (d / "tables" / f"tiny_fit_{t}.csv").exists()
+        assert f"## {t}" in r.output
+    assert "c @ a" in r.output and "SD as Traj. Err. (mm)" in r.output
+    assert (d / "tables" / "tiny_fit_seed004_fig5.png").exists()
+    r = invoke("evaluate", out, "--tables", "summary", "--no-plots")
+    assert r.exit_code == 2 and "needs a results file" in r.output
+
+
+def test_fit_em_user_errors(tmp_path, fitted):
+    d, out = fitted
+    junk = tmp_path / "notes.txt"
+    junk.write_text("x")
+    r = invoke("fit-em", junk)
+    assert r.exit_code == 2 and "not an experiment config" in r.output and "Traceback" not in r.output
+    r = invoke("fit-em", out)
+    assert r.exit_code == 2 and "is a fit file already" in r.output
+    logfile = Path(__file__).resolve().parents[1] / "datasets" / "seed004_like.h5"
+    if logfile.exists():
+        r = invoke("fit-em", logfile)
+        assert r.exit_code == 2 and "is a log file" in r.output and "source" in r.output
+    r = invoke("fit-em", d / "tiny.yaml", "--model", "bicycle")
+    assert r.exit_code == 2 and "--model" in r.output
+    r = invoke("fit-em", d / "tiny.yaml", d / "tiny.yaml", "--out", tmp_path / "x.h5")
+    assert r.exit_code == 2 and "--out" in r.output
+    bad = FIT.replace("hx: 0.0, hy: -1.0, c: 8.0", "hx: 0.0, hy: -1.0, kappa: 8.0")
+    (tmp_path / "bad.yaml").write_text(bad)
+    r = invoke("fit-em", tmp_path / "bad.yaml")
+    assert r.exit_code == 2 and "[fit -> init -> values -> kappa]" in r.output
+
+
+SINGULAR = """\
+name: tiny_t2prelim
+model: {type: mnm, params: {c: 9.5}, initial_state: {hy: -1.0, By: -1.0}}
+inputs:
+  v: 0.002
+  omega_B: {kind: piecewise, times: [0.0, 1.0], values: [[0, 0, 1.4], [0, 0, 0.15]]}
+process_noise: {std: {px: 1.0e-5, py: 1.0e-5, hx: 2.0e-3, hy: 2.0e-3, Bx: 1.0e-4, By: 1.0e-4}}
+sensors:
+  - {name: camera, type: position, rate: 6.0, axes: [x, y], sigma: 5.2e-5}
+  - {name: coils, type: bfield, rate: 6.0, sigma: 1.0e-4}
+runs: {count: 2, seed: 5}
+stop: {time: 4.0}
+fit:
+  models: [binm]
+  q: {px: 3.0e-5, py: 3.0e-5, hx: 5.0e-3, hy: 5.0e-3, Bx: 3.0e-4, By: 3.0e-4}
+  p0: {px: 1.0e-6, py: 1.0e-6, pz: 1.0e-8, hx: 1.0e-2, hy: 1.0e-6, hz: 1.0e-4, Bx: 1.0e-6, By: 1.0e-6, Bz: 1.0e-6, l_inv: 100.0}
+  measurements: {camera: {sigma: 1.0e-4}, coils: {sigma: 3.0e-4}}
+  init: {values: {hx: 0.0, hy: -1.0, l_inv: 8.0}, first_measurement: {px: camera.x, py: camera.y, Bx: coils.bx, By: coils.by, Bz: coils.bz}}
+  em: {max_iter: 3}
+"""
+
+
+def test_binm_fit_fails_at_its_singularity(tmp_path):
+    from needlecli.fitting.experiment import fit_trials, load_trials
+
+    (tmp_path / "s.yaml").write_text(SINGULAR)
+    trials = load_trials(tmp_path / "s.yaml")
+    h, b = trials.truth.states[..., 3:6], trials.truth.states[..., 6:9]
+    assert ((h * b).sum(-1) < 0).any(1).all()  # the MNM truth crosses h . B = 0
+    res = fit_trials(trials, workers=1).fits["binm"].result
+    assert (res.status == "singular").all(), res.reason
+    assert all("B . h -> 0" in r for r in res.reason)
+
+
+def test_fit_em_needs_a_fit_section(tmp_path):
+    (tmp_path / "nofit.yaml").write_text(FIT.split("fit:\n")[0])
+    r = invoke("fit-em", tmp_path / "nofit.yaml", "--quiet")
+    assert r.exit_code == 2 and "[fit] required key is missing" in r.output
+    (tmp_path / "noq.yaml").write_text(FIT.replace("  q: {px: 3.0e-5, py: 3.0e-5, hx: 5.0e-3, hy: 5.0e-3, Bx: 3.0e-4, By: 3.0e-4}\n", ""))
+    r = invoke("fit-em", tmp_path / "noq.yaml", "--quiet")
+    assert r.exit_code == 2 and "[fit -> q] required key is missing" in r.output

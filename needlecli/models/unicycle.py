@@ -17,6 +17,11 @@ class UnicycleParams(ModelParams):
     kappa: float = Field(0.002, ge=0.0, description="path curvature, 1/mm")
 
 
+def _components_first(a: np.ndarray) -> np.ndarray:
+    """View of ``a (..., k)`` as ``(k, ...)`` (cheaper than ``np.moveaxis`` on this hot path)."""
+    return a.transpose((a.ndim - 1, *range(a.ndim - 1)))
+
+
 @MODELS.register("unicycle")
 class Unicycle(Model):
     r"""3D unicycle in generalized coordinates (seed 000, eq. 1).
@@ -42,15 +47,16 @@ class Unicycle(Model):
 
     def f(self, x, u, p: Params):
         v, w = u[..., 0], u[..., 1]
-        s, c = np.sin(x[..., 3:6]), np.cos(x[..., 3:6])  # one call each for the three angles
-        sa, sb, sg = s[..., 0], s[..., 1], s[..., 2]
-        ca, cb, cg = c[..., 0], c[..., 1], c[..., 2]
+        # the angles component-major and contiguous: sin/cos and the arithmetic run on plain arrays
+        ang = np.ascontiguousarray(_components_first(x[..., 3:6]))
+        (sa, sb, sg), (ca, cb, cg) = np.sin(ang), np.cos(ang)
         kv = p["kappa"] * v
         kvc = kv * cg / cb
-        out = np.empty(np.broadcast_shapes(x.shape, kv.shape + (6,)), dtype=np.result_type(x, u, kv))
+        vcb = v * cb
+        out = np.empty(np.broadcast_shapes(sa.shape, kv.shape) + (6,), dtype=np.result_type(x, u, kv))
         out[..., 0] = v * sb
-        out[..., 1] = -v * cb * sa
-        out[..., 2] = v * ca * cb
+        out[..., 1] = -vcb * sa
+        out[..., 2] = vcb * ca
         out[..., 3] = kvc
         out[..., 4] = kv * sg
         out[..., 5] = w - kvc * sb
@@ -107,17 +113,18 @@ class ModifiedUnicycle(Unicycle):
 
     def f(self, x, u, p: Params):
         v, w = u[..., 0], u[..., 1]
-        s, c = np.sin(x[..., 3:6]), np.cos(x[..., 3:6])
-        sa, sb, sg = s[..., 0], s[..., 1], s[..., 2]
-        ca, cb, cg = c[..., 0], c[..., 1], c[..., 2]
-        kv = x[..., 6] * v
-        g_r = w - kv * cg * sb / cb
+        ang = np.ascontiguousarray(_components_first(x[..., 3:7]))  # alpha, beta, gamma, kappa
+        (sa, sb, sg), (ca, cb, cg) = np.sin(ang[:3]), np.cos(ang[:3])
+        kv = ang[3] * v
+        inv_cb = 1.0 / cb
+        g_r = w - kv * cg * sb * inv_cb
         cut = (0.5 * p["beta_cut"]) * g_r
-        out = np.empty(np.broadcast_shapes(x.shape, kv.shape + (7,)), dtype=np.result_type(x, u, cut))
+        vcb = v * cb
+        out = np.empty(g_r.shape + (7,), dtype=g_r.dtype)
         out[..., 0] = v * sb
-        out[..., 1] = -v * cb * sa
-        out[..., 2] = v * ca * cb
-        out[..., 3] = (kv * cg - cut * sg) / cb
+        out[..., 1] = -vcb * sa
+        out[..., 2] = vcb * ca
+        out[..., 3] = (kv * cg - cut * sg) * inv_cb
         out[..., 4] = kv * sg + cut * cg
         out[..., 5] = g_r
         out[..., 6] = 0.0

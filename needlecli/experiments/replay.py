@@ -187,30 +187,45 @@ def replay_sensors(cfg, base_dir: Path) -> list:
 
 def polynomial_reference(ref, model, streams, depth: np.ndarray, time: np.ndarray) -> np.ndarray:
     """Reference states ``(N, T, n)`` from polynomial fits ``x(s)``, ``y(s)`` of a position sensor's valid
-    samples against the depth ``s`` (seed 000); NaN for what the fit does not give and outside the
-    depths the samples cover."""
+    samples against the depth ``s`` (seed 000); NaN for what the fit does not give, outside the depths
+    the samples cover, and for trials with too few samples. All trials are fitted at once: weighted least
+    squares in a Chebyshev basis on each trial's sampled depth range mapped to [-1, 1] (the valid samples
+    weigh 1, the others 0), solved by batched normal equations."""
+    from numpy.polynomial import chebyshev as C
+
     st = streams[ref.sensor]
     N, T = depth.shape
     out = np.full((N, T, model.n), np.nan)
     cols = {c: st.names.index(c) for c in ("x", "y") if c in st.names}
-    for i in range(N):  # one least-squares fit per trial and axis (numpy.polynomial has no batch fit)
-        ok = st.valid[i]
-        if ok.sum() <= ref.degree:
-            continue
-        s_meas = depth[i, st.index[ok]]
-        lo, hi = s_meas.min(), s_meas.max()
-        inside = (depth[i] >= lo) & (depth[i] <= hi)
-        slopes = {}
-        for c, j in cols.items():
-            fit = np.polynomial.Polynomial.fit(s_meas, st.value[i, ok, j], ref.degree)
-            if c in model.state_names:
-                out[i, inside, model.index(c)] = fit(depth[i, inside])
-            slopes[c] = fit.deriv()(depth[i, inside])
-        beta = np.arcsin(np.clip(slopes["x"], -1.0, 1.0))
-        if "beta" in model.state_names:
-            out[i, inside, model.index("beta")] = beta
-        if "y" in slopes and "alpha" in model.state_names:
-            out[i, inside, model.index("alpha")] = np.arcsin(np.clip(-slopes["y"] / np.cos(beta), -1.0, 1.0))
+    ok = st.valid  # (N, M)
+    s_meas = depth[:, st.index]  # (N, M) depth at each sample
+    enough = ok.sum(1) > ref.degree
+    lo = np.where(ok, s_meas, np.inf).min(1)
+    hi = np.where(ok, s_meas, -np.inf).max(1)
+    span = np.where(enough & (hi > lo), hi - lo, 1.0)
+    lo = np.where(enough, lo, 0.0)
+
+    def scaled(s):  # depth -> [-1, 1] per trial
+        return 2.0 * (s - lo[:, None]) / span[:, None] - 1.0
+
+    V = C.chebvander(scaled(s_meas), ref.degree) * ok[..., None]  # (N, M, k), invalid rows zero
+    A = np.swapaxes(V, 1, 2) @ V + np.eye(ref.degree + 1) * (~enough)[:, None, None]  # solvable everywhere
+    Vt = C.chebvander(scaled(depth), ref.degree)  # (N, T, k)
+    # d/ds of each basis function: Chebyshev derivative coefficients, times ds -> dt
+    dVt = (C.chebvander(scaled(depth), ref.degree - 1) @ C.chebder(np.eye(ref.degree + 1))) * (2.0 / span)[:, None, None]
+    inside = enough[:, None] & (depth >= lo[:, None]) & (depth <= (lo + span)[:, None])
+    slopes = {}
+    for c, j in cols.items():  # x and y
+        y = np.where(ok, st.value[..., j], 0.0)
+        coef = np.linalg.solve(A, (np.swapaxes(V, 1, 2) @ y[..., None]))  # (N, k, 1)
+        if c in model.state_names:
+            out[..., model.index(c)] = np.where(inside, (Vt @ coef)[..., 0], np.nan)
+        slopes[c] = np.where(inside, (dVt @ coef)[..., 0], np.nan)
+    beta = np.arcsin(np.clip(slopes["x"], -1.0, 1.0))
+    if "beta" in model.state_names:
+        out[..., model.index("beta")] = beta
+    if "y" in slopes and "alpha" in model.state_names:
+        out[..., model.index("alpha")] = np.arcsin(np.clip(-slopes["y"] / np.cos(beta), -1.0, 1.0))
     return out
 
 

@@ -625,3 +625,29 @@ def test_modified_unicycle_curvature_state_and_sync():
     synced = mod.sync_params(x, {"kappa": np.array([0.01, 0.02]), "beta_cut": 0.05})
     np.testing.assert_allclose(synced[:, 6], [0.01, 0.02])
     np.testing.assert_array_equal(x, 0.0)  # the input is not modified in place
+
+
+@pytest.mark.parametrize("name", [m for m in MODELS.names() if MODELS.get(m).translation_states])
+def test_vector_field_does_not_depend_on_translation_states(name):
+    """What a model declares in ``translation_states`` (filters skip sigma points on it) must hold: moving
+    those states leaves f unchanged, exactly."""
+    rng = np.random.default_rng([11, zlib.crc32(name.encode())])
+    model, p = make(name)
+    x = _sample_states(name, model, rng, 8)
+    u = _sample_inputs(name, model, rng, 8)
+    idx = [model.index(k) for k in model.translation_states]
+    moved = x.copy()
+    moved[:, idx] += rng.uniform(-100.0, 100.0, (8, len(idx))) * (1e-3 if model.length_unit == "m" else 1.0)
+    np.testing.assert_array_equal(model.f(moved, u, p), model.f(x, u, p))
+    d = model.step(moved, u, p, 0.01) - moved
+    np.testing.assert_allclose(d, model.step(x, u, p, 0.01) - x, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", MODELS.names())
+def test_declared_state_selections_are_what_the_model_measures(name):
+    rng = np.random.default_rng([12, zlib.crc32(name.encode())])
+    model, _ = make(name)
+    x = _sample_states(name, model, rng, 5)
+    for quantity in model.selections:
+        sel = model.state_selection(quantity)
+        np.testing.assert_array_equal(np.reshape(getattr(model, quantity)(x), (5, -1)), x[:, sel])

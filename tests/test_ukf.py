@@ -26,7 +26,7 @@ from needlecli.experiments.config import load_config
 from needlecli.experiments.runner import build_problem, build_sensors, results_tree, run_experiment
 from needlecli.experiments.truth import simulate_truth, stream
 from needlecli.metrics import compute_errors
-from needlecli.models import MODELS
+from needlecli.models import MODELS, StateSelection
 from needlecli.numerics import angle_diff
 from needlecli.numerics.unscented import robust_cholesky
 from needlecli.observers import OBSERVERS
@@ -41,13 +41,16 @@ H_ROWS = {"pos": [0, 1, 2], "vel": [3]}  # what each linear-test channel measure
 
 
 # ============================================================================================ helpers
-def _channel(name, cols, t_idx, latency, values, valid, time, sigma):
+def _channel(name, cols, t_idx, latency, values, valid, time, sigma, selection=False):
     t = time[t_idx]
     names = tuple(STATES[c] for c in cols)
     idx = list(cols)
 
     def h(x):
         return x[..., idx]
+
+    if selection:  # declared a state selection: the filter takes the closed-form update
+        h = StateSelection(idx)
 
     return Channel(
         name=name, sensor_type="test", t=t, t_available=t + latency, index=np.asarray(t_idx), value=values,
@@ -56,7 +59,8 @@ def _channel(name, cols, t_idx, latency, values, valid, time, sigma):
     )
 
 
-def linear_setup(seed=0, n_runs=3, n_steps=300, dropout=0.2, pos_every=20, vel_every=2, vel_latency=0.013):
+def linear_setup(seed=0, n_runs=3, n_steps=300, dropout=0.2, pos_every=20, vel_every=2, vel_latency=0.013,
+                 selection=False):
     """A random linear truth, its measurements and an EstimationProblem for the linear test model.
 
     Channels: ``pos`` (x, y, z; every ``pos_every`` steps; sigma 0.3) and ``vel`` (vx; every ``vel_every``
@@ -87,8 +91,8 @@ def linear_setup(seed=0, n_runs=3, n_steps=300, dropout=0.2, pos_every=20, vel_e
     pi, pv, pm = samples(H_ROWS["pos"], pos_every, 0.3)
     vi, vv, vm = samples(H_ROWS["vel"], vel_every, 0.05)
     channels = {
-        "pos": _channel("pos", H_ROWS["pos"], pi, 0.0, pv, pm, time, 0.3),
-        "vel": _channel("vel", H_ROWS["vel"], vi, vel_latency, vv, vm, time, 0.05),
+        "pos": _channel("pos", H_ROWS["pos"], pi, 0.0, pv, pm, time, 0.3, selection),
+        "vel": _channel("vel", H_ROWS["vel"], vi, vel_latency, vv, vm, time, 0.05, selection),
     }
     problem = EstimationProblem(
         time=time, inputs=u, input_names=model.input_names,
@@ -192,10 +196,13 @@ def run_config(text, **kw):
 
 
 # ================================================================ 1. linear model: the UKF is the KF
+@pytest.mark.parametrize("selection", [False, True], ids=["h_sigma_points", "h_closed_form"])
 @pytest.mark.parametrize("rate", [None, 25.0], ids=["tick_every_step", "tick_every_4_steps"])
 @pytest.mark.parametrize("growth", [False, True], ids=["R_fixed", "R_grows"])
-def test_linear_model_ukf_equals_kalman_filter(rate, growth):
-    problem, _ = linear_setup(seed=1)
+def test_linear_model_ukf_equals_kalman_filter(rate, growth, selection):
+    """Both update paths: ``h`` through sigma points, and ``h`` declared a state selection (the closed form,
+    and the scalar update for the 1-d ``vel`` channel arriving alone)."""
+    problem, _ = linear_setup(seed=1, selection=selection)
     stride = 1 if rate is None else 4
     ref_x, ref_p = kalman_reference(problem, stride=stride, growth=growth)
     assert np.isfinite(ref_x).all() and np.abs(ref_x).max() > 1.0
@@ -286,6 +293,62 @@ def _tile(problem, n):
     chans = {k: dataclasses.replace(c, value=rows(c.value), valid=rows(c.valid)) for k, c in problem.channels.items()}
     return dataclasses.replace(problem, inputs=rows(problem.inputs), depth=rows(problem.depth), channels=chans,
                                initial_truth=rows(problem.initial_truth))
+
+
+def _many_runs_problem(runs=6):
+    """SEED003_SMALL with several runs, 10 mm deep, rotation flips: every update path is exercised."""
+    text = SEED003_SMALL.replace("count: 1", f"count: {runs}").replace("depth: 6.0", "depth: 10.0")
+    cfg, *_, problem = _problem_from_config(text)
+    return cfg, problem
+
+
+def test_closed_form_update_equals_sigma_point_update(monkeypatch):
+    """Sensors that declare their h a state selection get the closed-form update (and the scalar one for
+    the roll alone); with the declarations removed the filter goes through sigma points. Same estimates
+    up to the rounding that seed 003's alpha = 1e-3 weights (-1e6) amplify in the sigma-point path."""
+    from needlecli.sensors.base import Sensor
+    from needlecli.sensors.statistical import ElastographySensor, EncoderSensor, PositionSensor
+
+    cfg, problem = _many_runs_problem()
+    assert all(isinstance(c.h_for(problem.model), StateSelection) for c in problem.channels.values())
+    fast = OBSERVERS.get("ukf")(cfg.observers[0]).run(problem, np.random.default_rng(0))
+    for cls in (PositionSensor, EncoderSensor, ElastographySensor):
+        monkeypatch.setattr(cls, "state_selection", Sensor.state_selection)
+    cfg, problem = _many_runs_problem()
+    assert not any(isinstance(c.h_for(problem.model), StateSelection) for c in problem.channels.values())
+    slow = OBSERVERS.get("ukf")(cfg.observers[0]).run(problem, np.random.default_rng(0))
+    assert (fast.status == "ok").all() and (slow.status == "ok").all()
+    np.testing.assert_allclose(fast.state, slow.state, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(fast.cov, slow.cov, rtol=1e-6, atol=1e-10)
+    for k in fast.extras:
+        if k.startswith(("used/", "gated/")):
+            np.testing.assert_array_equal(fast.extras[k], slow.extras[k])
+
+
+def test_translation_states_need_no_propagation(monkeypatch):
+    """Sigma points that differ from the central one only in the positions (the model's
+    ``translation_states``) are displaced as it is instead of being propagated: the same filter as
+    propagating all 2n + 1 points, up to rounding (the square roots differ: any one serves)."""
+    from needlecli.models.unicycle import ModifiedUnicycle
+
+    cfg, problem = _many_runs_problem()
+    calls = []
+    step = ModifiedUnicycle.step
+
+    def counting(self, x, u, p, dt):
+        calls.append(x.shape[-2])
+        return step(self, x, u, p, dt)
+
+    monkeypatch.setattr(ModifiedUnicycle, "step", counting)
+    fast = OBSERVERS.get("ukf")(cfg.observers[0]).run(problem, np.random.default_rng(0))
+    assert set(calls) == {9}  # 1 + 2 x 4 points (alpha, beta, gamma, kappa); no predictions configured
+    calls.clear()
+    monkeypatch.setattr(ModifiedUnicycle, "translation_states", ())
+    full = OBSERVERS.get("ukf")(cfg.observers[0]).run(problem, np.random.default_rng(0))
+    assert set(calls) == {15}
+    assert (fast.status == "ok").all()
+    np.testing.assert_allclose(fast.state, full.state, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(fast.cov, full.cov, rtol=1e-6, atol=1e-10)
 
 
 def test_identical_runs_give_identical_rows():

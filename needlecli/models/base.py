@@ -23,6 +23,27 @@ from needlecli.registry import Registry
 Params = Mapping[str, np.ndarray]
 
 
+class StateSelection:
+    """A measurement function that picks states: ``h(x) = x[..., index]``.
+
+    Linear, so filters may use its closed form (``H P H^T`` is ``P[index][:, index]``) instead of
+    propagating sigma points or Jacobians through it; the unscented transform of a linear ``h`` is that
+    closed form exactly. Sensors return one from :meth:`~needlecli.sensors.Sensor.state_selection`.
+    """
+
+    __slots__ = ("index",)
+
+    def __init__(self, index) -> None:
+        self.index = np.asarray(index, dtype=np.int64)
+        self.index.setflags(write=False)
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        return x[..., self.index]
+
+    def __repr__(self) -> str:
+        return f"StateSelection({self.index.tolist()})"
+
+
 class ModelParams(BaseModel):
     """Base schema of a model's parameters in a config (``model.params``)."""
 
@@ -62,6 +83,12 @@ class Model:
     length_unit: ClassVar[str] = "mm"
     Params: ClassVar[type[ModelParams]] = ModelParams
     state_bounds: ClassVar[dict[str, tuple[float, float]]] = {}  # open intervals for initial states
+    #: states the vector field does not depend on (the tip position of a kinematic model: its equations
+    #: are invariant under translation); filters may propagate sigma points that differ only in these
+    #: by the central point's displacement instead of through the model
+    translation_states: ClassVar[tuple[str, ...]] = ()
+    #: measured quantities (method names below) that are plain states, e.g. ``{"roll": ("gamma",)}``
+    selections: ClassVar[dict[str, tuple[str, ...]]] = {}
     registered_name: ClassVar[str] = ""
 
     def __init__(self, params: ModelParams | None = None) -> None:
@@ -98,6 +125,8 @@ class Model:
     # ----------------------------------------------------------------- dynamics
     def f(self, x: np.ndarray, u: np.ndarray, p: Params) -> np.ndarray:
         """Vector field ``x' (..., n)`` for state ``x (..., n)`` and inputs ``u (..., m)``."""
+        if self.component_major:
+            return np.moveaxis(self.f_components(np.moveaxis(x, -1, 0), np.moveaxis(np.asarray(u), -1, 0), p), 0, -1)
         raise NotImplementedError
 
     def jacobian(self, x: np.ndarray, u: np.ndarray, p: Params) -> np.ndarray:
@@ -116,8 +145,23 @@ class Model:
         pc[name] = pc[name] + 1e-30j
         return self.f(np.asarray(x), np.asarray(u), pc).imag / 1e-30
 
+    #: the model writes its equations once, component-major, in :meth:`f_components`; ``f`` and ``step``
+    #: follow from it (RK4 then runs on contiguous ``(n, ...)`` blocks: no strided reads or writes)
+    component_major: ClassVar[bool] = False
+
+    def f_components(self, x: np.ndarray, u: np.ndarray, p: Params) -> np.ndarray:
+        """The vector field component-major: ``x (n, ...)``, ``u (m, ...)`` -> ``x' (n, ...)``. Models with
+        ``component_major = True`` define this instead of :meth:`f`."""
+        raise NotImplementedError
+
     def step(self, x: np.ndarray, u: np.ndarray, p: Params, dt: float) -> np.ndarray:
         """Advance by ``dt`` with RK4, inputs and parameters held over the step."""
+        if self.component_major:
+            u = np.asarray(u)
+            xc = np.ascontiguousarray(x.transpose((x.ndim - 1, *range(x.ndim - 1))))
+            uc = u.transpose((u.ndim - 1, *range(u.ndim - 1)))
+            xn = rk4_step(lambda z: self.f_components(z, uc, p), xc, dt)
+            return self.normalize(np.ascontiguousarray(xn.transpose((*range(1, xn.ndim), 0))))
         return self.normalize(rk4_step(lambda xx: self.f(xx, u, p), x, dt))
 
     def normalize(self, x: np.ndarray) -> np.ndarray:
@@ -180,6 +224,12 @@ class Model:
 
     def field_direction(self, x: np.ndarray) -> np.ndarray:
         raise NotMeasurable(f"model {self.registered_name!r} has no magnetic field state")
+
+    def state_selection(self, quantity: str) -> np.ndarray | None:
+        """Indices of the states that ``quantity`` (e.g. ``"tip_position"``) returns unchanged, or None
+        where it is a nonlinear function of the state."""
+        names = self.selections.get(quantity)
+        return None if names is None else np.array([self.index(k) for k in names], dtype=np.int64)
 
     @classmethod
     def provides(cls, quantity: str) -> bool:

@@ -53,6 +53,8 @@ class _MagneticBase(Model):
     input_sizes = {"v": 1, "omega_B": 3}
     input_units = {"v": "m/s", "omega_B": "rad/s"}
     length_unit = "m"
+    translation_states = ("px", "py", "pz")
+    selections = {"tip_position": ("px", "py", "pz")}
 
     def _turn(self, h, b, v, p):
         raise NotImplementedError

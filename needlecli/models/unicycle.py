@@ -10,16 +10,11 @@ import numpy as np
 from pydantic import Field
 
 from needlecli.models.base import MODELS, Model, ModelParams, Params
-from needlecli.numerics import euler_xyz_to_matrix
+from needlecli.numerics import euler_xyz_to_matrix, sincos
 
 
 class UnicycleParams(ModelParams):
     kappa: float = Field(0.002, ge=0.0, description="path curvature, 1/mm")
-
-
-def _components_first(a: np.ndarray) -> np.ndarray:
-    """View of ``a (..., k)`` as ``(k, ...)`` (cheaper than ``np.moveaxis`` on this hot path)."""
-    return a.transpose((a.ndim - 1, *range(a.ndim - 1)))
 
 
 @MODELS.register("unicycle")
@@ -43,23 +38,25 @@ class Unicycle(Model):
     curvature_param = "kappa"
     Params = UnicycleParams
     state_bounds = {"beta": (-np.pi / 2, np.pi / 2)}
+    translation_states = ("x", "y", "z")
+    selections = {"tip_position": ("x", "y", "z"), "roll": ("gamma",)}
     singular_reason = "cos(beta) -> 0: the generalized-coordinate unicycle is undefined at beta = +-pi/2"
 
-    def f(self, x, u, p: Params):
-        v, w = u[..., 0], u[..., 1]
-        # the angles component-major and contiguous: sin/cos and the arithmetic run on plain arrays
-        ang = np.ascontiguousarray(_components_first(x[..., 3:6]))
-        (sa, sb, sg), (ca, cb, cg) = np.sin(ang), np.cos(ang)
+    component_major = True
+
+    def f_components(self, x, u, p: Params):
+        v, w = u[0], u[1]
+        (sa, sb, sg), (ca, cb, cg) = sincos(x[3:6])
         kv = p["kappa"] * v
         kvc = kv * cg / cb
         vcb = v * cb
-        out = np.empty(np.broadcast_shapes(sa.shape, kv.shape) + (6,), dtype=np.result_type(x, u, kv))
-        out[..., 0] = v * sb
-        out[..., 1] = -vcb * sa
-        out[..., 2] = vcb * ca
-        out[..., 3] = kvc
-        out[..., 4] = kv * sg
-        out[..., 5] = w - kvc * sb
+        out = np.empty((6,) + np.broadcast_shapes(sa.shape, kv.shape, w.shape), dtype=np.result_type(x, u, kv))
+        out[0] = v * sb
+        out[1] = -vcb * sa
+        out[2] = vcb * ca
+        out[3] = kvc
+        out[4] = kv * sg
+        out[5] = w - kvc * sb
         return out
 
     def initial_state(self, p: Params) -> np.ndarray:
@@ -111,23 +108,30 @@ class ModifiedUnicycle(Unicycle):
     state_units = Unicycle.state_units + ("1/mm",)
     Params = ModifiedUnicycleParams
 
-    def f(self, x, u, p: Params):
-        v, w = u[..., 0], u[..., 1]
-        ang = np.ascontiguousarray(_components_first(x[..., 3:7]))  # alpha, beta, gamma, kappa
-        (sa, sb, sg), (ca, cb, cg) = np.sin(ang[:3]), np.cos(ang[:3])
-        kv = ang[3] * v
+    def f_components(self, x, u, p: Params):
+        # written into the output rows in place: this is the UKF's hot path (15 sigma points per run)
+        v, w = u[0], u[1]
+        (sa, sb, sg), (ca, cb, cg) = sincos(x[3:6])
+        kv = x[6] * v
         inv_cb = 1.0 / cb
-        g_r = w - kv * cg * sb * inv_cb
-        cut = (0.5 * p["beta_cut"]) * g_r
+        kvc = kv * cg
+        g_r = kvc * sb
+        g_r *= inv_cb
+        np.subtract(w, g_r, out=g_r)  # the roll rate
+        cut = g_r * (0.5 * p["beta_cut"])
+        out = np.empty((7,) + cut.shape, dtype=cut.dtype)
+        np.multiply(v, sb, out=out[0])
         vcb = v * cb
-        out = np.empty(g_r.shape + (7,), dtype=g_r.dtype)
-        out[..., 0] = v * sb
-        out[..., 1] = -vcb * sa
-        out[..., 2] = vcb * ca
-        out[..., 3] = (kv * cg - cut * sg) * inv_cb
-        out[..., 4] = kv * sg + cut * cg
-        out[..., 5] = g_r
-        out[..., 6] = 0.0
+        np.multiply(vcb, sa, out=out[1])
+        np.negative(out[1], out=out[1])
+        np.multiply(vcb, ca, out=out[2])
+        np.multiply(cut, sg, out=out[3])
+        np.subtract(kvc, out[3], out=out[3])
+        out[3] *= inv_cb
+        np.multiply(cut, cg, out=out[4])
+        out[4] += kv * sg
+        out[5] = g_r
+        out[6] = 0.0
         return out
 
     def initial_state(self, p: Params) -> np.ndarray:

@@ -1,7 +1,7 @@
 """Pure array functions shared by models, sensors and observers. Every function broadcasts over
 leading batch axes; the last axis (or last two, for matrices) is the object itself."""
 
-from needlecli.numerics.angles import angle_diff, wrap_angle
+from needlecli.numerics.angles import angle_diff, sincos, wrap_angle
 from needlecli.numerics.integrate import complex_step_jacobian, finite_difference_jacobian, rk4_step
 from needlecli.numerics.rotations import (
     euler_xyz_to_matrix,
@@ -20,6 +20,7 @@ from needlecli.numerics.rotations import (
 __all__ = [
     "wrap_angle",
     "angle_diff",
+    "sincos",
     "rk4_step",
     "complex_step_jacobian",
     "finite_difference_jacobian",

@@ -19,11 +19,25 @@ def rk4_step(f: VectorField, x: np.ndarray, dt: float | np.ndarray) -> np.ndarra
     x : ndarray, shape (..., n)
     dt : float or ndarray broadcastable to ``(..., 1)``
     """
-    k1 = f(x)
-    k2 = f(x + (0.5 * dt) * k1)
-    k3 = f(x + (0.5 * dt) * k2)
-    k4 = f(x + dt * k3)
-    return x + (dt / 6.0) * (k1 + 2.0 * (k2 + k3) + k4)
+    # one stage buffer and one accumulator, updated in place: few temporaries on the hot path
+    half = 0.5 * dt
+    k = f(x)
+    z = k * half
+    z += x
+    k2 = f(z)
+    acc = k + k2  # k1 + 2 k2 + 2 k3 + k4, accumulated
+    acc += k2
+    np.multiply(k2, half, out=z)
+    z += x
+    k = f(z)
+    acc += k
+    acc += k
+    np.multiply(k, dt, out=z)
+    z += x
+    acc += f(z)
+    acc *= dt / 6.0
+    acc += x
+    return acc
 
 
 def complex_step_jacobian(f: VectorField, x: np.ndarray, h: float = 1e-30) -> np.ndarray:

@@ -3,6 +3,7 @@ means and covariances on spaces with angle components. Sigma points are one more
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -51,12 +52,13 @@ def robust_cholesky(p: np.ndarray, floor: float = 1e-12) -> tuple[np.ndarray, np
     A failing matrix is symmetrised, its eigenvalues clipped at ``floor`` times its largest (at least
     ``floor``), rebuilt and factored again. Returns ``(L, repaired)`` with ``repaired (...)`` bool.
     """
-    p = symmetrize(np.asarray(p, dtype=float))
+    p = np.asarray(p, dtype=float)
     repaired = np.zeros(p.shape[:-2], dtype=bool)
-    try:
+    try:  # LAPACK reads the lower triangle only: the same factor as of the symmetrised matrix
         return np.linalg.cholesky(p), repaired
     except np.linalg.LinAlgError:
         pass
+    p = symmetrize(p)
     w, v = np.linalg.eigh(p)
     top = np.maximum(np.max(np.abs(w), axis=-1, keepdims=True), 1.0) * floor
     ok = np.all(w > top, axis=-1) & np.all(np.isfinite(w), axis=-1)
@@ -76,10 +78,9 @@ def robust_cholesky(p: np.ndarray, floor: float = 1e-12) -> tuple[np.ndarray, np
         return root, bad
 
 
-def _select(angles: np.ndarray) -> slice | np.ndarray | None:
-    """The angle components as a slice when contiguous (cheaper than a boolean index), else the mask;
-    None when there are none."""
-    idx = np.flatnonzero(angles)
+@functools.lru_cache(maxsize=64)
+def _selection(mask: bytes) -> slice | np.ndarray | None:
+    idx = np.flatnonzero(np.frombuffer(mask, dtype=bool))
     if idx.size == 0:
         return None
     if idx[-1] - idx[0] + 1 == idx.size:
@@ -87,19 +88,31 @@ def _select(angles: np.ndarray) -> slice | np.ndarray | None:
     return idx
 
 
-def _wrap_where_needed(d: np.ndarray, sel) -> None:
-    """Wrap ``d[..., sel]`` in place; skipped (one cheap test) when every entry is inside [-pi, pi)."""
+def angle_selection(angles: np.ndarray) -> slice | np.ndarray | None:
+    """The angle components of a mask ``(n,)`` as a slice when contiguous (cheaper than a boolean
+    index), else their indices; None when there are none. Cached: masks repeat on hot paths."""
+    return _selection(np.ascontiguousarray(angles, dtype=bool).tobytes())
+
+
+def wrap_where_needed(d: np.ndarray, sel) -> float:
+    """Wrap ``d[..., sel]`` in place; skipped (one cheap test) when every entry is inside (-pi, pi).
+    Returns the largest magnitude of the (wrapped) entries."""
     sub = d[..., sel]
-    if sub.size and not (np.max(sub) < np.pi and np.min(sub) >= -np.pi):
-        d[..., sel] = wrap_angle(sub)
+    if not sub.size:
+        return 0.0
+    big = float(np.max(np.abs(sub)))
+    if big < np.pi:
+        return big
+    d[..., sel] = wrap_angle(sub)
+    return np.pi
 
 
 def residual(a: np.ndarray, b: np.ndarray, angles: np.ndarray) -> np.ndarray:
     """``a - b`` with the components flagged in ``angles (n,)`` wrapped to [-pi, pi)."""
     d = a - b
-    sel = _select(angles)
+    sel = angle_selection(angles)
     if sel is not None:
-        _wrap_where_needed(d, sel)
+        wrap_where_needed(d, sel)
     return d
 
 
@@ -114,13 +127,27 @@ def sigma_points(x: np.ndarray, root: np.ndarray, w: MerweWeights, angles: np.nd
 def weighted_mean(pts: np.ndarray, wm: np.ndarray, angles: np.ndarray) -> np.ndarray:
     """Weighted mean over the sigma axis (-2); angle components averaged as residuals about the
     central point, so that points on both sides of +-pi average correctly."""
+    return mean_and_residuals(pts, wm, angles, residuals=False)[0]
+
+
+def mean_and_residuals(pts: np.ndarray, wm: np.ndarray, angles: np.ndarray, residuals: bool = True):
+    """:func:`weighted_mean` and the residuals ``pts - mean`` ``(..., S, n)`` (angles wrapped) in one pass:
+    the residuals about the central point, minus their weighted mean. Returns ``(mean, residuals)``."""
     ref = pts[..., 0, :]
-    d = residual(pts, ref[..., None, :], angles)
-    m = ref + np.matmul(wm, d)
-    sel = _select(angles)
+    d = pts - ref[..., None, :]
+    sel = angle_selection(angles)
+    big = wrap_where_needed(d, sel) if sel is not None else 0.0
+    shift = np.matmul(wm, d)
+    m = ref + shift
     if sel is not None:
-        _wrap_where_needed(m, sel)
-    return m
+        wrap_where_needed(m, sel)
+    if not residuals:
+        return m, None
+    d -= shift[..., None, :]
+    # |d - shift| < pi where |d| + |shift| < pi: the common case needs no second pass over the points
+    if sel is not None and big + float(np.max(np.abs(shift[..., sel]))) >= np.pi:
+        wrap_where_needed(d, sel)
+    return m, d
 
 
 def weighted_cov(da: np.ndarray, db: np.ndarray, wc: np.ndarray) -> np.ndarray:

@@ -11,6 +11,13 @@ Seed 003's additions: measurement-noise reset by distance to the transducer
 tip crosses a tissue interface, the curvature constraint ``0 <= kappa <= kappa_max`` (else keep the
 previous estimate), and final-position prediction from chosen observation depths. Optional chi-square
 innovation gating rejects outliers per channel (counted per run).
+
+Exact shortcuts (each tested against the plain computation): a channel whose ``h`` is a state selection
+(:class:`~needlecli.models.StateSelection`) is updated in closed form, which is what the unscented
+transform of a linear ``h`` gives (one scalar state, seed 003's 100 Hz roll, without a solve); the
+square root of ``P`` is taken with the states the model's vector field depends on first, so that the
+sigma points that move only the positions (``model.translation_states``) are displaced as the central
+point instead of being propagated (9 of 15 points go through the model for seed 003).
 """
 
 from __future__ import annotations
@@ -21,16 +28,19 @@ import numpy as np
 from pydantic import Field, model_validator
 from scipy.stats import chi2
 
-from needlecli.models import MODELS, Model
+from needlecli.models import MODELS, Model, StateSelection
 from needlecli.numerics import wrap_angle
 from needlecli.numerics.unscented import (
     MerweWeights,
+    angle_selection,
+    mean_and_residuals,
     residual,
     robust_cholesky,
     sigma_points,
     symmetrize,
     weighted_cov,
     weighted_mean,
+    wrap_where_needed,
 )
 from needlecli.observers.base import (
     OBSERVERS,
@@ -187,8 +197,11 @@ class UnscentedKalmanFilter(Observer):
         params = model.param_arrays()
         n, N = model.n, problem.n_runs
         angles = model.angle_mask
+        ang_sel = angle_selection(angles)
+        order, back, n_act = self._translation_order(model)
         w = MerweWeights(n, s.alpha, s.beta, s.kappa)
         wm, wc = w.wm, w.wc
+        sq_scale = np.sqrt(w.scale)
         time = problem.time
         T = len(time)
         dt_grid = float(time[1] - time[0]) if T > 1 else 1.0
@@ -249,18 +262,31 @@ class UnscentedKalmanFilter(Observer):
             for i in range(1, len(ticks)):
                 k0, k1 = ticks[i - 1], ticks[i]
                 # ---- predict: sigma points through the model over the grid steps of this tick
-                root, bad = robust_cholesky(P)
+                # the square root factors the states f depends on first (see _translation_order): the
+                # last columns then move positions only, and those sigma points move as the central one
+                root, bad = robust_cholesky(P[:, order][:, :, order] if order is not None else P)
                 repairs += bad & alive
-                X = sigma_points(x, root, w, angles)
-                S = X.shape[1]
-                if roll.shape[1]:  # predictions in flight ride along with the sigma points
-                    X = np.concatenate([X, roll], axis=1)
+                if order is not None:
+                    root = root[:, back]
+                cols = np.swapaxes(root, -1, -2) * sq_scale  # row i: column i of sqrt(scale P)
+                S = 1 + 2 * n_act
+                X = np.empty((N, S + roll.shape[1], n))  # predictions in flight ride along with the sigma points
+                X[:, 0] = x
+                np.add(x[:, None, :], cols[:, :n_act], out=X[:, 1 : 1 + n_act])
+                np.subtract(x[:, None, :], cols[:, :n_act], out=X[:, 1 + n_act : S])
+                X[:, S:] = roll
                 for j in range(k0, k1):
                     X = model.step(X, inputs[:, j, None, :], params, dt_grid)
                 X, roll = X[:, :S], X[:, S:]
+                if n_act < n:  # the position-only points: displaced as the central point
+                    full = np.empty((N, 2 * n + 1, n))
+                    full[:, :S] = X
+                    moved = X[:, 0][:, None, :]
+                    np.add(moved, cols[:, n_act:], out=full[:, S : S + n - n_act])
+                    np.subtract(moved, cols[:, n_act:], out=full[:, S + n - n_act :])
+                    X = full
                 x_prev = x
-                x = weighted_mean(X, wm, angles)
-                dX = residual(X, x[..., None, :], angles)
+                x, dX = mean_and_residuals(X, wm, angles)
                 P = symmetrize(weighted_cov(dX, dX, wc) + Q)
                 # ---- tissue interface: reset the curvature variance
                 if s.kappa_reset is not None and kappa_i is not None and interfaces.size:
@@ -272,16 +298,25 @@ class UnscentedKalmanFilter(Observer):
                         P[:, kappa_i, kappa_i] += add
                         resets += crossed
                 # ---- update with what arrived in (t_k0, t_k1]
-                if schedule[i]:
-                    # from sigma points of the predicted (x, P): the propagated ones carry neither Q nor the
-                    # kappa reset, and Pyy, Pxy without them give a gain that is not the Kalman gain
-                    root, bad = robust_cholesky(P)
-                    repairs += bad & alive
-                    X = sigma_points(x, root, w, angles)
-                    dX = residual(X, x[..., None, :], angles)
+                if len(schedule[i]) == 1 and schedule[i][0][0]["scalar"] and len(schedule[i][0][1]) == 1:
+                    (c, (j,)), = schedule[i]  # one scalar sample that is a state (seed 003's roll at 100 Hz)
+                    x, P = self._update_scalar(x, P, c, j, alive, used)
+                    if ang_sel is not None:
+                        wrap_where_needed(x, ang_sel)
+                elif schedule[i]:
+                    if all(c["select"] is not None for c, _ in schedule[i]):
+                        # every h picks states: the unscented transform of a linear h is its closed form
+                        X = dX = None
+                    else:
+                        # from sigma points of the predicted (x, P): the propagated ones carry neither Q nor
+                        # the kappa reset, and Pyy, Pxy without them give a gain that is not the Kalman gain
+                        root, bad = robust_cholesky(P)
+                        repairs += bad & alive
+                        X = sigma_points(x, root, w, angles)
+                        dX = residual(X, x[..., None, :], angles)
                     x, P = self._update(x, P, X, dX, schedule[i], w, alive, gated, used)
-                    if angles.any():  # the update may carry an angle across the cut
-                        x[:, angles] = wrap_angle(x[:, angles])
+                    if ang_sel is not None:  # the update may carry an angle across the cut
+                        wrap_where_needed(x, ang_sel)
                 # ---- curvature constraint: keep the previous estimate outside [0, kappa_max]
                 if kappa_i is not None and s.kappa_max is not None:
                     kk = x[:, kappa_i]
@@ -349,6 +384,25 @@ class UnscentedKalmanFilter(Observer):
         )
 
     # ------------------------------------------------------------------ pieces
+    @staticmethod
+    def _translation_order(model: Model) -> tuple[np.ndarray | None, np.ndarray | None, int]:
+        """State order for the square root of P: the states f depends on first, the positions it does not
+        depend on (``model.translation_states``) last. With a lower Cholesky factor of P in that order,
+        the last columns move only positions: their sigma points see the same vector field as the central
+        point at every RK4 stage, so they are displaced exactly as it is and need no model evaluation
+        (9 of seed 003's 15 points are propagated). Any square root of P gives sigma points with the same
+        mean and covariance. Returns ``(order, inverse, number of propagated columns)``; the order is a
+        reversing slice when the positions are the first states (no copies)."""
+        fixed = [model.index(k) for k in model.translation_states]
+        if not fixed:
+            return None, None, model.n
+        n_act = model.n - len(fixed)
+        if sorted(fixed) == list(range(len(fixed))):  # positions first: the reversed order serves, as views
+            return slice(None, None, -1), slice(None, None, -1), n_act
+        active = [i for i in range(model.n) if i not in fixed]
+        order = np.array(active + fixed)
+        return order, np.argsort(order), n_act
+
     def _channels(self, problem: EstimationProblem, model: Model) -> list[dict]:
         s = self.settings
         names = list(s.measurements) or [c for c, ch in problem.channels.items() if ch.h_for(model) is not None]
@@ -368,11 +422,14 @@ class UnscentedKalmanFilter(Observer):
             order = np.argsort(avail, kind="stable")
             out.append({
                 "name": name, "h": h, "m": m, "sigma": sigma, "growth": growth,
+                "select": h.index if isinstance(h, StateSelection) else None,
                 "pos_cols": pos_cols, "pos_axes": [("x", "y", "z").index(ch.names[i]) for i in pos_cols],
                 "gate": chi2.ppf(spec.gate, m) if spec and spec.gate else None,
                 "angle": np.asarray(ch.angle, dtype=bool), "value": ch.value, "valid": ch.valid,
                 "avail": avail[order], "order": order, "channel": ch,
             })
+            c = out[-1]
+            c["scalar"] = m == 1 and c["select"] is not None and c["gate"] is None and not pos_cols
         return out
 
     def _initial(self, problem, model, params, rng, chans):
@@ -424,6 +481,26 @@ class UnscentedKalmanFilter(Observer):
                     schedule[i].append((c, c["order"][tick_of == i]))
         return schedule
 
+    @staticmethod
+    def _update_scalar(x, P, c, j, alive, used):
+        """:meth:`_update` for one scalar sample ``j`` of channel ``c`` that measures one state ``i``:
+        ``Pyy = P_ii + r``, ``Pxy = P[:, i]``, no solve; ``P - u u^T`` with ``u = Pxy / sqrt(Pyy)`` stays
+        exactly symmetric. Runs without a valid sample are left unchanged."""
+        i = int(c["select"][0])
+        v = c["valid"][:, j] & alive
+        used[c["name"]] += v
+        if not v.any():
+            return x, P
+        nu = c["value"][:, j, 0] - x[:, i]
+        if c["angle"][0]:
+            nu = wrap_angle(nu)
+        nu = np.where(v, nu, 0.0)
+        s = np.where(v, P[:, i, i] + float(c["sigma"][0]) ** 2, 1.0)
+        pxy = P[:, :, i] * v[:, None]
+        x = x + pxy * (nu / s)[:, None]
+        u = pxy / np.sqrt(s)[:, None]
+        return x, P - u[:, :, None] * u[:, None, :]
+
     def _update(self, x, P, X, dX, arrived, w, alive, gated, used):
         """Update with the samples that arrived at this tick, per run where valid."""
         N = x.shape[0]
@@ -453,7 +530,7 @@ class UnscentedKalmanFilter(Observer):
             ys.append(y)
             masks.append(np.broadcast_to(v[:, None], (N, c["m"])))
             rs.append(r)
-            hs.append(c["h"](X))
+            hs.append(c["select"] if X is None else c["h"](X))
             angs.append(c["angle"])
         if not ys:
             return x, P
@@ -466,11 +543,17 @@ class UnscentedKalmanFilter(Observer):
             Y = np.concatenate(hs, -1)  # (N, S, M)
             ang_y = np.concatenate(angs)
         M = y.shape[-1]
-        y_hat = weighted_mean(Y, w.wm, ang_y)
-        dY = residual(Y, y_hat[:, None, :], ang_y)
-        Pyy = weighted_cov(dY, dY, w.wc)
+        if X is None:  # h(x) = x[..., idx]: y_hat = x[idx], Pyy = P[idx, idx] + R, Pxy = P[:, idx]
+            idx = Y
+            y_hat = x[:, idx]
+            Pxy = P[:, :, idx]
+            Pyy = Pxy[:, idx, :]
+        else:
+            y_hat = weighted_mean(Y, w.wm, ang_y)
+            dY = residual(Y, y_hat[:, None, :], ang_y)
+            Pyy = weighted_cov(dY, dY, w.wc)
+            Pxy = weighted_cov(dX, dY, w.wc)
         Pyy[:, np.arange(M), np.arange(M)] += R
-        Pxy = weighted_cov(dX, dY, w.wc)
         nu = residual(y, y_hat, ang_y) * mask
         # chi-square gating per channel block
         for c, b0, m in blocks:
@@ -491,6 +574,12 @@ class UnscentedKalmanFilter(Observer):
             Pyy_m = Pyy * (mask[:, :, None] * mask[:, None, :])
             Pyy_m[:, np.arange(M), np.arange(M)] += 1.0 - mask
             Pxy_m = Pxy * mask[:, None, :]
+        if M == 1:  # one scalar measurement (seed 003's roll at 100 Hz): no solve; P - u u^T stays symmetric
+            s = Pyy_m[:, 0, 0]
+            pxy = Pxy_m[:, :, 0]
+            x = x + pxy * (nu / s[:, None])
+            u = pxy / np.sqrt(s)[:, None]
+            return x, P - u[:, :, None] * u[:, None, :]
         K = np.swapaxes(np.linalg.solve(Pyy_m, np.swapaxes(Pxy_m, -1, -2)), -1, -2)  # (N, n, M)
         x = x + np.matmul(K, nu[..., None])[..., 0]
         P = symmetrize(P - K @ Pyy_m @ np.swapaxes(K, -1, -2))

@@ -86,6 +86,10 @@ class PositionSensor(Sensor):
     def h(self, x):
         return self.model.tip_position(x)[..., self._cols]
 
+    def state_selection(self):
+        sel = self.model.state_selection("tip_position")
+        return None if sel is None else sel[self._cols]
+
     def sigma(self, truth, idx):
         g = self.settings.growth
         if g is None:
@@ -141,6 +145,11 @@ class EncoderSensor(Sensor):
             raise NotMeasurable("encoder depth and base angle are inputs, not functions of the state")
         return self.model.roll(x)[..., None]
 
+    def state_selection(self):
+        if any(c != "roll" for c in self.settings.channels):
+            return None
+        return self.model.state_selection("roll")
+
     def ideal(self, truth, idx):
         n_runs = truth.states.shape[0]
         cols = []
@@ -188,6 +197,10 @@ class ElastographySensor(Sensor):
         if name not in self.model.state_names:
             raise NotMeasurable(f"model {self.model.registered_name!r} does not carry curvature as a state")
         return x[..., [self.model.index(name)]]
+
+    def state_selection(self):
+        name = self.model.curvature_param
+        return np.array([self.model.index(name)]) if name in self.model.state_names else None
 
     def ideal(self, truth, idx):
         return truth.params[self.model.curvature_param][:, idx][..., None]

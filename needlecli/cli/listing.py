@@ -1,4 +1,4 @@
-"""``needle list``: the registered models, sensors, pipelines, observers and tables."""
+"""``needle list``: the registered models, sensors, pipelines, observers, controllers and tables."""
 
 from __future__ import annotations
 
@@ -10,13 +10,14 @@ from needlecli.cli.app import app
 @app.command("list")
 def list_components() -> None:
     """List what configs can name."""
+    from needlecli.control import CONTROLLERS
     from needlecli.models import MODELS
     from needlecli.observers import OBSERVERS
     from needlecli.reports import TABLES
     from needlecli.sensors import PIPELINES, SENSORS
 
     for title, reg in (("models", MODELS), ("sensors", SENSORS), ("pipelines", PIPELINES),
-                       ("observers", OBSERVERS), ("tables", TABLES)):
+                       ("observers", OBSERVERS), ("controllers", CONTROLLERS), ("tables", TABLES)):
         typer.echo(f"{title}: {', '.join(reg.names())}")
     typer.echo("")
     for name in MODELS.names():

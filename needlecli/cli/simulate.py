@@ -33,7 +33,8 @@ def simulate(
     if dry_run:
         typer.echo(
             f"{config}: valid; {cfg.runs.count} run(s) of model {cfg.model.type!r}, seed {cfg.runs.seed}, "
-            f"{len(cfg.sensors)} sensor(s), {len(cfg.observers)} observer(s) -> {target}"
+            f"{len(cfg.sensors)} sensor(s), {len(cfg.observers)} observer(s)"
+            + (f", {len(cfg.control)} controller(s) in closed loop" if cfg.control else "") + f" -> {target}"
         )
         return
     log.info("simulating %d run(s) of %s (seed %d)", cfg.runs.count, cfg.name, cfg.runs.seed)

@@ -365,8 +365,8 @@ def compare_observers(
     file ``<out_dir>/<name>_compare.h5`` and return what is needed for :func:`compare_table`."""
     from needlecli.experiments.config import load_config, parse_yaml
     from needlecli.experiments.replay import replay_truth
-    from needlecli.experiments.runner import build_problem, build_sensors, results_tree
-    from needlecli.experiments.truth import simulate_truth, stream
+    from needlecli.experiments.runner import build_problem, results_tree, simulate_and_measure
+    from needlecli.experiments.truth import stream
     from needlecli.io.results import read_results, write_atomic
     from needlecli.metrics import compute_errors
     from needlecli.observers import OBSERVERS
@@ -380,12 +380,12 @@ def compare_observers(
         if bad:
             raise ConfigError("--observers", (), f"unknown observer {bad[0]!r}; known: {', '.join(sorted(known))}")
     seed_ = cfg.runs.seed
+    control = {}
     if cfg.source is not None:
         truth, sensors, streams = replay_truth(cfg, base_dir)
     else:
-        truth = simulate_truth(cfg, progress=(lambda k, n: progress("truth", k, n)) if progress else None)
-        sensors = build_sensors(cfg, truth.model)
-        streams = {s.name: s.measure(truth, stream(seed_, f"sensor/{s.name}")) for s in sensors}
+        truth, sensors, streams, control = simulate_and_measure(
+            cfg, progress=(lambda k, n: progress("truth", k, n)) if progress else None)
     depth = np.asarray(truth.depth, dtype=float)
     final_depth = float(np.nanmean(depth[..., -1])) if depth.size else 0.0
     ctx = Context(cfg=cfg, model=truth.model, sensors={s.name: s for s in sensors}, replay=cfg.source is not None,
@@ -411,7 +411,7 @@ def compare_observers(
         r.seconds = time.perf_counter() - t0
         runs_out.append(r)
     out = Path(out_dir) if out_dir is not None else Path("results") / f"{cfg.name}_compare"
-    path = write_atomic(out / f"{cfg.name}_compare.h5", results_tree(cfg1, text1, truth, streams, estimates, sensors))
+    path = write_atomic(out / f"{cfg.name}_compare.h5", results_tree(cfg1, text1, truth, streams, estimates, sensors, control))
     res = read_results(path)
     errors = compute_errors(res)
     preds = prediction_errors(res)

@@ -16,6 +16,7 @@ import numpy as np
 import yaml
 from pydantic import Field, ValidationError, create_model, field_validator, model_validator
 
+from needlecli.control import CONTROLLERS
 from needlecli.errors import ConfigError
 from needlecli.experiments.schedule import Signal, as_signal, signal_size
 from needlecli.fitting.settings import FitSettings
@@ -194,6 +195,7 @@ def _schema(registry_key: tuple) -> type[Strict]:
     models = [_model_spec(n, MODELS.get(n)) for n in MODELS.names()]
     sensors = [SENSORS.get(n).Settings for n in SENSORS.names()]
     observers = [OBSERVERS.get(n).Settings for n in OBSERVERS.names()]
+    controllers = [CONTROLLERS.get(n).Settings for n in CONTROLLERS.names()]
 
     def union(items):
         return Annotated[Union[tuple(items)], Field(discriminator="type")] if items else dict
@@ -201,6 +203,7 @@ def _schema(registry_key: tuple) -> type[Strict]:
     model_t = union(models)
     sensor_t = union(sensors)
     observer_t = union(observers) if observers else Annotated[dict[str, Any], Field()]
+    controller_t = union(controllers)
 
     class Base(Strict):
         name: str = Field("experiment", pattern=r"^[A-Za-z0-9_.\-]+$")
@@ -211,6 +214,8 @@ def _schema(registry_key: tuple) -> type[Strict]:
         process_noise: ProcessNoise = Field(default_factory=ProcessNoise)
         sensors: list[sensor_t] = Field(default_factory=list)  # type: ignore[valid-type]
         observers: list[observer_t] = Field(default_factory=list)  # type: ignore[valid-type]
+        control: list[controller_t] = Field(  # type: ignore[valid-type]
+            default_factory=list, description="controllers closing a loop through a sensor (needlecli.control)")
         runs: Runs = Field(default_factory=Runs)
         stop: Stop | None = None
         source: Source | None = None
@@ -230,7 +235,7 @@ def _schema(registry_key: tuple) -> type[Strict]:
 
 def experiment_schema() -> type[Strict]:
     """The current schema (rebuilt when a component is registered)."""
-    key = (tuple(MODELS.names()), tuple(SENSORS.names()), tuple(OBSERVERS.names()))
+    key = (tuple(MODELS.names()), tuple(SENSORS.names()), tuple(OBSERVERS.names()), tuple(CONTROLLERS.names()))
     return _schema(key)
 
 
@@ -495,6 +500,9 @@ def check_consistency(cfg, source: str) -> None:
             raise ConfigError(source, ("process_noise",), "comes from the logs when the config has a source; remove it")
         if cfg.model.param_cases is not None:
             raise ConfigError(source, ("model", "param_cases"), "describes simulated runs; a config with a source has none")
+        if cfg.control:
+            raise ConfigError(source, ("control",), "cannot close a loop on recorded logs (their inputs were applied "
+                              "when they were recorded); remove it, or simulate the experiment instead")
     elif cfg.stop is None:
         raise ConfigError(source, ("stop",), "required key is missing (or give a source of recorded logs)")
     elif model_cls.insertion_input not in cfg.inputs:
@@ -559,9 +567,42 @@ def check_consistency(cfg, source: str) -> None:
         obs_names.add(name)
         for loc, msg in cls.check(o, model, names):
             raise ConfigError(source, ("observers", i) + tuple(loc), msg)
+    # control: closed loops through a sensor measured while the truth is simulated
+    check_control(cfg, model, names, source)
     # the fit section (needle fit-em)
     if cfg.fit is not None:
         from needlecli.fitting.problem import check_fit
 
         for loc, msg in check_fit(cfg.fit, names):
             raise ConfigError(source, ("fit",) + tuple(loc), msg)
+
+
+def check_control(cfg, model: Model, sensors: dict, source: str) -> None:
+    """The ``control:`` entries: unique names, an existing sensor that can be measured in the loop, what
+    the controller type needs (its ``check``), one controller per thing it sets, one sensor in the loop."""
+    names: set[str] = set()
+    acting: dict[str, int] = {}
+    loop_sensor = None
+    for i, c in enumerate(cfg.control):
+        cls = CONTROLLERS.get(c.type)
+        name = c.name or c.type
+        if name in names:
+            raise ConfigError(source, ("control", i, "name"), f"controller name {name!r} is used twice")
+        names.add(name)
+        if c.sensor not in sensors:
+            known = ", ".join(sorted(sensors)) or "none"
+            raise ConfigError(source, ("control", i, "sensor"), f"no sensor named {c.sensor!r}; sensors are {known}")
+        for loc, msg in cls.check(c, model, sensors):
+            raise ConfigError(source, ("control", i) + tuple(loc), msg)
+        sensor = sensors[c.sensor]
+        if not PIPELINES.get(sensor.settings.pipeline).live:
+            raise ConfigError(source, ("control", i, "sensor"), f"sensor {c.sensor!r} (pipeline "
+                              f"{sensor.settings.pipeline!r}) cannot be measured while the truth is simulated")
+        if cls.acts_on in acting:
+            raise ConfigError(source, ("control", i, "type"),
+                              f"sets {cls.acts_on}, as control entry {acting[cls.acts_on]} does; one controller each")
+        acting[cls.acts_on] = i
+        if loop_sensor is not None and c.sensor != loop_sensor:
+            raise ConfigError(source, ("control", i, "sensor"), f"every controller must read the same sensor "
+                              f"(one sensor is measured in the loop), here {loop_sensor!r}")
+        loop_sensor = c.sensor

@@ -4,7 +4,7 @@ Monte-Carlo runs at once and writes the results file. It knows no component by n
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +12,7 @@ import numpy as np
 from needlecli.experiments.replay import replay_truth
 from needlecli.experiments.truth import Truth, simulate_truth, stream
 from needlecli.io.results import Group, root_attrs, write_atomic
-from needlecli.models import NotMeasurable
+from needlecli.models import NotMeasurable, StateSelection
 from needlecli.observers import OBSERVERS, Channel, EstimationProblem, Posterior
 from needlecli.observers.base import cov_steps
 from needlecli.sensors import SENSORS, MeasurementStream
@@ -26,6 +26,7 @@ class ExperimentResult:
     measurements: dict[str, MeasurementStream]
     estimates: dict[str, Posterior]
     path: Path | None
+    control: dict[str, Group] = field(default_factory=dict)  # what each controller did (closed loops)
 
 
 def default_output(cfg) -> Path:
@@ -47,7 +48,23 @@ def measurement_function(sensor, model):
             sensor.h(np.zeros((1, model.n)))
     except NotMeasurable:
         return None
-    return sensor.h
+    sel = sensor.state_selection()
+    return sensor.h if sel is None else StateSelection(sel)
+
+
+def simulate_and_measure(cfg, *, progress: Callable[[int, int], None] | None = None):
+    """Simulate the truth of a config and measure it with every sensor: in open loop (the truth first,
+    then each sensor from its own random stream) or, with a ``control:`` section, in closed loop
+    (:func:`needlecli.control.loop.simulate_closed_loop`). Returns ``(truth, sensors, streams, control)``,
+    ``control`` the results group of each controller (empty in open loop)."""
+    if cfg.control:
+        from needlecli.control.loop import simulate_closed_loop
+
+        return simulate_closed_loop(cfg, progress=progress)
+    truth = simulate_truth(cfg, progress=progress)
+    sensors = build_sensors(cfg, truth.model)
+    streams = {s.name: s.measure(truth, stream(cfg.runs.seed, f"sensor/{s.name}")) for s in sensors}
+    return truth, sensors, streams, {}
 
 
 def build_problem(cfg, truth: Truth, sensors, streams: dict[str, MeasurementStream]) -> EstimationProblem:
@@ -90,12 +107,12 @@ def run_experiment(
     """Simulate the truth and measure it with every sensor (or replay recorded trials from the config's
     ``source.logs``, relative to ``base_dir``), run every observer, write the results file."""
     seed = cfg.runs.seed
+    control: dict[str, Group] = {}
     if cfg.source is not None:  # recorded trials instead of a simulation
         truth, sensors, streams = replay_truth(cfg, Path(base_dir or "."))
     else:
-        truth = simulate_truth(cfg, progress=(lambda k, n: progress("truth", k, n)) if progress else None)
-        sensors = build_sensors(cfg, truth.model)
-        streams = {s.name: s.measure(truth, stream(seed, f"sensor/{s.name}")) for s in sensors}
+        truth, sensors, streams, control = simulate_and_measure(
+            cfg, progress=(lambda k, n: progress("truth", k, n)) if progress else None)
     problem = build_problem(cfg, truth, sensors, streams)
     estimates: dict[str, Posterior] = {}
     for o in cfg.observers:
@@ -105,11 +122,11 @@ def run_experiment(
     path = None
     if write:
         path = Path(out) if out is not None else default_output(cfg)
-        write_atomic(path, results_tree(cfg, config_text, truth, streams, estimates, sensors))
-    return ExperimentResult(truth=truth, measurements=streams, estimates=estimates, path=path)
+        write_atomic(path, results_tree(cfg, config_text, truth, streams, estimates, sensors, control))
+    return ExperimentResult(truth=truth, measurements=streams, estimates=estimates, path=path, control=control)
 
 
-def results_tree(cfg, config_text, truth: Truth, streams, estimates, sensors) -> Group:
+def results_tree(cfg, config_text, truth: Truth, streams, estimates, sensors, control=None) -> Group:
     model = truth.model
     n_runs, T = truth.states.shape[:2]
     root = Group(
@@ -186,4 +203,6 @@ def results_tree(cfg, config_text, truth: Truth, streams, estimates, sensors) ->
             ds["cov"] = {"layout": cfg.output.covariance, "stride": cfg.output.store_every}
         est.data[name] = Group(data=data, attrs=attrs, dataset_attrs=ds)
     root.data["estimates"] = est
+    if control:  # closed loops only: what each controller did
+        root.data["control"] = Group(data=dict(control))
     return root

@@ -20,8 +20,8 @@ import numpy as np
 
 from needlecli.errors import DataError
 from needlecli.experiments.config import load_config
-from needlecli.experiments.runner import build_problem, build_sensors
-from needlecli.experiments.truth import Truth, simulate_truth, stream
+from needlecli.experiments.runner import build_problem, simulate_and_measure
+from needlecli.experiments.truth import Truth
 from needlecli.fitting.em import EMOptions, EMResult, fit_em
 from needlecli.fitting.problem import System, build_system, fit_augment, own_model
 from needlecli.fitting.settings import FitSettings
@@ -61,9 +61,7 @@ def load_trials(path: str | Path, *, overrides: list[str] | None = None) -> Tria
 
         truth, sensors, streams = replay_truth(cfg, path.parent)
         return Trials(cfg, text, path, truth, sensors, streams, simulated=False)
-    truth = simulate_truth(cfg)
-    sensors = build_sensors(cfg, truth.model)
-    streams = {s.name: s.measure(truth, stream(cfg.runs.seed, f"sensor/{s.name}")) for s in sensors}
+    truth, sensors, streams, _ = simulate_and_measure(cfg)  # a control section closes its loop
     return Trials(cfg, text, path, truth, sensors, streams, simulated=True)
 
 

@@ -22,6 +22,8 @@ file"); change it only with a version bump of :data:`RESULTS_FORMAT`.
     /estimates/<observer>/cov_index (T',)        indices of the time grid of the stored covariances
     /estimates/<observer>/status, /reason (N,) str
     /estimates/<observer>/<extra>  further arrays an observer reports
+    /control/<controller>/command  (N, T)        closed loops only (config section control:): what a
+    /control/<controller>/...                    controller applied, and from which samples
 """
 
 from __future__ import annotations

@@ -12,6 +12,7 @@ types it supports, decorate with ``@PIPELINES.register("name")``.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, ClassVar
 
@@ -127,6 +128,11 @@ class Sensor:
         """Noise-free measurement ``(..., m)`` of states ``x (..., n)`` (for observers)."""
         raise NotImplementedError
 
+    def state_selection(self) -> np.ndarray | None:
+        """Indices ``(m,)`` of the model's states when ``h(x) = x[..., indices]``, else None (the default:
+        a sensor that knows its ``h`` is a plain selection says so, and filters may use the closed form)."""
+        return None
+
     def ideal(self, truth: Truth, idx: np.ndarray) -> np.ndarray:
         """Noise-free measurement ``(N, M, m)`` of the truth at grid indices ``idx``."""
         return self.h(truth.states_at(idx))
@@ -151,6 +157,25 @@ class Sensor:
         idx = self.sample_indices(truth.time)
         pipeline = PIPELINES.get(self.settings.pipeline)()
         value, valid, sigma = pipeline.measure(self, truth, idx, rng)
+        return self._stream(truth, idx, pipeline, value, valid, sigma, rng)
+
+    def measure_live(self, sim, rng: np.random.Generator, on_frame) -> Callable[[Truth], MeasurementStream]:
+        """Measure while the truth is simulated (``sim``: a :class:`~needlecli.experiments.truth.
+        TruthSimulator`), in one pass, handing each sample's outputs to ``on_frame(j, outputs)`` before
+        the simulation passes the sample's time (a controller in the loop). Returns ``finish(truth)``,
+        which makes the stream of that pass once the truth is complete (noise ``sigma``, dropouts and the
+        end of runs applied as :meth:`measure` does, from the same random stream afterwards)."""
+        idx = self.sample_indices(sim.time)
+        pipeline = PIPELINES.get(self.settings.pipeline)()
+        value, valid = pipeline.measure_live(self, sim, idx, rng, on_frame)
+
+        def finish(truth: Truth) -> MeasurementStream:
+            sigma = pipeline.sigma_of(self, truth, idx, value)
+            return self._stream(truth, idx, pipeline, value, valid, sigma, rng)
+
+        return finish
+
+    def _stream(self, truth, idx, pipeline, value, valid, sigma, rng) -> MeasurementStream:
         if self.settings.dropout > 0:
             valid = valid & (rng.random(valid.shape) >= self.settings.dropout)
         # a run's samples after its truth stopped (singular / diverged) are not measurements
@@ -186,6 +211,19 @@ class Pipeline:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Return ``value (N, M, m)``, ``valid (N, M)`` and ``sigma (N, M, m)``."""
         raise NotImplementedError
+
+    #: whether :meth:`measure_live` works (the pipeline can measure while the truth is simulated)
+    live: ClassVar[bool] = False
+
+    def measure_live(self, sensor: Sensor, sim, idx: np.ndarray, rng: np.random.Generator,
+                     on_frame) -> tuple[np.ndarray, np.ndarray]:
+        """Measure sample by sample while ``sim`` runs, advancing it only as far as each sample needs and
+        calling ``on_frame(j, outputs)`` after sample ``j``. Return ``value (N, M, m)``, ``valid (N, M)``."""
+        raise NotImplementedError(f"pipeline {self.registered_name!r} cannot measure while the truth is simulated")
+
+    def sigma_of(self, sensor: Sensor, truth: Truth, idx: np.ndarray, value: np.ndarray) -> np.ndarray:
+        """The sensor's stated noise ``(N, M, m)`` at its samples of the finished truth."""
+        return np.ascontiguousarray(np.broadcast_to(sensor.sigma(truth, idx), value.shape))
 
     @classmethod
     def accepts(cls, sensor_type: str) -> bool:

@@ -35,6 +35,10 @@ class Pose:
     labels: dict
 
 
+#: ``on_frame(j, outputs)``: what a device reports after measuring sample ``j`` of every run
+OnFrame = Callable[[int, dict[str, np.ndarray]], None]
+
+
 class ImageSettings(Strict):
     """Settings every imaging device has (lengths in mm, whatever the model's unit)."""
 
@@ -91,9 +95,15 @@ class Device:
         n_runs: int,
         rng: np.random.Generator,
         frames: FrameStore | None = None,
+        on_frame: OnFrame | None = None,
     ) -> DeviceResult:
         """Render and measure every sample ``j`` of ``times (M,)`` for all runs; ``geometry(j)`` gives the
-        needle of every run at sample ``j``. Samples are taken in time order (devices may track)."""
+        needle of every run at sample ``j``. Samples are taken in time order (devices may track).
+
+        ``on_frame(j, outputs)``, when given, is called once sample ``j`` is measured for every run, before
+        ``geometry(j + 1)`` is asked for: ``outputs`` holds the sample's ``tip`` (N, 3) mm, ``valid`` (N,)
+        and the device's per-sample extras (the camera's ``opacity`` (N,)). A controller closes its loop
+        through it (the simulation behind ``geometry`` has not passed sample ``j``'s time yet)."""
         raise NotImplementedError
 
 

@@ -19,7 +19,10 @@ calibration and the opacity rule are vectorised over runs.
 Opacity: the grey level at the detected centre; the out-of-plane rule of seed 004 eq. (7),
 ``B_z = 2.0 mT * (opacity - opacity_0)`` saturated at +-28 mT (:func:`bz_command`), ``opacity_0`` the
 opacity at a run's first detection. Both are stored per sample (``opacity``, ``bz_command``). The loop is
-not closed into the magnetic input: inputs are open-loop schedules fixed before the simulation.
+closed by a controller (config section ``control:``, type ``opacity_bz``, :mod:`needlecli.control`): the
+camera then measures frame by frame while the truth is simulated (``run``'s ``on_frame`` hands each
+frame's opacity to the controller, which sets the field's out-of-plane component from its availability
+time on); without one the command is only recorded.
 """
 
 from __future__ import annotations
@@ -288,7 +291,7 @@ class OverheadCamera(Device):
             return None
         return centre, sign * axis
 
-    def run(self, geometry, times, n_runs, rng, frames: FrameStore | None = None) -> DeviceResult:
+    def run(self, geometry, times, n_runs, rng, frames: FrameStore | None = None, on_frame=None) -> DeviceResult:
         s = self.settings
         M = len(times)
         tip = np.full((n_runs, M, 3), np.nan)
@@ -344,6 +347,8 @@ class OverheadCamera(Device):
                 if r in keep and frames is not None:
                     tip_px = self.world_to_px(tip[r, j, :2]) if valid[r, j] else np.full(2, np.nan)
                     frames.add(r, j, img, tip_px, self.world_to_px(g.tip[r, :2]))
+            if on_frame is not None:  # every run's frame j is measured: a controller may act on it
+                on_frame(j, {"tip": tip[:, j], "valid": valid[:, j], "opacity": opacity[:, j]})
         extras = {
             "opacity": opacity,
             "bz_command": bz_command(opacity, op0[:, None], gain=s.opacity_gain, limit=s.bz_limit),

@@ -24,7 +24,7 @@ import numpy as np
 
 from needlecli.sensors.base import PIPELINES, Pipeline
 from needlecli.sensors.imaging.base import DEVICES
-from needlecli.sensors.imaging.render import FrameStore, TruthPath
+from needlecli.sensors.imaging.render import FrameStore, LiveTruthPath, TruthPath
 
 _AXES = ("x", "y", "z")
 
@@ -34,18 +34,32 @@ class ImagePipeline(Pipeline):
     """Render, then measure with the device's image-processing pipeline (see the module docstring)."""
 
     supports = ("position",)
+    live = True
 
     def measure(self, sensor, truth, idx, rng):
         cfg = sensor.settings.image
         device = DEVICES.get(cfg.device)(cfg)
         path = TruthPath(truth, visible_from=device.visible_from)
-        length, ds = device.shaft_extent()
-        n_runs = truth.states.shape[0]
+        value, valid = self._run(sensor, device, path, truth.time[idx], idx, rng, None)
+        return value, valid, self.sigma_of(sensor, truth, idx, value)
+
+    def measure_live(self, sensor, sim, idx, rng, on_frame):
+        """Measure while ``sim`` (a :class:`~needlecli.experiments.truth.TruthSimulator`) runs: each
+        frame's geometry advances the simulation to the frame's grid index, and ``on_frame(j, outputs)``
+        gets the frame's outputs before the simulation goes past it. Returns ``value``, ``valid``."""
+        cfg = sensor.settings.image
+        device = DEVICES.get(cfg.device)(cfg)
+        path = LiveTruthPath(sim.model, sim.states, sim.depth, sim.advance_to, visible_from=device.visible_from)
+        return self._run(sensor, device, path, sim.time[idx], idx, rng, on_frame)
+
+    def _run(self, sensor, device, path, times, idx, rng, on_frame):
+        cfg = sensor.settings.image
+        n_runs = path.n_runs
         frames = FrameStore(len(idx), min(cfg.save_runs, n_runs), cfg.save_frames)
-        res = device.run(lambda j: path.geometry(int(idx[j]), length, ds), truth.time[idx], n_runs, rng, frames)
+        length, ds = device.shaft_extent()
+        res = device.run(lambda j: path.geometry(int(idx[j]), length, ds), times, n_runs, rng, frames, on_frame=on_frame)
         cols = [_AXES.index(a) for a in sensor.settings.axes]
         value = res.tip[..., cols] / path.scale
         valid = res.valid & np.all(np.isfinite(value), -1)
-        sigma = np.ascontiguousarray(np.broadcast_to(sensor.sigma(truth, idx), value.shape))
         self.extras = {"image_valid": valid.copy(), **res.extras, **frames.extras()}
-        return value, valid, sigma
+        return value, valid

@@ -90,6 +90,14 @@ class TruthPath:
     def n_runs(self) -> int:
         return self.p.shape[0]
 
+    def points(self, i: np.ndarray | slice) -> np.ndarray:
+        """Tip positions ``(N, ..., 3)`` mm at grid indices ``i``."""
+        return self.p[:, i]
+
+    def tangents(self, i: np.ndarray | slice) -> np.ndarray:
+        """Unit tangents ``(N, ..., 3)`` at grid indices ``i``."""
+        return self.t[:, i]
+
     def geometry(self, k: int, length: float, ds: float) -> NeedleGeometry:
         """The needle at grid index ``k``: the last ``length`` mm of the path, every ``ds`` mm."""
         n = int(np.ceil(length / ds)) + 1
@@ -98,12 +106,51 @@ class TruthPath:
         i0 = np.clip(np.floor(fi).astype(np.int64), 0, max(k - 1, 0))
         f = np.clip(fi - i0, 0.0, 1.0)[None, :, None]
         i1 = np.minimum(i0 + 1, k)
-        pts = self.p[:, i0] * (1.0 - f) + self.p[:, i1] * f
+        pts = self.points(i0) * (1.0 - f) + self.points(i1) * f
         before = s < 0  # behind the start: along the initial tangent
         if before.any():
-            pts[:, before] = self.p[:, :1] + s[before][None, :, None] * self.t[:, :1]
+            pts[:, before] = self.points(slice(0, 1)) + s[before][None, :, None] * self.tangents(slice(0, 1))
         visible = np.broadcast_to(s >= self.visible_from - 1e-9, pts.shape[:2])
-        return NeedleGeometry(pts, np.ascontiguousarray(visible), self.t[:, k].copy(), ds)
+        return NeedleGeometry(pts, np.ascontiguousarray(visible), self.tangents(k).copy(), ds)
+
+
+class LiveTruthPath(TruthPath):
+    """A :class:`TruthPath` over a simulation still running: ``geometry(k)`` first calls ``ready(k)``
+    (which simulates until the state at grid index ``k`` exists) and reads only states up to ``k``.
+    Its geometry equals :class:`TruthPath`'s on the finished truth, bit for bit.
+
+    Parameters
+    ----------
+    model : the truth's model (must define the tangent: the path's gradient would need later states)
+    states : (N, T, n) the array the simulation fills
+    depth : (T,) inserted length, model unit (known before the simulation)
+    ready : ``ready(k)`` makes ``states[:, : k + 1]`` valid
+    """
+
+    def __init__(self, model, states: np.ndarray, depth: np.ndarray, ready, visible_from: float = 0.0) -> None:
+        if not model.provides("tangent"):
+            raise ValueError(f"model {model.registered_name!r} has no tangent: its path cannot be imaged while it runs")
+        self.model = model
+        self.states = states
+        self.ready = ready
+        self.scale = to_mm(model.length_unit)
+        self.depth = np.asarray(depth, dtype=float) * self.scale
+        self.visible_from = float(visible_from)
+
+    @property
+    def n_runs(self) -> int:
+        return self.states.shape[0]
+
+    def points(self, i):
+        return self.model.tip_position(self.states[:, i]) * self.scale
+
+    def tangents(self, i):
+        t = self.model.tangent(self.states[:, i])
+        return t / np.maximum(np.linalg.norm(t, axis=-1, keepdims=True), 1e-12)
+
+    def geometry(self, k: int, length: float, ds: float) -> NeedleGeometry:
+        self.ready(k)
+        return super().geometry(k, length, ds)
 
 
 # ---------------------------------------------------------------------------------------------- speckle

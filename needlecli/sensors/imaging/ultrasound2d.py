@@ -245,7 +245,7 @@ class TransverseUltrasound(Device):
         v = (s.face[1] - xy[..., 1] - s.needle_radius) / s.pixel - 0.5
         return np.stack([u, v], -1)
 
-    def run(self, geometry, times, n_runs, rng, frames: FrameStore | None = None) -> DeviceResult:
+    def run(self, geometry, times, n_runs, rng, frames: FrameStore | None = None, on_frame=None) -> DeviceResult:
         M = len(times)
         tip = np.full((n_runs, M, 3), np.nan)
         valid = np.zeros((n_runs, M), dtype=bool)
@@ -260,6 +260,8 @@ class TransverseUltrasound(Device):
                 for r in frames.wanted(j):
                     if r < n_runs:
                         frames.add(int(r), j, img[r], px[r] if ok[r] else np.full(2, np.nan), self.to_px(true_xy[r]))
+            if on_frame is not None:
+                on_frame(j, {"tip": tip[:, j], "valid": valid[:, j]})
         return DeviceResult(tip=tip, valid=valid)
 
 

@@ -598,7 +598,7 @@ class EndFireUltrasound(Device):
         tip, ok, edge, _ = self.segment(vol, start, level=level)
         return tip, ok
 
-    def run(self, geometry, times, n_runs, rng, frames: FrameStore | None = None) -> DeviceResult:
+    def run(self, geometry, times, n_runs, rng, frames: FrameStore | None = None, on_frame=None) -> DeviceResult:
         s = self.settings
         M = len(times)
         tip = np.full((n_runs, M, 3), np.nan)
@@ -646,6 +646,8 @@ class EndFireUltrasound(Device):
             t_last = np.where(hit, t, t_last)
             misses = np.where(hit, 0, misses + 1)
             ever |= hit
+            if on_frame is not None:
+                on_frame(j, {"tip": tip[:, j], "valid": valid[:, j], "searched": searched[:, j]})
         return DeviceResult(tip=tip, valid=valid, extras={"searched": searched})
 
 

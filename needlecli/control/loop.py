@@ -1,0 +1,57 @@
+"""Closed-loop experiments: the truth simulated as a stepper, the controllers' sensor measured in the
+same pass, frame by frame, and the controllers acting between grid steps.
+
+The sensor in the loop measures once (its random stream ``sensor/<name>``, as in open loop); its
+pipeline's ``geometry(j)`` advances the simulation lazily to the sample's grid index and the device's
+``on_frame`` hands the sample to the controllers, whose commands act from the first grid time at or after
+the sample's availability. That pass is the measurement stream recorded in the results file. The other
+sensors measure the finished truth as in open loop, each from its own stream.
+"""
+
+from __future__ import annotations
+
+from needlecli.control.base import CONTROLLERS
+from needlecli.experiments.truth import TruthSimulator, stream
+from needlecli.sensors import SENSORS
+
+
+def simulate_closed_loop(cfg, *, progress=None):
+    """Simulate, measure and control every run of a config with a ``control:`` section.
+
+    Returns ``(truth, sensors, streams, control)``: ``control`` maps each controller's name to the
+    :class:`~needlecli.io.results.Group` of what it did.
+    """
+    seed = cfg.runs.seed
+    sim = TruthSimulator(cfg, progress=progress)
+    model = sim.model
+    sensors = [SENSORS.get(s.type)(s, model) for s in cfg.sensors]
+    by_name = {s.name: s for s in sensors}
+    controllers = [CONTROLLERS.get(c.type)(c, model) for c in cfg.control]
+    in_loop = {c.settings.sensor for c in controllers}
+    if len(in_loop) != 1:  # the config check says so already
+        raise ValueError("every controller must read the same sensor")
+    loop_sensor = by_name[next(iter(in_loop))]
+    idx = loop_sensor.sample_indices(sim.time)
+    t_available = sim.time[idx] + loop_sensor.settings.latency
+    for c in controllers:
+        c.start(sim.time, sim.n_runs, idx, t_available)
+
+    def before_step(k, x):
+        for c in controllers:
+            x = c.before_step(k, x)
+        return x
+
+    def on_frame(j, outputs):
+        for c in controllers:
+            c.on_sample(j, outputs)
+            if c.first_action(j) <= sim.acted:  # a command for a grid time already stepped from
+                raise RuntimeError(f"controller {c.name!r}: sample {j} acts at grid index {c.first_action(j)}, "
+                                   f"but the simulation has stepped from index {sim.acted}")
+
+    sim.before_step = before_step
+    finish = loop_sensor.measure_live(sim, stream(seed, f"sensor/{loop_sensor.name}"), on_frame)
+    truth = sim.finish()
+    streams = {}
+    for s in sensors:
+        streams[s.name] = finish(truth) if s is loop_sensor else s.measure(truth, stream(seed, f"sensor/{s.name}"))
+    return truth, sensors, streams, {c.name: c.results(truth) for c in controllers}

@@ -157,7 +157,9 @@ class Model:
     def step(self, x: np.ndarray, u: np.ndarray, p: Params, dt: float) -> np.ndarray:
         """Advance by ``dt`` with RK4, inputs and parameters held over the step."""
         if self.component_major:
-            u = np.asarray(u)
+            x, u = np.asarray(x), np.asarray(u)
+            if x.ndim == 1:  # one state: 0-d components would be scalars, which f cannot write in place
+                return self.step(x[None], u[None] if u.ndim == 1 else u, p, dt)[0]
             xc = np.ascontiguousarray(x.transpose((x.ndim - 1, *range(x.ndim - 1))))
             uc = u.transpose((u.ndim - 1, *range(u.ndim - 1)))
             xn = rk4_step(lambda z: self.f_components(z, uc, p), xc, dt)

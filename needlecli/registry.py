@@ -1,27 +1,66 @@
-"""A closed registry of named components (models, sensors, observers, pipelines, tables).
+"""A closed registry of named components (models, sensors, observers, pipelines, controllers, tables, plots).
 
-Components are added by decorating one class with ``@REGISTRY.register("name")``; configs choose them by
-that short name only, never by import path.
+Components are added by decorating one class (or function) with ``@REGISTRY.register("name")``; configs
+choose them by that short name only, never by import path.
+
+A registry knows its names without importing the implementations: each one is created with a table
+``name -> module`` of the built-in components (the module registers the name when it is imported), and
+it reads the Python entry points of its group (``needlecli.observers``, ``needlecli.models``, ...) for
+components that other installed packages add. An implementation is imported on first use
+(:meth:`Registry.get`), so ``needle --help`` and a config that names one observer do not import all of
+them. An entry point names a module (whose import registers the component) or an object in it
+(``package.module:Class``), registered under the entry point's name when its module does not register it.
+
+A plug-in that fails to import raises :class:`PluginError` (one line naming its package) where it is
+used; other components and commands are unaffected.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
-from typing import Generic, TypeVar
+import importlib
+from collections.abc import Callable, Iterator, Mapping
+from typing import Any, Generic, TypeVar
+
+from needlecli.errors import NeedleError
 
 T = TypeVar("T")
 
+ENTRY_POINT_PREFIX = "needlecli."
+
+
+class PluginError(NeedleError):
+    """A component of an installed package (an entry point) that cannot be loaded."""
+
+
+def _one_line(e: BaseException) -> str:
+    text = " ".join(str(e).split())
+    return f"{type(e).__name__}: {text}" if text else type(e).__name__
+
 
 class Registry(Generic[T]):
-    """Name -> component mapping with a readable error for unknown names."""
+    """Name -> component mapping with lazy built-ins, entry points and a readable error for unknown names.
 
-    def __init__(self, what: str) -> None:
+    Parameters
+    ----------
+    what : str
+        What a component is, for messages (``"observer type"``).
+    group : str, optional
+        The entry-point group other packages register in (``"needlecli.observers"``).
+    builtins : mapping, optional
+        ``name -> module`` of the built-in components; importing the module registers the name.
+    """
+
+    def __init__(self, what: str, *, group: str | None = None, builtins: Mapping[str, str] | None = None) -> None:
         self.what = what
+        self.group = group
+        self._builtins = dict(builtins or {})
         self._items: dict[str, T] = {}
+        self._plugins: dict[str, Any] | None = None  # name -> importlib.metadata.EntryPoint, read once
 
+    # ---------------------------------------------------------------------------------- registering
     def register(self, name: str) -> Callable[[T], T]:
         def deco(obj: T) -> T:
-            if name in self._items:
+            if name in self._items and self._items[name] is not obj:
                 raise ValueError(f"{self.what} {name!r} registered twice")
             self._items[name] = obj
             try:
@@ -32,19 +71,85 @@ class Registry(Generic[T]):
 
         return deco
 
-    def get(self, name: str) -> T:
+    # ---------------------------------------------------------------------------------- discovery
+    def plugins(self) -> dict[str, Any]:
+        """The entry points of this registry's group, by name (read once; nothing is imported)."""
+        if self._plugins is None:
+            self._plugins = {}
+            if self.group is not None:
+                from importlib.metadata import entry_points
+
+                for ep in entry_points(group=self.group):
+                    self._plugins.setdefault(ep.name, ep)
+        return self._plugins
+
+    def origin(self, name: str) -> str:
+        """Where a component comes from: ``needlecli`` or the distribution that provides it."""
+        if name in self._builtins or (name in self._items and name not in self.plugins()):
+            return "needlecli"
+        ep = self.plugins().get(name)
+        dist = getattr(ep, "dist", None)
+        return getattr(dist, "name", None) or (ep.value.split(":")[0].split(".")[0] if ep is not None else "?")
+
+    def _load_plugin(self, name: str) -> None:
+        ep = self.plugins()[name]
+        where = f"{self.what} {name!r} of package {self.origin(name)!r} (entry point {self.group}: {ep.value})"
+        if name in self._builtins:
+            raise PluginError(f"{where}: the name is taken by needlecli's own {self.what}; rename the entry point")
         try:
-            return self._items[name]
-        except KeyError:
-            raise KeyError(
-                f"unknown {self.what} {name!r}; known: {', '.join(sorted(self._items)) or 'none'}"
-            ) from None
+            obj = ep.load()
+        except Exception as e:  # noqa: BLE001 (any failure of somebody else's import is reported, not raised)
+            raise PluginError(f"{where} cannot be imported: {_one_line(e)}") from None
+        if name not in self._items:
+            if isinstance(obj, type(importlib)):  # a module that registered other names, or none
+                raise PluginError(f"{where}: importing the module did not register {name!r}")
+            self.register(name)(obj)
+
+    # ---------------------------------------------------------------------------------- lookup
+    def get(self, name: str) -> T:
+        """The component ``name``, importing its module on first use.
+
+        Raises
+        ------
+        KeyError
+            An unknown name (the message lists the known ones).
+        PluginError
+            A plug-in that cannot be loaded.
+        """
+        if name not in self._items:
+            if name in self._builtins:
+                importlib.import_module(self._builtins[name])
+                if name not in self._items:
+                    raise RuntimeError(f"module {self._builtins[name]} does not register {self.what} {name!r}")
+            elif name in self.plugins():
+                self._load_plugin(name)
+            else:
+                raise KeyError(f"unknown {self.what} {name!r}; known: {', '.join(self.names()) or 'none'}")
+        return self._items[name]
+
+    def load_all(self) -> list[PluginError]:
+        """Import every component; returns the plug-ins that failed (built-ins must not fail)."""
+        failed = []
+        for name in self.names():
+            try:
+                self.get(name)
+            except PluginError as e:
+                failed.append(e)
+        return failed
+
+    def loaded(self) -> dict[str, T]:
+        """Every component that loads (plug-ins that fail are left out: see :meth:`load_all`)."""
+        self.load_all()
+        return {n: self._items[n] for n in self.names() if n in self._items}
 
     def __contains__(self, name: object) -> bool:
-        return name in self._items
+        return name in self._items or name in self._builtins or name in self.plugins()
 
     def names(self) -> list[str]:
-        return sorted(self._items)
+        return sorted(set(self._items) | set(self._builtins) | set(self.plugins()))
+
+    def builtin_names(self) -> list[str]:
+        return sorted(self._builtins)
 
     def __iter__(self) -> Iterator[str]:
         return iter(self.names())

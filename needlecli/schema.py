@@ -1,11 +1,15 @@
-"""Shared pieces of the typed config schema (pydantic, unknown keys rejected everywhere)."""
+"""Shared pieces of the typed config schema (pydantic, unknown keys rejected everywhere), and how its
+errors read: :func:`validation_error` turns pydantic's errors into one :class:`~needlecli.errors.ConfigError`
+naming the file and the key path as the user wrote it."""
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from needlecli.errors import ConfigError
 
 
 class Strict(BaseModel):
@@ -31,3 +35,130 @@ class DistanceGrowth(Strict):
         tr = np.asarray(self.transducer) if axes is None else np.asarray(self.transducer)[axes]
         d = np.linalg.norm(np.asarray(position) - tr, axis=-1)
         return 1.0 + self.a * d / self.d_max
+
+
+# ------------------------------------------------------------------------------ how errors read
+_TYPE_ERRORS = {
+    "float_type": "a number", "int_type": "an integer", "string_type": "a string", "bool_type": "true or false",
+    "list_type": "a list", "tuple_type": "a list", "dict_type": "a mapping", "model_type": "a mapping",
+    "model_attributes_type": "a mapping",
+}
+
+
+def _member_tag(part: Any) -> bool:
+    """Whether a location part is a label pydantic gives a member of a (non-tagged) union."""
+    return isinstance(part, str) and (
+        "[" in part or part.startswith("constrained-") or part in ("float", "int", "str", "bool", "function-after")
+    )
+
+
+def _pick_errors(errs: list[dict]) -> list[dict]:
+    """Drop errors of union members the value plainly is not (``sigma: -1`` for ``float | list[float]``
+    yields 'should be a valid list' besides the real problem); when every member rejects the value's
+    type, keep one error saying what was allowed."""
+    groups: dict[tuple, list[dict]] = {}
+    for e in errs:
+        i = next((j for j, part in enumerate(e["loc"]) if _member_tag(part)), None)
+        if i is not None:
+            groups.setdefault(tuple(e["loc"][:i]), []).append(e)
+    out, seen = [], set()
+    for e in errs:
+        i = next((j for j, part in enumerate(e["loc"]) if _member_tag(part)), None)
+        group = groups.get(tuple(e["loc"][:i])) if i is not None else None
+        if not group or len({g["loc"][i] for g in group}) < 2:
+            out.append(e)
+            continue
+        def plain(g, i=i):
+            return g["type"] in _TYPE_ERRORS and len(g["loc"]) == i + 1
+        real = [g for g in group if not plain(g)]
+        if real:
+            if e in real:
+                out.append(e)
+        elif id(group) not in seen:
+            seen.add(id(group))
+            wanted = " or ".join(dict.fromkeys(_TYPE_ERRORS[g["type"]] for g in group))
+            out.append({**e, "type": "union_type", "msg": f"should be {wanted}, not {_yaml_type(e.get('input'))}"})
+    return out or errs
+
+
+def _yaml_type(v: Any) -> str:
+    for t, name in ((bool, "true/false"), (int, "a number"), (float, "a number"), (str, "a string"),
+                    (list, "a list"), (dict, "a mapping"), (type(None), "empty (null)")):
+        if isinstance(v, t):
+            return f"{name} {v!r}" if isinstance(v, (str, int, float)) and not isinstance(v, bool) else name
+    return type(v).__name__
+
+
+def _strip_tags(loc: tuple, data: Any) -> tuple:
+    """Drop discriminator tags and union-member labels that pydantic inserts into locations."""
+    out = []
+    cur = data
+    shorthand = False  # a constant signal written as a bare number or list: no 'value' key to name
+    for part in loc:
+        if not (isinstance(cur, dict) and part in cur):
+            if isinstance(cur, dict) and isinstance(part, str) and part in (cur.get("type"), cur.get("kind"), cur.get("device")):
+                continue
+            if _member_tag(part) or part == "constant" or (shorthand and part == "value"):
+                shorthand = part == "constant" and not isinstance(cur, dict)
+                continue
+        out.append(part)
+        if isinstance(cur, dict):
+            cur = cur.get(part)
+        elif isinstance(cur, list) and isinstance(part, int) and part < len(cur):
+            cur = cur[part]
+        else:
+            cur = None
+    return tuple(out)
+
+
+def _location(err: dict, data: Any) -> tuple:
+    loc = _strip_tags(tuple(err["loc"]), data)
+    if err.get("type") in ("union_tag_invalid", "union_tag_not_found"):
+        loc += (err.get("ctx", {}).get("discriminator", "type").strip(chr(39)),)
+    elif err.get("type") == "missing" and loc and isinstance(loc[-1], int):
+        loc = loc[:-1]  # a fixed-length list with too few entries
+    return loc
+
+
+def error_message(err: dict) -> str:
+    """One pydantic error as one line in the user's words."""
+    msg = err.get("msg", "invalid value")
+    if msg.startswith("Value error, "):
+        msg = msg[len("Value error, ") :]
+    if err.get("type") == "extra_forbidden":
+        msg = "unknown key"
+    elif err.get("type") == "missing":
+        loc = err.get("loc", ())
+        msg = f"too few entries (entry {loc[-1]} is missing)" if loc and isinstance(loc[-1], int) else (
+            "required key is missing")
+    elif err.get("type") == "union_tag_invalid":
+        ctx = err.get("ctx", {})
+        msg = f"unknown {ctx.get('discriminator', 'type').strip(chr(39))} {ctx.get('tag')!r}; known: {ctx.get('expected_tags')}"
+    elif err.get("type") == "union_tag_not_found":
+        msg = f"required key {err.get('ctx', {}).get('discriminator', '').strip(chr(39))!r} is missing"
+    elif err.get("type") in ("dict_type", "model_type", "model_attributes_type"):
+        loc = err.get("loc", ())
+        what = "a number, a list or a mapping with 'kind'" if len(loc) == 2 and loc[0] == "inputs" else "a mapping"
+        msg = f"should be {what}, not {_yaml_type(err.get('input'))}"
+    elif err.get("type") in ("list_type", "tuple_type"):
+        msg = f"should be a list, not {_yaml_type(err.get('input'))}"
+    msg = msg.replace(" after validation", "")
+    return " ".join(msg.split())  # one line
+
+
+def validation_error(e: ValidationError, data: Any, source: str, prefix: tuple = (),
+                     tags: dict[str, str] | None = None) -> ConfigError:
+    """The first problem of a failed validation of ``data`` (from file ``source``) as a ConfigError, its
+    key path as written in the file (under ``prefix``), with how many more problems there are.
+
+    ``tags`` lists every type a top-level section may name (``{"observers": "'ekf', 'ukf'"}``) where the
+    schema was built of the types the file names only: an unknown type then lists them all.
+    """
+    errs = e.errors()
+    for err in errs:
+        if err.get("type") == "union_tag_invalid" and tags and err["loc"] and err["loc"][0] in tags:
+            err["ctx"] = {**err.get("ctx", {}), "expected_tags": tags[err["loc"][0]]}
+    errs = _pick_errors(errs)
+    err = errs[0]
+    more = f" (and {len(errs) - 1} more problem{'s' if len(errs) > 2 else ''})" if len(errs) > 1 else ""
+    return ConfigError(source, tuple(prefix) + _location(err, data), error_message(err) + more)

@@ -15,7 +15,6 @@ import yaml
 from typer.testing import CliRunner
 
 import needlecli
-import needlecli.cli.commands  # noqa: F401  (registers the subcommands)
 from needlecli.cli.app import app
 from needlecli.experiments.config import load_config
 from needlecli.experiments.runner import run_experiment

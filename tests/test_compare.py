@@ -10,7 +10,6 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
-import needlecli.cli.commands  # noqa: F401  (registers the subcommands)
 from needlecli.cli.app import app
 from needlecli.experiments.compare import (
     Context,

@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-import needlecli.cli.commands  # noqa: F401  (registers the subcommands)
 from needlecli.cli.app import app
 from needlecli.errors import ConfigError
 from needlecli.experiments.config import load_config
@@ -263,7 +262,7 @@ fit:
 
 
 def test_binm_fit_fails_at_its_singularity(tmp_path):
-    from needlecli.fitting.experiment import fit_trials, load_trials
+    from needlecli.experiments.fit import fit_trials, load_trials
 
     (tmp_path / "s.yaml").write_text(SINGULAR)
     trials = load_trials(tmp_path / "s.yaml")

@@ -11,7 +11,6 @@ import pytest
 from scipy.linalg import expm
 from typer.testing import CliRunner
 
-import needlecli.cli.commands  # noqa: F401  (registers the subcommands)
 from needlecli.cli.app import app
 from needlecli.errors import ConfigError
 from needlecli.experiments.config import load_config

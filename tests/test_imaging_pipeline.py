@@ -9,7 +9,6 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
-import needlecli.cli.commands  # noqa: F401  (registers the subcommands)
 from needlecli.cli.app import app
 from needlecli.errors import ConfigError
 from needlecli.experiments.config import load_config

@@ -10,7 +10,6 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
-import needlecli.cli.commands  # noqa: F401
 from needlecli.cli.app import app
 from needlecli.experiments.config import load_config
 from needlecli.experiments.runner import run_experiment

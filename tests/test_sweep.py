@@ -11,7 +11,6 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
-import needlecli.cli.commands  # noqa: F401  (registers the subcommands)
 import needlecli.experiments.runner as runner
 from needlecli.cli.app import app
 from needlecli.errors import ConfigError

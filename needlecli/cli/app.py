@@ -1,10 +1,16 @@
-"""The ``needle`` command. Each subcommand lives in its own module and registers itself on :data:`app`."""
+"""The ``needle`` command: one typer app, each subcommand a function in its own module of this package.
+
+The modules import only typer and the standard library at the top; each command imports what it needs
+when it runs, so that ``needle --help`` starts at once (none of numpy, scipy, pandas, h5py, pydantic,
+matplotlib, OpenCV is loaded to print it). Dependencies point one way: this module imports the command
+modules, never the reverse.
+"""
 
 from __future__ import annotations
 
 import typer
 
-from needlecli import __version__
+from needlecli.cli import characterize, compare, evaluate, fit_em, imports, listing, log, simulate, sweep, validate
 
 app = typer.Typer(
     name="needle",
@@ -17,18 +23,30 @@ app = typer.Typer(
 
 def _version(value: bool) -> None:
     if value:
-        typer.echo(f"needlecli {__version__}")
+        from needlecli.provenance import version_line
+
+        typer.echo(version_line())
         raise typer.Exit()
 
 
 @app.callback()
 def main(
-    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Show the version."),
+    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True, help="Show the version and git commit."),
 ) -> None:
     """needle: simulate insertions, run observers, fit models, write tables in the papers' form."""
 
 
-def run() -> None:
-    from needlecli.cli import commands  # noqa: F401  (registers the subcommands)
+app.command()(simulate.simulate)
+app.command()(evaluate.evaluate)
+app.command()(validate.validate)
+app.command("list")(listing.list_components)
+app.command("fit-em")(fit_em.fit_em_cmd)
+app.command()(compare.compare)
+app.command()(sweep.sweep)
+app.command("characterize-sensor")(characterize.characterize_sensor)
+app.add_typer(log.log_app, name="log")
+app.add_typer(imports.import_app, name="import")
 
+
+def run() -> None:
     app()

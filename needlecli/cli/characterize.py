@@ -6,16 +6,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import typer
-import yaml
 
-from needlecli.cli.app import app
 from needlecli.cli.common import fail, setup_logging, user_errors
-from needlecli.experiments.config import load_config
-from needlecli.reports.tables import to_markdown, write_table
-from needlecli.sensors.imaging.characterize import characterize_sensors
 
 
-@app.command("characterize-sensor")
 @user_errors
 def characterize_sensor(
     config: Path = typer.Argument(..., help="Experiment config with sensors that use pipeline: image."),
@@ -31,6 +25,12 @@ def characterize_sensor(
 ) -> None:
     """Measure each image pipeline's bias, spread, outlier and lost-frame rates against what its quality
     depends on, and print the Gaussian sensor settings that match it."""
+    import yaml
+
+    from needlecli.experiments.config import load_config
+    from needlecli.reports.tables import to_markdown, write_table
+    from needlecli.sensors.imaging.characterize import characterize_sensors
+
     setup_logging(quiet)
     if mode not in ("tracking", "search"):
         fail(f"--mode: unknown mode {mode!r}; use tracking or search")

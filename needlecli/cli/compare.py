@@ -6,12 +6,9 @@ from pathlib import Path
 
 import typer
 
-from needlecli.cli.app import app
 from needlecli.cli.common import log, progress_bar, setup_logging, user_errors
-from needlecli.reports.tables import _atomic_text, to_markdown, write_table
 
 
-@app.command()
 @user_errors
 def compare(
     source: Path = typer.Argument(..., help="Experiment config (YAML) or a log file (HDF5, needlecli-log)."),
@@ -27,6 +24,7 @@ def compare(
     sensors on the same insertions and measurements; print the table in the form of seed 003's
     appendix A and write it (compare.md, compare.csv) with the results file."""
     from needlecli.experiments.compare import FOOTNOTE, appendix_form, compare_observers, compare_table
+    from needlecli.reports.tables import _atomic_text, to_markdown, write_table
 
     setup_logging(quiet)
     wanted = [o.strip() for o in observers.split(",") if o.strip()] if observers else None

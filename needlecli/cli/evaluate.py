@@ -6,13 +6,9 @@ from pathlib import Path
 
 import typer
 
-from needlecli.cli.app import app
 from needlecli.cli.common import fail, setup_logging, user_errors
-from needlecli.reports.evaluate import configured_tables_of, evaluate_results, experiment_name
-from needlecli.reports.tables import TABLES, to_markdown
 
 
-@app.command()
 @user_errors
 def evaluate(
     results: Path = typer.Argument(..., help="Results file of needle simulate, or fit file of needle fit-em."),
@@ -27,6 +23,9 @@ def evaluate(
     quiet: bool = typer.Option(False, "--quiet", "-q", help="Print nothing but errors."),
 ) -> None:
     """Compute error statistics per observer and write them as Markdown, CSV and LaTeX tables."""
+    from needlecli.reports.evaluate import configured_tables_of, evaluate_results, experiment_name
+    from needlecli.reports.tables import TABLES, to_markdown
+
     setup_logging(quiet)
     formats = [f.strip() for f in format_.split(",") if f.strip()]
     for f in formats:

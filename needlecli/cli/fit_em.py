@@ -4,14 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
 import typer
 
-from needlecli.cli.app import app
 from needlecli.cli.common import fail, log, progress_bar, setup_logging, user_errors
 
 
-@app.command("fit-em")
 @user_errors
 def fit_em_cmd(
     sources: list[Path] = typer.Argument(..., metavar="CONFIG_OR_LOG...", help="Experiment configs (.yaml); "
@@ -24,7 +21,9 @@ def fit_em_cmd(
     """Fit the process noise Q, each measurement noise R_j and the model's constant (c of the MNM,
     l_inv of the BiNM) to every trial by EM with the iterated extended Kalman smoother, and write the
     fits, smoothed trajectories and convergence histories to one HDF5 file per config."""
-    from needlecli.fitting.experiment import default_fit_output, fit_tree, fit_trials, load_trials
+    import numpy as np
+
+    from needlecli.experiments.fit import default_fit_output, fit_tree, fit_trials, load_trials
     from needlecli.io.results import write_atomic
 
     setup_logging(quiet)

@@ -6,11 +6,9 @@ from pathlib import Path
 
 import typer
 
-from needlecli.cli.app import app
 from needlecli.cli.common import user_errors
 
 import_app = typer.Typer(help="Import recorded data sets (their own file layouts) into log files.", no_args_is_help=True)
-app.add_typer(import_app, name="import")
 
 
 @import_app.command("ultrasteer")

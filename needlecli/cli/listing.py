@@ -4,10 +4,7 @@ from __future__ import annotations
 
 import typer
 
-from needlecli.cli.app import app
 
-
-@app.command("list")
 def list_components() -> None:
     """List what configs can name."""
     from needlecli.control import CONTROLLERS

@@ -6,11 +6,9 @@ from pathlib import Path
 
 import typer
 
-from needlecli.cli.app import app
 from needlecli.cli.common import user_errors
 
 log_app = typer.Typer(help="Log files of recorded insertions: import, convert, inspect.", no_args_is_help=True)
-app.add_typer(log_app, name="log")
 
 
 @log_app.command("import-csv")

@@ -6,15 +6,9 @@ from pathlib import Path
 
 import typer
 
-from needlecli.cli.app import app
 from needlecli.cli.common import log, progress_bar, setup_logging, user_errors
-from needlecli.experiments.config import load_config
-from needlecli.experiments.runner import default_output, run_experiment
-from needlecli.reports.evaluate import evaluate_results
-from needlecli.reports.tables import to_markdown
 
 
-@app.command()
 @user_errors
 def simulate(
     config: Path = typer.Argument(..., help="Experiment config (YAML)."),
@@ -27,6 +21,11 @@ def simulate(
 ) -> None:
     """Simulate the insertions, measure them, run the observers, write one HDF5 results file and print
     the summary table."""
+    from needlecli.experiments.config import load_config
+    from needlecli.experiments.runner import default_output, run_experiment
+    from needlecli.reports.evaluate import evaluate_results
+    from needlecli.reports.tables import to_markdown
+
     setup_logging(quiet)
     cfg, text = load_config(config, overrides=set_, runs=runs, seed=seed)
     target = out if out is not None else default_output(cfg)

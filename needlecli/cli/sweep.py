@@ -6,12 +6,9 @@ from pathlib import Path
 
 import typer
 
-from needlecli.cli.app import app
 from needlecli.cli.common import fail, log, progress_bar, setup_logging, user_errors
-from needlecli.reports.tables import to_markdown
 
 
-@app.command()
 @user_errors
 def sweep(
     config: Path = typer.Argument(..., help="Experiment config (YAML): the base of every cell."),
@@ -38,6 +35,7 @@ def sweep(
         plot_sweep,
         run_sweep,
     )
+    from needlecli.reports.tables import to_markdown
 
     setup_logging(quiet)
     if executor not in ("local", "dask", "inline"):

@@ -6,17 +6,16 @@ from pathlib import Path
 
 import typer
 
-from needlecli.cli.app import app
 from needlecli.errors import NeedleError
-from needlecli.experiments.config import load_config
 
 
-@app.command()
 def validate(
     configs: list[Path] = typer.Argument(..., help="Config files to check."),
     set_: list[str] = typer.Option([], "--set", help="Override a key: --set sensors.0.rate=2"),
 ) -> None:
     """Check experiment configs; one line per config, exit code 2 if any is invalid."""
+    from needlecli.experiments.config import load_config
+
     bad = 0
     for path in configs:
         try:

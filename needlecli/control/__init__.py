@@ -4,10 +4,9 @@
 ``opacity_bz``  seed 004 eq. (7): the field's out-of-plane component from the camera's opacity -- :mod:`.opacity_bz`
 
 How the loop runs (sensor in the loop measured frame by frame, interleaved with the truth simulation) is
-in :mod:`.loop`; the contract is :class:`~needlecli.control.base.Controller`.
+the experiment layer's :mod:`needlecli.experiments.closed_loop`; the contract is :class:`~needlecli.control.base.Controller`.
 """
 
-from needlecli.control import opacity_bz  # noqa: F401  (registers the controllers)
 from needlecli.control.base import CONTROLLERS, Controller, ControllerSettings
 
 __all__ = ["CONTROLLERS", "Controller", "ControllerSettings"]

@@ -1,7 +1,7 @@
 """The controller contract: a controller reads one sensor's samples as they are measured and acts on the
 truth's state between grid steps.
 
-A closed-loop experiment (:func:`needlecli.control.loop.simulate_closed_loop`) runs the truth as a
+A closed-loop experiment (:func:`needlecli.experiments.closed_loop.simulate_closed_loop`) runs the truth as a
 stepper (:class:`~needlecli.experiments.truth.TruthSimulator`); the controller's sensor measures while it
 runs, one sample at a time, and hands each sample's outputs to :meth:`Controller.on_sample` before the
 simulation passes the sample's time. A command becomes effective at the first grid time at or after the
@@ -20,7 +20,7 @@ from typing import ClassVar
 import numpy as np
 from pydantic import Field
 
-from needlecli.io.results import Group
+from needlecli.io.tree import Group
 from needlecli.registry import Registry
 from needlecli.schema import Strict
 
@@ -86,4 +86,6 @@ class Controller:
         raise NotImplementedError
 
 
-CONTROLLERS: Registry[type[Controller]] = Registry("controller type")
+CONTROLLERS: Registry[type[Controller]] = Registry("controller type", group="needlecli.controllers", builtins={
+    "opacity_bz": "needlecli.control.opacity_bz",
+})

@@ -25,7 +25,7 @@ import numpy as np
 from pydantic import Field
 
 from needlecli.control.base import CONTROLLERS, Controller, ControllerSettings, available_index
-from needlecli.io.results import Group
+from needlecli.io.tree import Group
 from needlecli.schema import NonNeg, Positive
 from needlecli.sensors.imaging.camera import bz_command
 

@@ -69,7 +69,7 @@ def direct_components(sensor, model) -> dict[str, tuple[int, str]]:
     """States that a channel component measures directly (``h_j(x) = x_i``): state -> (j, component).
     Found from the finite-difference Jacobian of ``h`` at a generic state; only position, angle and
     curvature states (never the entries of a rotation or a unit vector)."""
-    from needlecli.experiments.runner import measurement_function
+    from needlecli.sensors.base import measurement_function
 
     h = measurement_function(sensor, model)
     if h is None:
@@ -126,7 +126,7 @@ def ukf_defaults(ctx: Context) -> dict:
         if sigma is None:
             continue
         direct = direct_components(sensor, model)
-        from needlecli.experiments.runner import measurement_function
+        from needlecli.sensors.base import measurement_function
 
         if measurement_function(sensor, model) is None:
             continue
@@ -363,11 +363,12 @@ def compare_observers(
 ) -> CompareResult:
     """Simulate (or replay) once, run every applicable observer on the same problem, write the results
     file ``<out_dir>/<name>_compare.h5`` and return what is needed for :func:`compare_table`."""
-    from needlecli.experiments.config import load_config, parse_yaml
+    from needlecli.experiments.config import load_config
     from needlecli.experiments.replay import replay_truth
     from needlecli.experiments.runner import build_problem, results_tree, simulate_and_measure
     from needlecli.experiments.truth import stream
     from needlecli.io.results import read_results, write_atomic
+    from needlecli.io.yamlfile import parse_yaml
     from needlecli.metrics import compute_errors
     from needlecli.observers import OBSERVERS
     from needlecli.reports.seed003 import prediction_errors

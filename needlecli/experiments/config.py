@@ -1,406 +1,30 @@
-"""The experiment config: a typed schema, validated in full before any work starts.
+"""Loading an experiment config: read the YAML, apply ``--set`` overrides, validate it against the schema
+(:mod:`.schema`) and check it across sections (inputs, sensors, observers and controllers against the
+model), all before any work starts.
 
-The schema is assembled from the registries, so a newly registered model, sensor or observer brings its
-own settings schema with it. Errors are :class:`~needlecli.errors.ConfigError` naming the file and the
-key path, e.g. ``configs/x.yaml: [sensors -> 0 -> rate] Input should be greater than 0``.
+Errors are :class:`~needlecli.errors.ConfigError` naming the file and the key path, e.g.
+``configs/x.yaml: [sensors -> 0 -> rate] Input should be greater than 0``.
 """
 
 from __future__ import annotations
 
 import copy
-import functools
 from pathlib import Path
-from typing import Annotated, Any, Literal, Union
 
 import numpy as np
 import yaml
-from pydantic import Field, ValidationError, create_model, field_validator, model_validator
+from pydantic import ValidationError
 
 from needlecli.control import CONTROLLERS
 from needlecli.errors import ConfigError
-from needlecli.experiments.schedule import Signal, as_signal, signal_size
-from needlecli.fitting.settings import FitSettings
+from needlecli.experiments.overrides import apply_overrides
+from needlecli.experiments.schedule import signal_size
+from needlecli.experiments.schema import all_tags, experiment_schema, used_types
+from needlecli.io.yamlfile import parse_yaml
 from needlecli.models import MODELS, Model
 from needlecli.observers import OBSERVERS
-from needlecli.schema import NonNeg, Positive, Strict
+from needlecli.schema import validation_error
 from needlecli.sensors import PIPELINES, SENSORS
-
-
-class TissueLayer(Strict):
-    depth: NonNeg = Field(description="depth at which the layer starts (model length unit)")
-    curvature: NonNeg = Field(description="value of the model's curvature parameter in this layer")
-
-
-class Tissue(Strict):
-    """Layers along the insertion; the model's curvature parameter follows the layer of the tip."""
-
-    layers: list[TissueLayer] = Field(min_length=1)
-
-    @field_validator("layers")
-    @classmethod
-    def _ordered(cls, v):
-        if v[0].depth != 0:
-            raise ValueError("the first layer must start at depth 0")
-        if any(b.depth <= a.depth for a, b in zip(v, v[1:])):
-            raise ValueError("layer depths must increase strictly")
-        return v
-
-
-class ProcessNoise(Strict):
-    """Process noise added to the truth after each step: std per state in unit/sqrt(s) (scaled by
-    sqrt(dt), so results do not depend on the step). Off unless given."""
-
-    std: dict[str, NonNeg] = Field(default_factory=dict)
-
-
-class Runs(Strict):
-    count: int = Field(1, ge=1, le=1_000_000, description="number of Monte-Carlo runs")
-    seed: int = Field(0, ge=0, description="seed of every random stream of the experiment")
-
-
-class Stop(Strict):
-    """When an insertion ends: at a final depth or after a duration (exactly one)."""
-
-    depth: Positive | None = Field(None, description="final inserted length, model length unit")
-    time: Positive | None = Field(None, description="duration, s")
-
-    @model_validator(mode="after")
-    def _one(self):
-        if (self.depth is None) == (self.time is None):
-            raise ValueError("give exactly one of depth, time")
-        return self
-
-
-class PolynomialReference(Strict):
-    """Seed 000's reference where nothing better was recorded: polynomials in the inserted depth fitted
-    to a position sensor's samples; x, y from the fits, beta = asin(dx/ds) and alpha = asin(-dy/ds / cos
-    beta) from their slopes (s the depth, an arc length)."""
-
-    kind: Literal["polynomial"]
-    sensor: str = Field(description="position sensor whose x (and y) samples are fitted")
-    degree: int = Field(3, ge=1, le=12)
-
-
-class Source(Strict):
-    """Take the insertions from recorded logs instead of simulating them (paths relative to the config
-    file). Inputs, sensor streams and (where recorded) the truth come from the logs."""
-
-    logs: list[str] = Field(min_length=1)
-    trials: list[str] | None = Field(None, description="trial ids to use (default: all)")
-    reference: PolynomialReference | None = Field(
-        None, description="what errors are computed against when the logs have no truth (default: the logs' truth)"
-    )
-
-
-class Simulation(Strict):
-    dt: Positive = Field(0.01, le=1.0, description="integration step of the truth, s")
-
-
-class Output(Strict):
-    path: str | None = Field(None, description="results file (default results/<name>.h5)")
-    store_every: int = Field(1, ge=1, description="store covariances every k-th step")
-    covariance: Literal["full", "diag", "none"] = "full"
-    tables: list[str] = Field(default_factory=lambda: ["summary"], description="tables of needle evaluate")
-    formats: list[Literal["md", "csv", "tex"]] = Field(default_factory=lambda: ["md", "csv", "tex"])
-
-
-class ParamCases(Strict):
-    """Per-run parameter cases (a factor of the experiment design, e.g. seed 004's field strengths, each
-    with its own true ``c``). Runs cycle through the input cases fastest, then through these: run ``i``
-    has input case ``i mod K_in`` and parameter case ``(i div K_in) mod K_p`` (``K_in = 1`` without input
-    cases), so every combination occurs once in each block of ``K_in * K_p`` runs. A case sets some of
-    the model's parameters; the others keep ``params``; ``param_std`` adds its spread on top."""
-
-    cases: list[dict[str, float]] = Field(min_length=1)
-    labels: list[str] | None = None
-
-    @model_validator(mode="after")
-    def _check(self):
-        if self.labels is not None and len(self.labels) != len(self.cases):
-            raise ValueError(f"labels has {len(self.labels)} entries for {len(self.cases)} cases")
-        return self
-
-    def case_labels(self) -> list[str]:
-        if self.labels is not None:
-            return list(self.labels)
-        return [", ".join(f"{k} = {v:g}" for k, v in c.items()) or "nominal" for c in self.cases]
-
-
-def _model_spec(name: str, cls: type[Model]):
-    """Config schema of ``model:`` for one registered model."""
-
-    state_names = cls.state_names
-
-    def _states(v: dict[str, float], what: str) -> dict[str, float]:
-        unknown = [k for k in v if k not in state_names]
-        if unknown:
-            raise ValueError(f"unknown state {unknown[0]!r} in {what}; states are {', '.join(state_names)}")
-        return v
-
-    class Spec(Strict):
-        type: Literal[name]  # type: ignore[valid-type]
-        params: cls.Params = Field(default_factory=cls.Params)  # type: ignore[name-defined]
-        param_std: dict[str, NonNeg] = Field(default_factory=dict, description="per-run spread of params")
-        initial_state: dict[str, float] = Field(default_factory=dict)
-        initial_std: dict[str, NonNeg] = Field(default_factory=dict, description="per-run spread, truth")
-        param_cases: ParamCases | None = Field(None, description="per-run parameter cases (design factor)")
-
-        @field_validator("param_cases")
-        @classmethod
-        def _pc(cls_, v):
-            if v is None:
-                return v
-            known = list(cls.Params.model_fields)
-            for i, case in enumerate(v.cases):
-                for k in case:
-                    if k not in known:
-                        raise ValueError(f"case {i}: unknown parameter {k!r}; parameters are {', '.join(known) or 'none'}")
-                try:
-                    cls.Params(**case)
-                except ValidationError as e:
-                    err = e.errors()[0]
-                    where = ".".join(str(p) for p in err["loc"])
-                    raise ValueError(f"case {i}: {where}: {_message(err)}") from None
-            return v
-
-        @field_validator("initial_state")
-        @classmethod
-        def _x0(cls_, v):
-            _states(v, "initial_state")
-            for k, (lo, hi) in getattr(cls, "state_bounds", {}).items():
-                if k in v and not lo < v[k] < hi:
-                    raise ValueError(f"{k} = {v[k]} is outside ({lo:.6g}, {hi:.6g})")
-            return v
-
-        @field_validator("initial_std")
-        @classmethod
-        def _sx0(cls_, v):
-            return _states(v, "initial_std")
-
-        @field_validator("param_std")
-        @classmethod
-        def _sp(cls_, v):
-            known = list(cls.Params.model_fields)
-            for k in v:
-                if k not in known:
-                    raise ValueError(f"unknown parameter {k!r}; parameters are {', '.join(known) or 'none'}")
-            return v
-
-    Spec.__name__ = f"Model_{name}"
-    return Spec
-
-
-@functools.cache
-def _schema(registry_key: tuple) -> type[Strict]:
-    models = [_model_spec(n, MODELS.get(n)) for n in MODELS.names()]
-    sensors = [SENSORS.get(n).Settings for n in SENSORS.names()]
-    observers = [OBSERVERS.get(n).Settings for n in OBSERVERS.names()]
-    controllers = [CONTROLLERS.get(n).Settings for n in CONTROLLERS.names()]
-
-    def union(items):
-        return Annotated[Union[tuple(items)], Field(discriminator="type")] if items else dict
-
-    model_t = union(models)
-    sensor_t = union(sensors)
-    observer_t = union(observers) if observers else Annotated[dict[str, Any], Field()]
-    controller_t = union(controllers)
-
-    class Base(Strict):
-        name: str = Field("experiment", pattern=r"^[A-Za-z0-9_.\-]+$")
-        description: str = ""
-        model: model_t  # type: ignore[valid-type]
-        inputs: dict[str, Signal] = Field(default_factory=dict)
-        tissue: Tissue | None = None
-        process_noise: ProcessNoise = Field(default_factory=ProcessNoise)
-        sensors: list[sensor_t] = Field(default_factory=list)  # type: ignore[valid-type]
-        observers: list[observer_t] = Field(default_factory=list)  # type: ignore[valid-type]
-        control: list[controller_t] = Field(  # type: ignore[valid-type]
-            default_factory=list, description="controllers closing a loop through a sensor (needlecli.control)")
-        runs: Runs = Field(default_factory=Runs)
-        stop: Stop | None = None
-        source: Source | None = None
-        simulation: Simulation = Field(default_factory=Simulation)
-        output: Output = Field(default_factory=Output)
-        fit: FitSettings | None = Field(None, description="how needle fit-em fits the trials (seed 004)")
-
-        @field_validator("inputs", mode="before")
-        @classmethod
-        def _signals(cls, v):
-            if isinstance(v, dict):
-                return {k: as_signal(s) for k, s in v.items()}
-            return v
-
-    return create_model("ExperimentConfig", __base__=Base)
-
-
-def experiment_schema() -> type[Strict]:
-    """The current schema (rebuilt when a component is registered)."""
-    key = (tuple(MODELS.names()), tuple(SENSORS.names()), tuple(OBSERVERS.names()), tuple(CONTROLLERS.names()))
-    return _schema(key)
-
-
-# ---------------------------------------------------------------------------------------------- loading
-_TYPE_ERRORS = {
-    "float_type": "a number", "int_type": "an integer", "string_type": "a string", "bool_type": "true or false",
-    "list_type": "a list", "tuple_type": "a list", "dict_type": "a mapping", "model_type": "a mapping",
-    "model_attributes_type": "a mapping",
-}
-
-
-def _member_tag(part: Any) -> bool:
-    """Whether a location part is a label pydantic gives a member of a (non-tagged) union."""
-    return isinstance(part, str) and (
-        "[" in part or part.startswith("constrained-") or part in ("float", "int", "str", "bool", "function-after")
-    )
-
-
-def _pick_errors(errs: list[dict]) -> list[dict]:
-    """Drop errors of union members the value plainly is not (``sigma: -1`` for ``float | list[float]``
-    yields 'should be a valid list' besides the real problem); when every member rejects the value's
-    type, keep one error saying what was allowed."""
-    groups: dict[tuple, list[dict]] = {}
-    for e in errs:
-        i = next((j for j, part in enumerate(e["loc"]) if _member_tag(part)), None)
-        if i is not None:
-            groups.setdefault(tuple(e["loc"][:i]), []).append(e)
-    out, seen = [], set()
-    for e in errs:
-        i = next((j for j, part in enumerate(e["loc"]) if _member_tag(part)), None)
-        group = groups.get(tuple(e["loc"][:i])) if i is not None else None
-        if not group or len({g["loc"][i] for g in group}) < 2:
-            out.append(e)
-            continue
-        def plain(g, i=i):
-            return g["type"] in _TYPE_ERRORS and len(g["loc"]) == i + 1
-        real = [g for g in group if not plain(g)]
-        if real:
-            if e in real:
-                out.append(e)
-        elif id(group) not in seen:
-            seen.add(id(group))
-            wanted = " or ".join(dict.fromkeys(_TYPE_ERRORS[g["type"]] for g in group))
-            out.append({**e, "type": "union_type", "msg": f"should be {wanted}, not {_yaml_type(e.get('input'))}"})
-    return out or errs
-
-
-def _yaml_type(v: Any) -> str:
-    for t, name in ((bool, "true/false"), (int, "a number"), (float, "a number"), (str, "a string"),
-                    (list, "a list"), (dict, "a mapping"), (type(None), "empty (null)")):
-        if isinstance(v, t):
-            return f"{name} {v!r}" if isinstance(v, (str, int, float)) and not isinstance(v, bool) else name
-    return type(v).__name__
-
-
-def _strip_tags(loc: tuple, data: Any) -> tuple:
-    """Drop discriminator tags and union-member labels that pydantic inserts into locations."""
-    out = []
-    cur = data
-    shorthand = False  # a constant signal written as a bare number or list: no 'value' key to name
-    for part in loc:
-        if not (isinstance(cur, dict) and part in cur):
-            if isinstance(cur, dict) and isinstance(part, str) and part in (cur.get("type"), cur.get("kind"), cur.get("device")):
-                continue
-            if _member_tag(part) or part == "constant" or (shorthand and part == "value"):
-                shorthand = part == "constant" and not isinstance(cur, dict)
-                continue
-        out.append(part)
-        if isinstance(cur, dict):
-            cur = cur.get(part)
-        elif isinstance(cur, list) and isinstance(part, int) and part < len(cur):
-            cur = cur[part]
-        else:
-            cur = None
-    return tuple(out)
-
-
-def _location(err: dict, data: Any) -> tuple:
-    loc = _strip_tags(tuple(err["loc"]), data)
-    if err.get("type") in ("union_tag_invalid", "union_tag_not_found"):
-        loc += (err.get("ctx", {}).get("discriminator", "type").strip(chr(39)),)
-    elif err.get("type") == "missing" and loc and isinstance(loc[-1], int):
-        loc = loc[:-1]  # a fixed-length list with too few entries
-    return loc
-
-
-def _message(err: dict) -> str:
-    msg = err.get("msg", "invalid value")
-    if msg.startswith("Value error, "):
-        msg = msg[len("Value error, ") :]
-    if err.get("type") == "extra_forbidden":
-        msg = "unknown key"
-    elif err.get("type") == "missing":
-        loc = err.get("loc", ())
-        msg = f"too few entries (entry {loc[-1]} is missing)" if loc and isinstance(loc[-1], int) else (
-            "required key is missing")
-    elif err.get("type") == "union_tag_invalid":
-        ctx = err.get("ctx", {})
-        msg = f"unknown {ctx.get('discriminator', 'type').strip(chr(39))} {ctx.get('tag')!r}; known: {ctx.get('expected_tags')}"
-    elif err.get("type") == "union_tag_not_found":
-        msg = f"required key {err.get('ctx', {}).get('discriminator', '').strip(chr(39))!r} is missing"
-    elif err.get("type") in ("dict_type", "model_type", "model_attributes_type"):
-        loc = err.get("loc", ())
-        what = "a number, a list or a mapping with 'kind'" if len(loc) == 2 and loc[0] == "inputs" else "a mapping"
-        msg = f"should be {what}, not {_yaml_type(err.get('input'))}"
-    elif err.get("type") in ("list_type", "tuple_type"):
-        msg = f"should be a list, not {_yaml_type(err.get('input'))}"
-    msg = msg.replace(" after validation", "")
-    return " ".join(msg.split())  # one line
-
-
-class _UniqueKeyLoader(yaml.SafeLoader):
-    """The safe loader, but a key given twice in one mapping is an error (YAML keeps the last)."""
-
-    def construct_mapping(self, node, deep=False):
-        seen = set()
-        for key_node, _ in node.value:  # the keys written in this mapping, before '<<' merges add theirs
-            if key_node.tag == "tag:yaml.org,2002:merge":
-                continue
-            key = self.construct_object(key_node, deep=deep)
-            if isinstance(key, (str, int, float, bool)) and key in seen:
-                raise yaml.constructor.ConstructorError(
-                    None, None, f"key {key!r} is given twice in the same mapping", key_node.start_mark
-                )
-            seen.add(key)
-        return super().construct_mapping(node, deep=deep)
-
-
-def parse_yaml(text: str, source: str) -> dict:
-    try:
-        data = yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 (a SafeLoader)
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
-        problem = getattr(e, "problem", None) or str(e).splitlines()[0]
-        ctx, cmark = getattr(e, "context", None), getattr(e, "context_mark", None)
-        if ctx and cmark is not None and mark is not None and cmark.line != mark.line:
-            problem += f" ({ctx} that starts at line {cmark.line + 1})"
-        what = "YAML error" if isinstance(e, yaml.constructor.ConstructorError) else "YAML syntax error"
-        raise ConfigError(source, (), f"{what} at {where}{problem}") from None
-    if data is None:
-        raise ConfigError(source, (), "the file is empty")
-    if not isinstance(data, dict):
-        raise ConfigError(source, (), f"a config must be a mapping of keys, not {type(data).__name__}")
-    return data
-
-
-def set_dotted(data: dict, dotted: str, value: Any, source: str) -> None:
-    """Apply one ``--set key.path=value`` override (list indices as numbers)."""
-    parts = dotted.split(".")
-    cur: Any = data
-    for i, part in enumerate(parts):
-        last = i == len(parts) - 1
-        key: Any = int(part) if part.isdigit() and isinstance(cur, list) else part
-        if isinstance(cur, list):
-            if not isinstance(key, int) or key >= len(cur):
-                raise ConfigError(source, tuple(parts[: i + 1]), "no such list entry to override")
-        elif not isinstance(cur, dict):
-            raise ConfigError(source, tuple(parts[:i]), "is not a mapping; cannot override below it")
-        if last:
-            cur[key] = value
-        else:
-            if isinstance(cur, dict) and key not in cur:
-                cur[key] = {}
-            cur = cur[key]
 
 
 def load_config(
@@ -426,31 +50,15 @@ def load_config(
             raise ConfigError(source, (), "no such file") from None
         except (OSError, UnicodeDecodeError) as e:
             raise ConfigError(source, (), f"cannot read the file: {e}") from None
-    data = parse_yaml(text, source)
-    data = copy.deepcopy(data)
-    for ov in overrides or []:
-        if "=" not in ov:
-            raise ConfigError(source, (), f"override {ov!r} is not of the form key.path=value")
-        k, v = ov.split("=", 1)
-        set_dotted(data, k.strip(), yaml.safe_load(v), source)
-    if runs is not None:
-        data.setdefault("runs", {})
-        if isinstance(data["runs"], dict):
-            data["runs"]["count"] = runs
-    if seed is not None:
-        data.setdefault("runs", {})
-        if isinstance(data["runs"], dict):
-            data["runs"]["seed"] = seed
-    schema = experiment_schema()
+    data = copy.deepcopy(parse_yaml(text, source))
+    changed = apply_overrides(data, overrides, source, runs=runs, seed=seed)
+    schema = experiment_schema(used_types(data))
     try:
         cfg = schema.model_validate(data)
     except ValidationError as e:
-        errs = _pick_errors(e.errors())
-        err = errs[0]
-        more = f" (and {len(errs) - 1} more problem{'s' if len(errs) > 2 else ''})" if len(errs) > 1 else ""
-        raise ConfigError(source, _location(err, data), _message(err) + more) from None
+        raise validation_error(e, data, source, tags=all_tags()) from None
     check_consistency(cfg, source)
-    if overrides or runs is not None or seed is not None:
+    if changed:
         text = yaml.safe_dump(data, sort_keys=False)
     return cfg, text
 

@@ -12,10 +12,10 @@ import numpy as np
 from needlecli.experiments.replay import replay_truth
 from needlecli.experiments.truth import Truth, simulate_truth, stream
 from needlecli.io.results import Group, root_attrs, write_atomic
-from needlecli.models import NotMeasurable, StateSelection
 from needlecli.observers import OBSERVERS, Channel, EstimationProblem, Posterior
 from needlecli.observers.base import cov_steps
 from needlecli.sensors import SENSORS, MeasurementStream
+from needlecli.sensors.base import measurement_function
 
 Progress = Callable[[str, int, int], None]
 
@@ -37,28 +37,13 @@ def build_sensors(cfg, model):
     return [SENSORS.get(s.type)(s, model) for s in cfg.sensors]
 
 
-def measurement_function(sensor, model):
-    """``h`` of ``sensor`` for the state of ``model`` (which may be an observer's own), or None."""
-    if model is not sensor.model:
-        sensor = type(sensor)(sensor.settings, model)
-        if sensor.check_model():
-            return None
-    try:
-        with np.errstate(all="ignore"):
-            sensor.h(np.zeros((1, model.n)))
-    except NotMeasurable:
-        return None
-    sel = sensor.state_selection()
-    return sensor.h if sel is None else StateSelection(sel)
-
-
 def simulate_and_measure(cfg, *, progress: Callable[[int, int], None] | None = None):
     """Simulate the truth of a config and measure it with every sensor: in open loop (the truth first,
     then each sensor from its own random stream) or, with a ``control:`` section, in closed loop
-    (:func:`needlecli.control.loop.simulate_closed_loop`). Returns ``(truth, sensors, streams, control)``,
+    (:func:`needlecli.experiments.closed_loop.simulate_closed_loop`). Returns ``(truth, sensors, streams, control)``,
     ``control`` the results group of each controller (empty in open loop)."""
     if cfg.control:
-        from needlecli.control.loop import simulate_closed_loop
+        from needlecli.experiments.closed_loop import simulate_closed_loop
 
         return simulate_closed_loop(cfg, progress=progress)
     truth = simulate_truth(cfg, progress=progress)

@@ -244,7 +244,7 @@ class Grid(Strict):
 
 def load_grid(path: str | Path) -> Grid:
     """Read and validate a grid file. Raises :class:`ConfigError` naming the file and key."""
-    from needlecli.experiments.config import parse_yaml
+    from needlecli.io.yamlfile import parse_yaml
 
     source = str(path)
     try:
@@ -351,7 +351,9 @@ def plan_sweep(
     ``overrides`` (``key=value`` strings, as ``--set``) join ``grid.fixed``. Raises :class:`SweepError`
     naming the cell, its overrides and the config key at fault.
     """
-    from needlecli.experiments.config import load_config, parse_yaml, set_dotted
+    from needlecli.experiments.config import load_config
+    from needlecli.experiments.overrides import set_dotted
+    from needlecli.io.yamlfile import parse_yaml
 
     config = Path(config)
     source = str(config)

@@ -12,7 +12,7 @@ import numpy as np
 from needlecli.fitting.settings import KalmanSetup
 from needlecli.fitting.statespace import DiscreteModel, MeasurementModel, make_ticks
 from needlecli.models import MODELS, Model
-from needlecli.observers.base import EstimationProblem
+from needlecli.problem import EstimationProblem
 
 
 @dataclass
@@ -187,7 +187,7 @@ def check_setup(setup: KalmanSetup, model_cls: type[Model], sensors: dict, augme
 
 
 def check_channels(setup: KalmanSetup, model_cls: type[Model], sensors: dict) -> list:
-    from needlecli.experiments.runner import measurement_function
+    from needlecli.sensors.base import measurement_function
 
     out = []
     try:

@@ -37,9 +37,9 @@ import numpy as np
 from pydantic import Field, ValidationError
 
 from needlecli.errors import ConfigError, DataError
-from needlecli.experiments.config import _message, parse_yaml
 from needlecli.io.logs import InputStream, Log, SensorStream, Trial, TruthStream
-from needlecli.schema import Strict
+from needlecli.io.yamlfile import parse_yaml
+from needlecli.schema import Strict, error_message
 from needlecli.sensors import SENSORS
 
 # factor from the first unit to the second
@@ -171,7 +171,7 @@ def import_csv(mapping_path: str | Path) -> Log:
         mp = Mapping.model_validate(data)
     except ValidationError as e:
         err = e.errors()[0]
-        raise ConfigError(str(mapping_path), tuple(err["loc"]), _message(err)) from None
+        raise ConfigError(str(mapping_path), tuple(err["loc"]), error_message(err)) from None
     # sensors from their settings (validated once, before reading any CSV)
     sensors = {}
     for name, spec in mp.sensors.items():
@@ -184,7 +184,7 @@ def import_csv(mapping_path: str | Path) -> Log:
             settings = cls.Settings.model_validate({**spec.sensor, "name": name})
         except ValidationError as e:
             err = e.errors()[0]
-            raise ConfigError(str(mapping_path), ("sensors", name, "sensor", *err["loc"]), _message(err)) from None
+            raise ConfigError(str(mapping_path), ("sensors", name, "sensor", *err["loc"]), error_message(err)) from None
         sensors[name] = (cls, settings)
     base = mapping_path.parent
     tscale = 1e-3 if mp.time_unit == "ms" else 1.0

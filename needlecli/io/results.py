@@ -29,10 +29,7 @@ file"); change it only with a version bump of :data:`RESULTS_FORMAT`.
 from __future__ import annotations
 
 import datetime as _dt
-import subprocess
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import h5py
 import numpy as np
@@ -40,31 +37,11 @@ import numpy as np
 from needlecli import __version__
 from needlecli.errors import DataError
 from needlecli.io.atomic import atomic_path
+from needlecli.io.tree import Group
+from needlecli.provenance import git_hash
 
 RESULTS_FORMAT = 1
 _STR = h5py.string_dtype("utf-8")
-
-
-def git_hash() -> str:
-    """The package's git commit (``unknown`` outside a checkout), with ``-dirty`` for local changes."""
-    here = Path(__file__).resolve().parent
-    try:
-        out = subprocess.run(
-            ["git", "describe", "--always", "--dirty", "--abbrev=40"],
-            cwd=here, capture_output=True, text=True, timeout=5, check=False,
-        )
-        return out.stdout.strip() or "unknown"
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-
-
-@dataclass
-class Group:
-    """Arrays and attributes of one HDF5 group (nested groups as values that are ``Group``)."""
-
-    data: dict[str, Any] = field(default_factory=dict)
-    attrs: dict[str, Any] = field(default_factory=dict)
-    dataset_attrs: dict[str, dict[str, Any]] = field(default_factory=dict)  # attributes of one dataset
 
 
 def _attr(v):

@@ -246,4 +246,10 @@ def _expand(p: Params) -> dict[str, np.ndarray]:
     return {k: np.asarray(v)[..., None] if np.ndim(v) else v for k, v in p.items()}
 
 
-MODELS: Registry[type[Model]] = Registry("model")
+MODELS: Registry[type[Model]] = Registry("model", group="needlecli.models", builtins={
+    "unicycle": "needlecli.models.unicycle",
+    "modified_unicycle": "needlecli.models.unicycle",
+    "so3": "needlecli.models.so3",
+    "mnm": "needlecli.models.magnetic",
+    "binm": "needlecli.models.magnetic",
+})

@@ -1,6 +1,5 @@
-"""State estimators, registered by type in :data:`OBSERVERS`."""
+"""State estimators, registered by type in :data:`OBSERVERS` (each imported on first use)."""
 
-from needlecli.observers import high_gain, kalman, open_loop, so3_invariant, ukf  # noqa: F401  (registers)
 from needlecli.observers.base import (
     OBSERVERS,
     Channel,

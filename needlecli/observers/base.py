@@ -10,7 +10,7 @@ and decorate with ``@OBSERVERS.register("type")``.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import ClassVar
 
@@ -18,6 +18,7 @@ import numpy as np
 from pydantic import Field
 
 from needlecli.models import Model
+from needlecli.problem import Channel, EstimationProblem  # noqa: F401  (part of the observer contract)
 from needlecli.registry import Registry
 from needlecli.schema import Strict
 
@@ -32,62 +33,6 @@ class ObserverSettings(Strict):
 
     type: str
     name: str | None = Field(None, description="name in the results file (defaults to the type)")
-
-
-@dataclass(frozen=True)
-class Channel:
-    """One measurement stream as an observer sees it.
-
-    Attributes
-    ----------
-    name : sensor name
-    t : (M,) acquisition times, s; ``t_available`` (M,) when they can be used
-    index : (M,) index of ``t`` on the problem's time grid
-    value : (N, M, m), NaN where not ``valid`` (N, M)
-    h : ``h(x (..., n)) -> (..., m)`` for the experiment model's state, or None when the channel is not
-        a function of the state (e.g. encoder depth)
-    h_for : ``h_for(model)`` gives the same measurement function for another model (an observer's own),
-        or None where that model cannot predict the channel
-    sigma : (m,) the sensor's nominal noise std (observers may use their own R instead)
-    angle : (m,) bool, channels compared wrapped
-    """
-
-    name: str
-    sensor_type: str
-    t: np.ndarray
-    t_available: np.ndarray
-    index: np.ndarray
-    value: np.ndarray
-    valid: np.ndarray
-    names: tuple[str, ...]
-    units: tuple[str, ...]
-    sigma: np.ndarray
-    angle: np.ndarray
-    h: Callable[[np.ndarray], np.ndarray] | None
-    h_for: Callable[[Model], Callable[[np.ndarray], np.ndarray] | None] = lambda model: None
-    unit_vector: bool = False
-    attrs: Mapping = field(default_factory=dict)
-
-
-@dataclass(frozen=True)
-class EstimationProblem:
-    """Everything an observer may use: no truth beyond what its settings allow for initialisation."""
-
-    time: np.ndarray  # (T,)
-    inputs: np.ndarray  # (N, T, m) known inputs, held over [t_k, t_k+1)
-    input_names: tuple[str, ...]
-    depth: np.ndarray  # (N, T) inserted length from the commanded insertion
-    channels: Mapping[str, Channel]
-    model: Model  # the experiment's model (the observer may use its own)
-    params: Mapping[str, np.ndarray]  # nominal model parameters from the config
-    interfaces: np.ndarray  # tissue interface depths known to the experiment
-    initial_truth: np.ndarray | None = None  # (N, n) only for observers configured to start from it
-    cov_stride: int = 1  # keep covariances every k-th step of the time grid
-    cov_layout: str = "full"  # "full" (..., n, n), "diag" (..., n) or "none"
-
-    @property
-    def n_runs(self) -> int:
-        return self.inputs.shape[0]
 
 
 @dataclass
@@ -142,4 +87,11 @@ class Observer:
         raise NotImplementedError
 
 
-OBSERVERS: Registry[type[Observer]] = Registry("observer type")
+OBSERVERS: Registry[type[Observer]] = Registry("observer type", group="needlecli.observers", builtins={
+    "open_loop": "needlecli.observers.open_loop",
+    "ukf": "needlecli.observers.ukf",
+    "high_gain": "needlecli.observers.high_gain",
+    "so3_invariant": "needlecli.observers.so3_invariant",
+    "ekf": "needlecli.observers.kalman",
+    "eks": "needlecli.observers.kalman",
+})

@@ -152,7 +152,7 @@ class UnscentedKalmanFilter(Observer):
             own = mcls(mcls.Params(**{**(model.params.model_dump() if mcls is type(model) else {}), **settings.params}))
         except Exception as e:  # parameters out of the model's range
             return out + [(("params",), str(e).splitlines()[-1].strip())]
-        from needlecli.experiments.runner import measurement_function
+        from needlecli.sensors.base import measurement_function
 
         for name in settings.measurements:
             if name not in sensors:

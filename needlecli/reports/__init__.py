@@ -1,8 +1,36 @@
-"""Tables and plots, built from results files only."""
+"""Tables and plots, built from results files only, registered by name in :data:`TABLES` and
+:data:`PLOTS` (each module imported on first use: this package's import is light).
 
-import needlecli.reports.control  # noqa: F401  (registers the closed loops' table)
-import needlecli.reports.imaging  # noqa: F401  (registers the imaging sensors' plot and table)
-from needlecli.reports import real, seed000_001, seed003, seed004  # noqa: F401  (register the seeds' and real data's tables and plots)
-from needlecli.reports.tables import TABLES, write_table
+Table functions take the loaded results file and the errors of every observer and return a
+``DataFrame`` (:mod:`.tables`); plot functions ``(results, errors, path_stem) -> Path | None``
+(:mod:`.plots`).
+"""
 
-__all__ = ["TABLES", "write_table"]
+from needlecli.registry import Registry
+
+_TABLE_MODULES = {
+    "needlecli.reports.tables": ("summary", "accuracy", "status"),
+    "needlecli.reports.seed003": ("seed003_table1", "prediction"),
+    "needlecli.reports.seed000_001": ("seed000_table1", "seed001_convergence", "seed001_half_turns"),
+    "needlecli.reports.seed004": ("seed004_table1", "seed004_table2", "seed004_table3", "seed004_recovery", "fit_status"),
+    "needlecli.reports.imaging": ("measurements",),
+    "needlecli.reports.control": ("planar_control",),
+    "needlecli.reports.real": ("real_tip_error", "measurement_use", "real_error_vs_depth", "per_trial",
+                               "em_per_trial", "em_per_speed", "em_loglik"),
+}
+_PLOT_MODULES = {
+    "needlecli.reports.plots": ("error_vs_depth", "trajectories"),
+    "needlecli.reports.seed003": ("prediction", "curvature"),
+    "needlecli.reports.seed000_001": ("seed001_rotation_error",),
+    "needlecli.reports.seed004": ("seed004_fig5", "seed004_fig10"),
+    "needlecli.reports.imaging": ("imaging_frames",),
+}
+
+#: table functions ``(results, errors) -> DataFrame``
+TABLES: Registry = Registry("table", group="needlecli.tables",
+                            builtins={n: m for m, names in _TABLE_MODULES.items() for n in names})
+#: plot functions ``(results, errors, path_stem) -> Path | None`` (None: not applicable to this file)
+PLOTS: Registry = Registry("plot", group="needlecli.plots",
+                           builtins={n: m for m, names in _PLOT_MODULES.items() for n in names})
+
+__all__ = ["PLOTS", "TABLES"]

@@ -55,7 +55,8 @@ class Failure:
 
 
 def load_baseline(path: str | Path) -> Baseline:
-    from needlecli.experiments.config import _message, parse_yaml
+    from needlecli.io.yamlfile import parse_yaml
+    from needlecli.schema import error_message
 
     path = Path(path)
     try:
@@ -66,7 +67,7 @@ def load_baseline(path: str | Path) -> Baseline:
         return Baseline.model_validate(parse_yaml(text, str(path)))
     except ValidationError as e:
         err = e.errors()[0]
-        raise ConfigError(str(path), tuple(err["loc"]), _message(err)) from None
+        raise ConfigError(str(path), tuple(err["loc"]), error_message(err)) from None
 
 
 def _key_columns(df: pd.DataFrame) -> list[str]:

@@ -13,10 +13,7 @@ import numpy as np  # noqa: E402
 from needlecli.io.atomic import atomic_path  # noqa: E402
 from needlecli.io.results import Group  # noqa: E402
 from needlecli.metrics import ErrorSet, depth_axis  # noqa: E402
-from needlecli.registry import Registry  # noqa: E402
-
-#: plot functions ``(results, errors, path_stem) -> Path | None`` (None: not applicable to this file)
-PLOTS: Registry = Registry("plot")
+from needlecli.reports import PLOTS  # noqa: E402, F401  (the registry of plots; the plots register in it)
 
 
 def save_figure(fig, path: Path) -> Path:

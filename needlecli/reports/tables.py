@@ -16,10 +16,9 @@ import pandas as pd
 from needlecli.io.atomic import write_text_atomic
 from needlecli.io.results import Group
 from needlecli.metrics import ErrorSet
-from needlecli.registry import Registry
+from needlecli.reports import TABLES
 
 TableFn = Callable[[Group, dict[str, ErrorSet]], pd.DataFrame]
-TABLES: Registry[TableFn] = Registry("table")
 
 _QUANTITY_ORDER = ["E_xyz", "E_x", "E_y", "E_z", "E_alpha", "E_beta", "E_gamma", "E_R", "E_h", "E_B", "E_kappa"]
 

@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, ClassVar
 import numpy as np
 from pydantic import Field
 
+from needlecli.models.base import NotMeasurable, StateSelection
 from needlecli.numerics import wrap_angle
 from needlecli.registry import Registry
 from needlecli.schema import NonNeg, Positive, Probability, Strict
@@ -230,8 +231,13 @@ class Pipeline:
         return "*" in cls.supports or sensor_type in cls.supports
 
 
-SENSORS: Registry[type[Sensor]] = Registry("sensor type")
-PIPELINES: Registry[type[Pipeline]] = Registry("measurement pipeline")
+SENSORS: Registry[type[Sensor]] = Registry("sensor type", group="needlecli.sensors", builtins={
+    name: "needlecli.sensors.statistical" for name in ("position", "encoder", "elastography", "tangent", "bfield")
+})
+PIPELINES: Registry[type[Pipeline]] = Registry("measurement pipeline", group="needlecli.pipelines", builtins={
+    "gaussian": "needlecli.sensors.base",
+    "image": "needlecli.sensors.imaging.pipeline",
+})
 
 
 @PIPELINES.register("gaussian")
@@ -245,3 +251,17 @@ class GaussianPipeline(Pipeline):
         valid = np.ones(ideal.shape[:2], dtype=bool)
         return value, valid, np.ascontiguousarray(sigma)
 
+
+def measurement_function(sensor, model):
+    """``h`` of ``sensor`` for the state of ``model`` (which may be an observer's own), or None."""
+    if model is not sensor.model:
+        sensor = type(sensor)(sensor.settings, model)
+        if sensor.check_model():
+            return None
+    try:
+        with np.errstate(all="ignore"):
+            sensor.h(np.zeros((1, model.n)))
+    except NotMeasurable:
+        return None
+    sel = sensor.state_selection()
+    return sensor.h if sel is None else StateSelection(sel)

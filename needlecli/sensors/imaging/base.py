@@ -107,4 +107,8 @@ class Device:
         raise NotImplementedError
 
 
-DEVICES: Registry[type[Device]] = Registry("imaging device")
+DEVICES: Registry[type[Device]] = Registry("imaging device", builtins={
+    "us2d": "needlecli.sensors.imaging.ultrasound2d",
+    "us3d": "needlecli.sensors.imaging.ultrasound3d",
+    "camera": "needlecli.sensors.imaging.camera",
+})

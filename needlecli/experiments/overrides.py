@@ -1,0 +1,47 @@
+"""``--set key.path=value`` overrides of a config's keys (list entries by index), applied to the parsed
+YAML before the schema validates it."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import yaml
+
+from needlecli.errors import ConfigError
+
+
+def set_dotted(data: dict, dotted: str, value: Any, source: str) -> None:
+    """Apply one ``--set key.path=value`` override (list indices as numbers)."""
+    parts = dotted.split(".")
+    cur: Any = data
+    for i, part in enumerate(parts):
+        last = i == len(parts) - 1
+        key: Any = int(part) if part.isdigit() and isinstance(cur, list) else part
+        if isinstance(cur, list):
+            if not isinstance(key, int) or key >= len(cur):
+                raise ConfigError(source, tuple(parts[: i + 1]), "no such list entry to override")
+        elif not isinstance(cur, dict):
+            raise ConfigError(source, tuple(parts[:i]), "is not a mapping; cannot override below it")
+        if last:
+            cur[key] = value
+        else:
+            if isinstance(cur, dict) and key not in cur:
+                cur[key] = {}
+            cur = cur[key]
+
+
+def apply_overrides(data: dict, overrides: list[str] | None, source: str, *,
+                    runs: int | None = None, seed: int | None = None) -> bool:
+    """Apply ``key.path=value`` overrides (values read as YAML) and the ``--runs``/``--seed`` options to
+    ``data`` in place; returns whether anything was overridden."""
+    for ov in overrides or []:
+        if "=" not in ov:
+            raise ConfigError(source, (), f"override {ov!r} is not of the form key.path=value")
+        k, v = ov.split("=", 1)
+        set_dotted(data, k.strip(), yaml.safe_load(v), source)
+    for key, value in (("count", runs), ("seed", seed)):
+        if value is not None:
+            data.setdefault("runs", {})
+            if isinstance(data["runs"], dict):
+                data["runs"][key] = value
+    return bool(overrides) or runs is not None or seed is not None

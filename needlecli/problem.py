@@ -1,0 +1,72 @@
+"""What an observer or a fit is given: the :class:`EstimationProblem` (time grid, known inputs, the
+experiment's model) and its measurement channels (:class:`Channel`), each with the sensor's ``h``.
+
+The runner builds it from a simulation or from recorded logs (:mod:`needlecli.experiments.runner`);
+observers (:mod:`needlecli.observers`) and fits (:mod:`needlecli.fitting`) only read it, so that they
+know nothing about where measurements come from.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from needlecli.models import Model
+
+
+@dataclass(frozen=True)
+class Channel:
+    """One measurement stream as an observer sees it.
+
+    Attributes
+    ----------
+    name : sensor name
+    t : (M,) acquisition times, s; ``t_available`` (M,) when they can be used
+    index : (M,) index of ``t`` on the problem's time grid
+    value : (N, M, m), NaN where not ``valid`` (N, M)
+    h : ``h(x (..., n)) -> (..., m)`` for the experiment model's state, or None when the channel is not
+        a function of the state (e.g. encoder depth)
+    h_for : ``h_for(model)`` gives the same measurement function for another model (an observer's own),
+        or None where that model cannot predict the channel
+    sigma : (m,) the sensor's nominal noise std (observers may use their own R instead)
+    angle : (m,) bool, channels compared wrapped
+    """
+
+    name: str
+    sensor_type: str
+    t: np.ndarray
+    t_available: np.ndarray
+    index: np.ndarray
+    value: np.ndarray
+    valid: np.ndarray
+    names: tuple[str, ...]
+    units: tuple[str, ...]
+    sigma: np.ndarray
+    angle: np.ndarray
+    h: Callable[[np.ndarray], np.ndarray] | None
+    h_for: Callable[[Model], Callable[[np.ndarray], np.ndarray] | None] = lambda model: None
+    unit_vector: bool = False
+    attrs: Mapping = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class EstimationProblem:
+    """Everything an observer may use: no truth beyond what its settings allow for initialisation."""
+
+    time: np.ndarray  # (T,)
+    inputs: np.ndarray  # (N, T, m) known inputs, held over [t_k, t_k+1)
+    input_names: tuple[str, ...]
+    depth: np.ndarray  # (N, T) inserted length from the commanded insertion
+    channels: Mapping[str, Channel]
+    model: Model  # the experiment's model (the observer may use its own)
+    params: Mapping[str, np.ndarray]  # nominal model parameters from the config
+    interfaces: np.ndarray  # tissue interface depths known to the experiment
+    initial_truth: np.ndarray | None = None  # (N, n) only for observers configured to start from it
+    cov_stride: int = 1  # keep covariances every k-th step of the time grid
+    cov_layout: str = "full"  # "full" (..., n, n), "diag" (..., n) or "none"
+
+    @property
+    def n_runs(self) -> int:
+        return self.inputs.shape[0]

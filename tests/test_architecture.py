@@ -1,0 +1,156 @@
+"""The house rules, read from the source with ``ast``: no import cycle between needlecli's modules
+(imports inside functions count; ``if TYPE_CHECKING:`` blocks do not), dependencies between the
+packages point one way (the layers drawn in README's "Layout"), and ``needle --help`` loads no
+numerical library."""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+PKG = Path(__file__).resolve().parent.parent / "needlecli"
+
+#: each package (or top-level module) and the ones it may import: README's layer drawing, as data
+LAYERS: dict[str, set[str]] = {
+    "foundation": set(),  # errors, registry, schema, provenance, the package's __init__
+    "numerics": {"foundation"},
+    "models": {"numerics", "foundation"},
+    "problem": {"models", "numerics", "foundation"},
+    "sensors": {"models", "numerics", "foundation"},
+    "io": {"sensors", "models", "numerics", "foundation"},
+    "metrics": {"io", "models", "numerics", "foundation"},
+    "fitting": {"problem", "sensors", "io", "models", "numerics", "foundation"},
+    "observers": {"fitting", "problem", "sensors", "models", "numerics", "foundation"},
+    "control": {"sensors", "io", "models", "numerics", "foundation"},
+    "kernels": {"models", "numerics", "foundation"},
+    "reports": {"metrics", "io", "sensors", "models", "numerics", "foundation"},
+    "experiments": {"observers", "fitting", "control", "reports", "metrics", "problem", "sensors", "io", "models",
+                    "numerics", "foundation", "kernels"},
+    "cli": {"experiments", "observers", "fitting", "control", "reports", "metrics", "problem", "sensors", "io",
+            "models", "numerics", "foundation", "kernels"},
+}
+FOUNDATION = {"needlecli", "needlecli.errors", "needlecli.registry", "needlecli.schema", "needlecli.provenance"}
+
+
+def module_name(path: Path) -> str:
+    parts = path.relative_to(PKG.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _type_checking(node: ast.AST) -> bool:
+    return isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test)
+
+
+def imports_of(path: Path, modules: set[str]) -> set[str]:
+    """The needlecli modules ``path`` imports anywhere (TYPE_CHECKING blocks aside), with the packages
+    whose ``__init__`` an import runs."""
+    tree = ast.parse(path.read_text())
+    me = module_name(path)
+    package = me if path.name == "__init__.py" else me.rpartition(".")[0]
+    found: set[str] = set()
+
+    def visit(node: ast.AST) -> None:
+        if _type_checking(node):
+            return
+        if isinstance(node, ast.Import):
+            found.update(a.name for a in node.names if a.name.split(".")[0] == "needlecli")
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")[: len(package.split(".")) - node.level + 1]
+                name = ".".join(base + ([node.module] if node.module else []))
+            else:
+                name = node.module or ""
+            if name.split(".")[0] == "needlecli":
+                found.add(name)
+                found.update(f"{name}.{a.name}" for a in node.names if f"{name}.{a.name}" in modules)
+        for child in ast.iter_child_nodes(node):
+            visit(child)
+
+    visit(tree)
+    out = set()
+    for name in found:  # importing a.b.c runs a/__init__, a.b/__init__ too
+        parts = name.split(".")
+        out.update(".".join(parts[:i]) for i in range(1, len(parts) + 1))
+    ancestors = {".".join(me.split(".")[:i]) for i in range(1, len(me.split(".")))}  # already importing
+    return {m for m in out if m in modules and m != me and m not in ancestors}
+
+
+def graph() -> dict[str, set[str]]:
+    files = {module_name(p): p for p in PKG.rglob("*.py")}
+    mods = set(files)
+    return {m: imports_of(p, mods) for m, p in files.items()}
+
+
+def layer(module: str) -> str:
+    if module in FOUNDATION:
+        return "foundation"
+    if module == "needlecli.__main__":
+        return "cli"
+    return module.split(".")[1]
+
+
+def find_cycle(g: dict[str, set[str]]) -> list[str] | None:
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def dfs(m: str) -> list[str] | None:
+        state[m] = 1
+        stack.append(m)
+        for d in sorted(g.get(m, ())):
+            if state.get(d) == 1:
+                return stack[stack.index(d):] + [d]
+            if d not in state:
+                c = dfs(d)
+                if c:
+                    return c
+        stack.pop()
+        state[m] = 2
+        return None
+
+    for m in sorted(g):
+        if m not in state:
+            c = dfs(m)
+            if c:
+                return c
+    return None
+
+
+def test_the_checker_finds_a_cycle():
+    assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
+    assert find_cycle({"a": {"b"}, "b": set()}) is None
+
+
+def test_no_import_cycle():
+    cycle = find_cycle(graph())
+    assert cycle is None, "import cycle: " + " -> ".join(cycle)
+
+
+def test_every_package_has_a_layer():
+    assert {layer(m) for m in graph()} <= set(LAYERS)
+
+
+def test_layers_point_one_way():
+    assert find_cycle({k: set(v) - {k} for k, v in LAYERS.items()}) is None  # the drawing itself is a DAG
+    wrong = sorted(f"{m} -> {d}" for m, deps in graph().items() for d in deps
+                   if layer(d) != layer(m) and layer(d) not in LAYERS[layer(m)])
+    assert not wrong, "imports against the layers:\n" + "\n".join(wrong)
+
+
+HEAVY = ("numpy", "scipy", "pandas", "matplotlib", "cv2", "h5py", "numba", "dask", "pydantic", "yaml")
+
+
+@pytest.mark.parametrize("argv", [["--help"], ["--version"], ["simulate", "--help"], ["log", "--help"]])
+def test_help_loads_no_numerical_library(argv):
+    # a command's own help makes typer read its parameters, and typer's adapters import pydantic
+    heavy = set(HEAVY) - ({"pydantic"} if argv[0] != "--help" and argv[0] != "--version" else set())
+    code = ("import sys\nfrom needlecli.cli.app import run\n"
+            f"sys.argv = ['needle', *{argv!r}]\n"
+            "try:\n    run()\nexcept SystemExit:\n    pass\n"
+            "print(' '.join(sorted({m.split('.')[0] for m in sys.modules})))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    loaded = set(out.strip().splitlines()[-1].split())
+    assert not loaded & heavy, f"needle {' '.join(argv)} loads {sorted(loaded & heavy)}"

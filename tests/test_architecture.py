@@ -19,7 +19,7 @@ LAYERS: dict[str, set[str]] = {
     "foundation": set(),  # errors, registry, schema, provenance, the package's __init__
     "numerics": {"foundation"},
     "models": {"numerics", "foundation"},
-    "problem": {"models", "numerics", "foundation"},
+    "problem": {"models", "numerics", "foundation"},  # problem.py, initial.py
     "sensors": {"models", "numerics", "foundation"},
     "io": {"sensors", "models", "numerics", "foundation"},
     "metrics": {"io", "models", "numerics", "foundation"},
@@ -90,6 +90,8 @@ def layer(module: str) -> str:
         return "foundation"
     if module == "needlecli.__main__":
         return "cli"
+    if module == "needlecli.initial":  # where an estimate starts: part of what observers and fits are given
+        return "problem"
     return module.split(".")[1]
 
 

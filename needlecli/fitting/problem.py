@@ -11,6 +11,7 @@ import numpy as np
 
 from needlecli.fitting.settings import KalmanSetup
 from needlecli.fitting.statespace import DiscreteModel, MeasurementModel, make_ticks
+from needlecli.initial import check_initial_sensors, check_initial_states, initial_covariance, initial_mean
 from needlecli.models import MODELS, Model
 from needlecli.problem import EstimationProblem
 
@@ -46,19 +47,6 @@ def own_model(setup: KalmanSetup, experiment_model: Model, name: str | None = No
     base = experiment_model.params.model_dump() if cls is type(experiment_model) else {}
     base.update({k: v for k, v in setup.params.items() if k in cls.Params.model_fields})
     return cls(cls.Params(**base))
-
-
-def _component(problem: EstimationProblem, spec: str) -> tuple[np.ndarray, np.ndarray]:
-    """First valid sample ``(N,)`` of ``channel.component`` and whether a run has one."""
-    ch_name, comp = spec.rsplit(".", 1)
-    if ch_name not in problem.channels:
-        raise ValueError(f"no channel {ch_name!r}; channels: {', '.join(problem.channels)}")
-    ch = problem.channels[ch_name]
-    if comp not in ch.names:
-        raise ValueError(f"channel {ch_name!r} has no component {comp!r}; it has {', '.join(ch.names)}")
-    first = np.argmax(ch.valid, axis=1)
-    has = ch.valid.any(axis=1)
-    return ch.value[np.arange(ch.value.shape[0]), first, ch.names.index(comp)], has
 
 
 def build_system(
@@ -125,42 +113,9 @@ def build_system(
     else:
         q_index = tuple(range(dm.nx))
     Qc = np.diag([q.get(s, 0.0) ** 2 for s in dm.names])
-    m0 = initial_mean(problem, setup, model, dm, rng)
-    p0 = np.array([setup.p0.get(s, setup.init.std.get(s, 0.0) ** 2) for s in dm.names], dtype=float)
-    P0 = np.diag(np.maximum(p0, 1e-18))
+    m0 = initial_mean(setup.init, problem, model, model.param_arrays(), rng, augment=dm.augment)
+    P0 = initial_covariance(setup.init, dm.names, setup.p0, 1e-18)
     return System(dm, meas, m0, P0, Qc, R, floors, q_index)
-
-
-def initial_mean(problem, setup: KalmanSetup, model: Model, dm: DiscreteModel, rng=None) -> np.ndarray:
-    """``x0 (N, n)`` as ``setup.init`` says (augmented constants from ``values`` or the model's parameters)."""
-    N, n = problem.n_runs, dm.n
-    params = model.param_arrays()
-    x = np.broadcast_to(np.asarray(model.initial_state(params), dtype=float), (N, model.n)).copy()
-    init = setup.init
-    if init.from_ == "truth" and problem.initial_truth is not None:
-        for i, name in enumerate(model.state_names):
-            if name in problem.model.state_names:
-                x[:, i] = problem.initial_truth[:, problem.model.index(name)]
-    aug = np.stack([np.broadcast_to(params[a], (N,)) for a in dm.augment], -1) if dm.augment else np.zeros((N, 0))
-    z = np.concatenate([x, aug], -1)
-    for name, v in init.values.items():
-        if name in dm.names:
-            z[:, dm.names.index(name)] = v
-    for state, spec in init.first_measurement.items():
-        if state in dm.names:
-            vals, has = _component(problem, spec)
-            z[has, dm.names.index(state)] = vals[has]
-    std = np.array([init.std.get(s, 0.0) for s in dm.names])
-    if rng is not None and np.any(std > 0):
-        z = z + std * rng.standard_normal(z.shape)
-    ang = dm.angles
-    if ang.any():
-        from needlecli.numerics import wrap_angle
-
-        z[:, ang] = wrap_angle(z[:, ang])
-    if n != z.shape[1]:
-        raise AssertionError("state size")
-    return z
 
 
 def check_setup(setup: KalmanSetup, model_cls: type[Model], sensors: dict, augment: Sequence[str] = ()) -> list:
@@ -172,13 +127,13 @@ def check_setup(setup: KalmanSetup, model_cls: type[Model], sensors: dict, augme
             out.append((("augment",), f"model {model_cls.registered_name!r} has no parameter {a!r}"))
         elif a in model_cls.state_names:
             out.append((("augment",), f"{a!r} is already a state of model {model_cls.registered_name!r}"))
-    for where, keys in (("q", setup.q), ("p0", setup.p0), (("init", "std"), setup.init.std),
-                        (("init", "values"), setup.init.values), (("init", "first_measurement"), setup.init.first_measurement)):
+    hint = tuple(model_cls.Params.model_fields)
+    for where, keys in (("q", setup.q), ("p0", setup.p0)):
         for k in keys:
             if k not in names:
-                loc = (where, k) if isinstance(where, str) else (*where, k)
-                out.append((loc, f"model {model_cls.registered_name!r} has no state {k!r}"
-                            + (" (augment it to estimate a parameter)" if k in model_cls.Params.model_fields else "")))
+                out.append(((where, k), f"model {model_cls.registered_name!r} has no state {k!r}"
+                            + (" (augment it to estimate a parameter)" if k in hint else "")))
+    out += [(("init", *loc), msg) for loc, msg in check_initial_states(setup.init, names, model_cls.registered_name, hint)]
     for k in setup.params:
         if k not in model_cls.Params.model_fields:
             out.append((("params", k), f"model {model_cls.registered_name!r} has no parameter {k!r}"))
@@ -204,13 +159,7 @@ def check_channels(setup: KalmanSetup, model_cls: type[Model], sensors: dict) ->
         m = len(sensors[name].channel_names)
         if spec.sigma is not None and np.size(spec.sigma) not in (1, m):
             out.append((("measurements", name, "sigma"), f"has {np.size(spec.sigma)} entries for {m} components"))
-    for state, spec in setup.init.first_measurement.items():
-        ch, comp = spec.rsplit(".", 1)
-        if ch not in sensors:
-            out.append((("init", "first_measurement", state), f"no sensor named {ch!r}"))
-        elif comp not in sensors[ch].channel_names:
-            out.append((("init", "first_measurement", state),
-                        f"sensor {ch!r} has no component {comp!r}; it has {', '.join(sensors[ch].channel_names)}"))
+    out += [(("init", *loc), msg) for loc, msg in check_initial_sensors(setup.init, sensors)]
     return out
 
 

@@ -10,30 +10,19 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field
 
+from needlecli.initial import InitialEstimate
 from needlecli.schema import NonNeg, Positive, Strict
 
 
-class KalmanInit(Strict):
-    """Initial estimate. ``from: nominal`` starts from the model's default state with the config's
-    ``model.initial_state`` (what the experiment commands), ``from: truth`` from the true initial state
-    (simulations only); ``values`` then fix states (and augmented constants), ``first_measurement``
-    takes states from the first valid sample of a channel component (``{px: camera.x}``), and ``std``
-    adds Gaussian noise per state (observers only)."""
+class KalmanInit(InitialEstimate):
+    """Initial estimate of ``needle fit-em`` (:class:`~needlecli.initial.InitialEstimate`), from the nominal
+    state unless told otherwise: the model's default state with the config's ``model.initial_state``
+    (what the experiment commands); ``values`` and ``first_measurement`` may name augmented constants;
+    ``std`` gives the default P0 (no noise is drawn in a fit)."""
 
-    from_: Literal["truth", "nominal"] = Field("nominal", alias="from")
-    values: dict[str, float] = Field(default_factory=dict)
-    first_measurement: dict[str, str] = Field(default_factory=dict)
-    std: dict[str, NonNeg] = Field(default_factory=dict)
-
-    @field_validator("first_measurement")
-    @classmethod
-    def _spec(cls, v):
-        for state, spec in v.items():
-            if "." not in spec:
-                raise ValueError(f"{state}: {spec!r} is not of the form channel.component")
-        return v
+    from_: Literal["truth", "nominal"] = Field("nominal", alias="from", description=InitialEstimate.model_fields["from_"].description)
 
 
 class ChannelNoise(Strict):

@@ -22,8 +22,9 @@ import numpy as np
 from pydantic import Field
 
 from needlecli.fitting.problem import build_system, check_setup, own_model
-from needlecli.fitting.settings import KalmanInit, KalmanSetup
+from needlecli.fitting.settings import KalmanSetup
 from needlecli.fitting.smoother import ekf, eks, ieks
+from needlecli.initial import InitialEstimate
 from needlecli.models import MODELS
 from needlecli.observers.base import (
     OBSERVERS,
@@ -40,17 +41,10 @@ from needlecli.observers.base import (
 from needlecli.schema import Positive
 
 
-class ObserverInit(KalmanInit):
-    """As :class:`~needlecli.fitting.settings.KalmanInit`, starting from the truth unless told otherwise
-    (``from: nominal``), as the other observers do."""
-
-    from_: Literal["truth", "nominal"] = Field("truth", alias="from")
-
-
 class EKFSettings(ObserverSettings, KalmanSetup):
     type: Literal["ekf"]
     augment: list[str] = Field(default_factory=list, description="model parameters estimated as constant states")
-    init: ObserverInit = Field(default_factory=ObserverInit)
+    init: InitialEstimate = Field(default_factory=InitialEstimate, description="initial estimate (needlecli.initial)")
     joseph: bool = Field(True, description="Joseph-form covariance update")
     max_cov_trace: Positive = Field(1e8, description="a run whose tr(P) exceeds this has diverged")
 

@@ -12,6 +12,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
+from needlecli.initial import InitialEstimate, check_initial, initial_mean
 from needlecli.numerics import complex_step_jacobian
 from needlecli.observers.base import (
     OBSERVERS,
@@ -25,22 +26,19 @@ from needlecli.observers.base import (
     cov_steps,
     shrink_cov,
 )
-from needlecli.schema import NonNeg, Strict
+from needlecli.schema import NonNeg
 
 
-class Initial(Strict):
-    """Initial estimate: the truth's initial state (``from: truth``) or the config's nominal one
-    (``from: nominal``), plus Gaussian noise of the given std per state; ``P0`` is ``diag(std^2)``
-    plus ``p0_floor``."""
+class OpenLoopInit(InitialEstimate):
+    """Initial estimate (:class:`~needlecli.initial.InitialEstimate`); ``P0`` is ``diag(std^2)`` plus
+    ``p0_floor``."""
 
-    from_: Literal["truth", "nominal"] = Field("truth", alias="from")
-    std: dict[str, NonNeg] = Field(default_factory=dict)
-    p0_floor: NonNeg = 1e-12
+    p0_floor: NonNeg = Field(1e-12, description="added to every initial variance")
 
 
 class OpenLoopSettings(ObserverSettings):
     type: Literal["open_loop"]
-    init: Initial = Field(default_factory=Initial)
+    init: OpenLoopInit = Field(default_factory=OpenLoopInit, description="initial estimate (needlecli.initial)")
     params: dict[str, float] = Field(default_factory=dict, description="the observer's own model parameters")
     q: dict[str, NonNeg] = Field(default_factory=dict, description="process noise std per state, unit/sqrt(s)")
 
@@ -51,12 +49,10 @@ class OpenLoop(Observer):
 
     @classmethod
     def check(cls, settings, model, sensors):
-        out = []
-        for where, keys in (("init", settings.init.std), ("q", settings.q)):
-            for k in keys:
-                if k not in model.state_names:
-                    loc = (where, "std", k) if where == "init" else (where, k)
-                    out.append((loc, f"model {model.registered_name!r} has no state {k!r}"))
+        out = [(("init", *loc), msg) for loc, msg in check_initial(settings.init, model.state_names, model.registered_name, sensors)]
+        for k in settings.q:
+            if k not in model.state_names:
+                out.append((("q", k), f"model {model.registered_name!r} has no state {k!r}"))
         for k in settings.params:
             if k not in model.Params.model_fields:
                 out.append((("params", k), f"model {model.registered_name!r} has no parameter {k!r}"))
@@ -68,12 +64,8 @@ class OpenLoop(Observer):
         n_runs, T, n = problem.n_runs, len(problem.time), model.n
         params = {k: np.asarray(v, dtype=float) for k, v in problem.params.items()}
         params.update({k: np.asarray(v, dtype=float) for k, v in s.params.items()})
-        x = np.broadcast_to(model.initial_state(params), (n_runs, n)).astype(float)
-        if s.init.from_ == "truth" and problem.initial_truth is not None:
-            # where the truth is unknown (a replayed log without it) the nominal start stands
-            x = np.where(np.isfinite(problem.initial_truth), problem.initial_truth, x)
+        x = initial_mean(s.init, problem, model, params, rng)
         std = np.array([s.init.std.get(k, 0.0) for k in model.state_names])
-        x = model.normalize(x + std * rng.standard_normal(x.shape))
         P = np.broadcast_to(np.diag(std**2 + s.init.p0_floor), (n_runs, n, n)).copy()
         dt_all = np.diff(problem.time)
         qd = np.array([s.q.get(k, 0.0) for k in model.state_names]) ** 2

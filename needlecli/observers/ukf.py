@@ -28,6 +28,7 @@ import numpy as np
 from pydantic import Field, model_validator
 from scipy.stats import chi2
 
+from needlecli.initial import InitialEstimate, check_initial, initial_covariance, initial_mean
 from needlecli.models import MODELS, Model, StateSelection
 from needlecli.numerics import wrap_angle
 from needlecli.numerics.unscented import (
@@ -65,18 +66,6 @@ class MeasurementSpec(Strict):
     gate: Probability | None = Field(None, description="chi-square gate probability, e.g. 0.999; off if unset")
 
 
-class UKFInit(Strict):
-    """Initial estimate. ``from: truth`` starts from the true initial state plus Gaussian noise of
-    ``std`` per state (seed 003: alpha, beta with 5 deg std); ``from: nominal`` from the model's default
-    pose and the observer's parameters. ``first_measurement`` then overwrites states with the first valid
-    sample of a channel component (``{x: us3d.x, gamma: robot.roll}``)."""
-
-    from_: Literal["truth", "nominal"] = Field("truth", alias="from")
-    std: dict[str, NonNeg] = Field(default_factory=dict)
-    values: dict[str, float] = Field(default_factory=dict, description="fixed initial values per state")
-    first_measurement: dict[str, str] = Field(default_factory=dict)
-
-
 class KappaReset(Strict):
     """Reset of ``P_kappa_kappa`` to ``factor * P0_kappa_kappa`` when the tip crosses an interface."""
 
@@ -95,7 +84,7 @@ class UKFSettings(ObserverSettings):
     q: dict[str, NonNeg] = Field(default_factory=dict, description="process noise std per state per tick")
     p0: dict[str, NonNeg] = Field(default_factory=dict, description="initial variance per state")
     measurements: dict[str, MeasurementSpec] = Field(default_factory=dict)
-    init: UKFInit = Field(default_factory=UKFInit)
+    init: InitialEstimate = Field(default_factory=InitialEstimate, description="initial estimate (needlecli.initial)")
     kappa_max: Positive | None = Field(None, description="curvature constraint 0 <= kappa <= kappa_max")
     kappa_reset: KappaReset | None = None
     predict_at_depths: list[NonNeg] = Field(default_factory=list, description="observation depths for prediction")
@@ -106,13 +95,6 @@ class UKFSettings(ObserverSettings):
         if any(b <= a for a, b in zip(self.predict_at_depths, self.predict_at_depths[1:])):
             raise ValueError("predict_at_depths must increase strictly")
         return self
-
-
-def _component(spec: str) -> tuple[str, str]:
-    if "." not in spec:
-        raise ValueError(f"{spec!r} is not of the form channel.component")
-    ch, comp = spec.rsplit(".", 1)
-    return ch, comp
 
 
 @OBSERVERS.register("ukf")
@@ -137,14 +119,10 @@ class UnscentedKalmanFilter(Observer):
         if settings.model and settings.model not in MODELS:
             return [(("model",), f"unknown model {settings.model!r}; known: {', '.join(MODELS.names())}")]
         mcls = cls._model_cls(settings, model)
-        for where, keys in (("q", settings.q), ("p0", settings.p0), ("init", settings.init.std)):
+        for where, keys in (("q", settings.q), ("p0", settings.p0)):
             for k in keys:
                 if k not in mcls.state_names:
-                    loc = (where, k) if where != "init" else ("init", "std", k)
-                    out.append((loc, f"model {mcls.registered_name!r} has no state {k!r}"))
-        for k in settings.init.values:
-            if k not in mcls.state_names:
-                out.append((("init", "values", k), f"model {mcls.registered_name!r} has no state {k!r}"))
+                    out.append(((where, k), f"model {mcls.registered_name!r} has no state {k!r}"))
         for k in settings.params:
             if k not in mcls.Params.model_fields:
                 out.append((("params", k), f"model {mcls.registered_name!r} has no parameter {k!r}"))
@@ -161,16 +139,8 @@ class UnscentedKalmanFilter(Observer):
             elif measurement_function(sensors[name], own) is None:
                 out.append((("measurements", name),
                             f"model {mcls.registered_name!r} cannot predict what sensor {name!r} measures"))
-        for state, spec in settings.init.first_measurement.items():
-            if state not in mcls.state_names:
-                out.append((("init", "first_measurement", state), f"model {mcls.registered_name!r} has no state {state!r}"))
-            try:
-                ch, _ = _component(spec)
-            except ValueError as e:
-                out.append((("init", "first_measurement", state), str(e)))
-                continue
-            if ch not in sensors:
-                out.append((("init", "first_measurement", state), f"no sensor named {ch!r}"))
+        out += [(("init", *loc), msg) for loc, msg in
+                check_initial(settings.init, mcls.state_names, mcls.registered_name, sensors)]
         for k in mcls.input_names:
             if k not in model.input_names:
                 out.append((("model",), f"the filter's model needs input {k!r}, which the experiment does not give"))
@@ -434,32 +404,8 @@ class UnscentedKalmanFilter(Observer):
 
     def _initial(self, problem, model, params, rng, chans):
         s = self.settings
-        N, n = problem.n_runs, model.n
-        x = np.broadcast_to(np.asarray(model.initial_state(params), dtype=float), (N, n)).copy()
-        if s.init.from_ == "truth" and problem.initial_truth is not None:
-            for i, name in enumerate(model.state_names):
-                if name in problem.model.state_names:
-                    known = problem.initial_truth[:, problem.model.index(name)]
-                    x[:, i] = np.where(np.isfinite(known), known, x[:, i])  # unknown truth: nominal
-        for name, v in s.init.values.items():
-            x[:, model.index(name)] = v
-        std = np.array([s.init.std.get(k, 0.0) for k in model.state_names])
-        x = x + std * rng.standard_normal(x.shape)
-        for state, spec in s.init.first_measurement.items():
-            ch_name, comp = spec.rsplit(".", 1)
-            ch = problem.channels[ch_name]
-            if comp not in ch.names:
-                raise ValueError(f"channel {ch_name!r} has no component {comp!r}; it has {', '.join(ch.names)}")
-            valid = ch.valid
-            first = np.argmax(valid, axis=1)
-            has = valid.any(axis=1)
-            vals = ch.value[np.arange(N), first, ch.names.index(comp)]
-            x[has, model.index(state)] = vals[has]
-        ang = model.angle_mask
-        x[:, ang] = wrap_angle(x[:, ang])
-        x = model.normalize(x)
-        p0 = np.array([s.p0.get(k, s.init.std.get(k, 0.0) ** 2) for k in model.state_names])
-        return x, np.diag(np.maximum(p0, 1e-12))
+        x = initial_mean(s.init, problem, model, params, rng)
+        return x, initial_covariance(s.init, model.state_names, s.p0, 1e-12)
 
     def _interfaces(self, problem, N) -> np.ndarray:
         r = self.settings.kappa_reset

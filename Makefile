@@ -29,6 +29,7 @@ test:
 	$(PY) -m pytest
 
 bench:
+	$(PY) benchmarks/bench_startup.py
 	$(PY) benchmarks/bench_simulate.py
 	$(PY) benchmarks/bench_ukf.py
 	$(PY) benchmarks/bench_sweep.py

@@ -29,7 +29,16 @@ ENTRY_POINT_PREFIX = "needlecli."
 
 
 class PluginError(NeedleError):
-    """A component of an installed package (an entry point) that cannot be loaded."""
+    """A component of an installed package (an entry point) that cannot be loaded.
+
+    ``name`` is the component's name and ``registry`` what it is (``"observer type"``), so that a config
+    check can say which key names it.
+    """
+
+    def __init__(self, message: str, *, name: str = "", registry: str = "") -> None:
+        super().__init__(message)
+        self.name = name
+        self.registry = registry
 
 
 def _one_line(e: BaseException) -> str:
@@ -95,14 +104,15 @@ class Registry(Generic[T]):
         ep = self.plugins()[name]
         where = f"{self.what} {name!r} of package {self.origin(name)!r} (entry point {self.group}: {ep.value})"
         if name in self._builtins:
-            raise PluginError(f"{where}: the name is taken by needlecli's own {self.what}; rename the entry point")
+            raise PluginError(f"{where}: the name is taken by needlecli's own {self.what}; rename the entry point",
+                              name=name, registry=self.what)
         try:
             obj = ep.load()
         except Exception as e:  # noqa: BLE001 (any failure of somebody else's import is reported, not raised)
-            raise PluginError(f"{where} cannot be imported: {_one_line(e)}") from None
+            raise PluginError(f"{where} cannot be imported: {_one_line(e)}", name=name, registry=self.what) from None
         if name not in self._items:
             if isinstance(obj, type(importlib)):  # a module that registered other names, or none
-                raise PluginError(f"{where}: importing the module did not register {name!r}")
+                raise PluginError(f"{where}: importing the module did not register {name!r}", name=name, registry=self.what)
             self.register(name)(obj)
 
     # ---------------------------------------------------------------------------------- lookup

@@ -334,7 +334,7 @@ def test_dry_run_writes_nothing(work: Path, tmp_path: Path):
 
 
 def test_list_models():
-    result = invoke("list")
+    result = invoke("list", "--details")
     assert result.exit_code == 0, result.output
     for name in ("unicycle", "modified_unicycle", "so3", "mnm", "binm"):
         assert f"model {name}:" in result.stdout

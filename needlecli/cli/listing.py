@@ -1,25 +1,57 @@
-"""``needle list``: the registered models, sensors, pipelines, observers, controllers and tables."""
+"""``needle list``: the registered models, sensors, pipelines, observers, controllers, tables and plots,
+with the package that adds each one that is not needlecli's own (entry points)."""
 
 from __future__ import annotations
 
 import typer
 
 
-def list_components() -> None:
-    """List what configs can name."""
+def list_components(
+    details: bool = typer.Option(False, "--details", "-d", help="Also each model's states, inputs, parameters "
+                                 "and unit (imports the models)."),
+) -> None:
+    """List what configs can name (and which installed package adds a plug-in). Nothing is imported to
+    print the names; --details loads the models."""
     from needlecli.control import CONTROLLERS
     from needlecli.models import MODELS
     from needlecli.observers import OBSERVERS
-    from needlecli.reports import TABLES
+    from needlecli.reports import PLOTS, TABLES
     from needlecli.sensors import PIPELINES, SENSORS
 
-    for title, reg in (("models", MODELS), ("sensors", SENSORS), ("pipelines", PIPELINES),
-                       ("observers", OBSERVERS), ("controllers", CONTROLLERS), ("tables", TABLES)):
-        typer.echo(f"{title}: {', '.join(reg.names())}")
+    def named(reg, name: str) -> str:
+        origin = reg.origin(name)
+        return name if origin == "needlecli" else f"{name} ({origin})"
+
+    registries = (("models", MODELS), ("sensors", SENSORS), ("pipelines", PIPELINES), ("observers", OBSERVERS),
+                  ("controllers", CONTROLLERS), ("tables", TABLES), ("plots", PLOTS))
+    for title, reg in registries:
+        typer.echo(f"{title}: {', '.join(named(reg, n) for n in reg.names())}")
+    if not details:
+        return
     typer.echo("")
     for name in MODELS.names():
-        m = MODELS.get(name)
+        try:
+            m = MODELS.get(name)
+        except Exception as e:  # noqa: BLE001 (a broken plug-in is reported below, not raised)
+            typer.echo(f"model {name}: cannot be loaded ({e})", err=True)
+            continue
         typer.echo(
             f"model {name}: state ({', '.join(m.state_names)}); inputs ({', '.join(m.input_names)}); "
             f"params ({', '.join(m.Params.model_fields)}); unit {m.length_unit}"
         )
+    broken = [e for _, reg in registries if reg is not MODELS for e in _plugin_failures(reg)]
+    for e in broken:
+        typer.echo(f"warning: {e}", err=True)
+
+
+def _plugin_failures(reg) -> list:
+    """The plug-ins of ``reg`` that cannot be loaded (built-ins are not imported here)."""
+    from needlecli.registry import PluginError
+
+    out = []
+    for name in reg.plugins():
+        try:
+            reg.get(name)
+        except PluginError as e:
+            out.append(e)
+    return out

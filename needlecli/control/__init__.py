@@ -7,6 +7,26 @@ How the loop runs (sensor in the loop measured frame by frame, interleaved with 
 the experiment layer's :mod:`needlecli.experiments.closed_loop`; the contract is :class:`~needlecli.control.base.Controller`.
 """
 
-from needlecli.control.base import CONTROLLERS, Controller, ControllerSettings
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from needlecli.registry import Registry
+
+if TYPE_CHECKING:
+    from needlecli.control.base import Controller
+
+CONTROLLERS: Registry[type[Controller]] = Registry("controller type", group="needlecli.controllers", builtins={
+    "opacity_bz": "needlecli.control.opacity_bz",
+})
+
+
+def __getattr__(name: str):  # the contract, imported on first use (this package's import is light)
+    if name in ("Controller", "ControllerSettings"):
+        from needlecli.control import base
+
+        return getattr(base, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = ["CONTROLLERS", "Controller", "ControllerSettings"]

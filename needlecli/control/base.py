@@ -20,8 +20,8 @@ from typing import ClassVar
 import numpy as np
 from pydantic import Field
 
+from needlecli.control import CONTROLLERS  # noqa: F401  (the registry, at the package's front door)
 from needlecli.io.tree import Group
-from needlecli.registry import Registry
 from needlecli.schema import Strict
 
 
@@ -84,8 +84,3 @@ class Controller:
     def results(self, truth) -> Group:
         """What the controller did, for ``/control/<name>`` of the results file."""
         raise NotImplementedError
-
-
-CONTROLLERS: Registry[type[Controller]] = Registry("controller type", group="needlecli.controllers", builtins={
-    "opacity_bz": "needlecli.control.opacity_bz",
-})

@@ -23,6 +23,7 @@ from needlecli.experiments.schema import all_tags, experiment_schema, used_types
 from needlecli.io.yamlfile import parse_yaml
 from needlecli.models import MODELS, Model
 from needlecli.observers import OBSERVERS
+from needlecli.registry import PluginError
 from needlecli.schema import validation_error
 from needlecli.sensors import PIPELINES, SENSORS
 
@@ -52,7 +53,11 @@ def load_config(
             raise ConfigError(source, (), f"cannot read the file: {e}") from None
     data = copy.deepcopy(parse_yaml(text, source))
     changed = apply_overrides(data, overrides, source, runs=runs, seed=seed)
-    schema = experiment_schema(used_types(data))
+    types = used_types(data)
+    try:
+        schema = experiment_schema(types)
+    except PluginError as e:  # a plug-in the config names cannot be loaded: say where it is named
+        raise ConfigError(source, _named_at(data, e.name), str(e)) from None
     try:
         cfg = schema.model_validate(data)
     except ValidationError as e:
@@ -61,6 +66,17 @@ def load_config(
     if changed:
         text = yaml.safe_dump(data, sort_keys=False)
     return cfg, text
+
+
+def _named_at(data: dict, type_name: str) -> tuple:
+    """The key path of the first component entry of a parsed config whose ``type`` is ``type_name``."""
+    if isinstance(data.get("model"), dict) and data["model"].get("type") == type_name:
+        return ("model", "type")
+    for section in ("sensors", "observers", "control"):
+        for i, entry in enumerate(data.get(section) or []):
+            if isinstance(entry, dict) and entry.get("type") == type_name:
+                return (section, i, "type")
+    return ()
 
 
 def _depth_reachable(sig, depth: float) -> bool:

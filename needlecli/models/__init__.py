@@ -1,5 +1,37 @@
 """Kinematic needle models, registered by name in :data:`MODELS` (each imported on first use)."""
 
-from needlecli.models.base import MODELS, Model, ModelParams, NotMeasurable, Params, StateSelection
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from needlecli.registry import Registry
+
+if TYPE_CHECKING:
+    from needlecli.models.base import Model
+
+MODELS: Registry[type[Model]] = Registry("model", group="needlecli.models", builtins={
+    "unicycle": "needlecli.models.unicycle",
+    "modified_unicycle": "needlecli.models.unicycle",
+    "so3": "needlecli.models.so3",
+    "mnm": "needlecli.models.magnetic",
+    "binm": "needlecli.models.magnetic",
+})
+
+_LAZY = {  # the contract, imported on first use (this package's import is light: ``needle list``)
+    "Model": "needlecli.models.base",
+    "ModelParams": "needlecli.models.base",
+    "NotMeasurable": "needlecli.models.base",
+    "Params": "needlecli.models.base",
+    "StateSelection": "needlecli.models.base",
+}
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = ["MODELS", "Model", "ModelParams", "NotMeasurable", "Params", "StateSelection"]

@@ -17,8 +17,8 @@ from typing import ClassVar
 import numpy as np
 from pydantic import BaseModel, ConfigDict
 
+from needlecli.models import MODELS  # noqa: F401  (the registry, at the package's front door)
 from needlecli.numerics import complex_step_jacobian, rk4_step
-from needlecli.registry import Registry
 
 Params = Mapping[str, np.ndarray]
 
@@ -244,12 +244,3 @@ class Model:
 def _expand(p: Params) -> dict[str, np.ndarray]:
     """Add a perturbation axis to per-batch parameters for the complex-step Jacobian."""
     return {k: np.asarray(v)[..., None] if np.ndim(v) else v for k, v in p.items()}
-
-
-MODELS: Registry[type[Model]] = Registry("model", group="needlecli.models", builtins={
-    "unicycle": "needlecli.models.unicycle",
-    "modified_unicycle": "needlecli.models.unicycle",
-    "so3": "needlecli.models.so3",
-    "mnm": "needlecli.models.magnetic",
-    "binm": "needlecli.models.magnetic",
-})

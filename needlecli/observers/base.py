@@ -18,8 +18,8 @@ import numpy as np
 from pydantic import Field
 
 from needlecli.models import Model
+from needlecli.observers import OBSERVERS  # noqa: F401  (the registry, at the package's front door)
 from needlecli.problem import Channel, EstimationProblem  # noqa: F401  (part of the observer contract)
-from needlecli.registry import Registry
 from needlecli.schema import Strict
 
 STATUS_OK = "ok"
@@ -85,13 +85,3 @@ class Observer:
 
     def run(self, problem: EstimationProblem, rng: np.random.Generator, progress=None) -> Posterior:
         raise NotImplementedError
-
-
-OBSERVERS: Registry[type[Observer]] = Registry("observer type", group="needlecli.observers", builtins={
-    "open_loop": "needlecli.observers.open_loop",
-    "ukf": "needlecli.observers.ukf",
-    "high_gain": "needlecli.observers.high_gain",
-    "so3_invariant": "needlecli.observers.so3_invariant",
-    "ekf": "needlecli.observers.kalman",
-    "eks": "needlecli.observers.kalman",
-})

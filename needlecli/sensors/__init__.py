@@ -1,6 +1,37 @@
 """Emulated hardware. Sensor kinds in :data:`SENSORS`, measurement pipelines in :data:`PIPELINES`
 (each imported on first use)."""
 
-from needlecli.sensors.base import PIPELINES, SENSORS, MeasurementStream, Pipeline, Sensor, SensorSettings
+from __future__ import annotations
 
-__all__ = ["PIPELINES", "SENSORS", "MeasurementStream", "Pipeline", "Sensor", "SensorSettings"]
+from typing import TYPE_CHECKING
+
+from needlecli.registry import Registry
+
+if TYPE_CHECKING:
+    from needlecli.sensors.base import Pipeline, Sensor
+
+SENSORS: Registry[type[Sensor]] = Registry("sensor type", group="needlecli.sensors", builtins={
+    name: "needlecli.sensors.statistical" for name in ("position", "encoder", "elastography", "tangent", "bfield")
+})
+PIPELINES: Registry[type[Pipeline]] = Registry("measurement pipeline", group="needlecli.pipelines", builtins={
+    "gaussian": "needlecli.sensors.base",
+    "image": "needlecli.sensors.imaging.pipeline",
+})
+
+_LAZY = {  # the contract, imported on first use (this package's import is light: ``needle list``)
+    "MeasurementStream": "needlecli.sensors.base",
+    "Pipeline": "needlecli.sensors.base",
+    "Sensor": "needlecli.sensors.base",
+    "SensorSettings": "needlecli.sensors.base",
+}
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+__all__ = ["SENSORS", "PIPELINES", "MeasurementStream", "Pipeline", "Sensor", "SensorSettings"]

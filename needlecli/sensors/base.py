@@ -21,8 +21,8 @@ from pydantic import Field
 
 from needlecli.models.base import NotMeasurable, StateSelection
 from needlecli.numerics import wrap_angle
-from needlecli.registry import Registry
 from needlecli.schema import NonNeg, Positive, Probability, Strict
+from needlecli.sensors import PIPELINES, SENSORS  # noqa: F401  (the registries, at the package's front door)
 
 if TYPE_CHECKING:
     from needlecli.experiments.truth import Truth
@@ -231,13 +231,6 @@ class Pipeline:
         return "*" in cls.supports or sensor_type in cls.supports
 
 
-SENSORS: Registry[type[Sensor]] = Registry("sensor type", group="needlecli.sensors", builtins={
-    name: "needlecli.sensors.statistical" for name in ("position", "encoder", "elastography", "tangent", "bfield")
-})
-PIPELINES: Registry[type[Pipeline]] = Registry("measurement pipeline", group="needlecli.pipelines", builtins={
-    "gaussian": "needlecli.sensors.base",
-    "image": "needlecli.sensors.imaging.pipeline",
-})
 
 
 @PIPELINES.register("gaussian")

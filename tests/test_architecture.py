@@ -156,3 +156,31 @@ def test_help_loads_no_numerical_library(argv):
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     loaded = set(out.strip().splitlines()[-1].split())
     assert not loaded & heavy, f"needle {' '.join(argv)} loads {sorted(loaded & heavy)}"
+
+
+def test_builtin_tables_name_what_the_modules_register():
+    """Each registry's table of built-ins (name -> module) is what the modules register: importing every
+    module of needlecli registers nothing the table does not list, and each name where the table says."""
+    import importlib
+    import pkgutil
+
+    import needlecli
+    from needlecli.control import CONTROLLERS
+    from needlecli.models import MODELS
+    from needlecli.observers import OBSERVERS
+    from needlecli.reports import PLOTS, TABLES
+    from needlecli.sensors import PIPELINES, SENSORS
+    from needlecli.sensors.imaging.base import DEVICES
+
+    registries = (MODELS, SENSORS, PIPELINES, OBSERVERS, CONTROLLERS, TABLES, PLOTS, DEVICES)
+    for reg in registries:
+        for name in reg.builtin_names():
+            obj = reg.get(name)
+            assert getattr(obj, "__module__", "") == reg._builtins[name], (reg.what, name, obj.__module__)
+    for m in pkgutil.walk_packages(needlecli.__path__, "needlecli."):
+        if not m.name.endswith("__main__"):  # that one runs the command
+            importlib.import_module(m.name)
+    for reg in registries:
+        extra = set(reg._items) - set(reg.builtin_names()) - set(reg.plugins())
+        extra = {n for n in extra if not getattr(reg._items[n], "__module__", "").startswith(("tests", "test_"))}
+        assert not extra, f"{reg.what}: registered by a module but not in the table of built-ins: {sorted(extra)}"

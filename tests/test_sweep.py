@@ -164,7 +164,7 @@ def test_local_processes_and_dask_cluster_give_the_same_table(files, tmp_path):
 
 def test_dask_without_a_scheduler_reports_it(files, tmp_path, monkeypatch):
     pytest.importorskip("distributed", reason="needs dask[distributed]")
-    monkeypatch.setattr("needlecli.experiments.sweep.CONNECT_TIMEOUT", "1s")
+    monkeypatch.setattr("needlecli.experiments.sweep.execution.CONNECT_TIMEOUT", "1s")
     config, grid = files
     r = invoke("sweep", config, "--grid", grid, "--out", tmp_path / "o", "--executor", "dask",
                "--scheduler", "tcp://127.0.0.1:9", "--quiet")

@@ -256,3 +256,16 @@ def test_dask_not_installed_is_a_clear_error(files, tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "distributed", None)  # import distributed -> ImportError
     r = invoke("sweep", config, "--grid", grid, "--out", tmp_path / "o", "--executor", "dask", "--quiet")
     assert r.exit_code == 2 and "pip install 'needlecli[dask]'" in r.output, r.output
+
+
+def test_sweep_reports_do_not_import_the_experiment_layer():
+    """The table and plot read results files only: reports/sweep.py imports nothing from experiments or cli
+    (at the top or inside a function)."""
+    import ast
+
+    import needlecli.reports.sweep as reports_sweep
+
+    tree = ast.parse(Path(reports_sweep.__file__).read_text())
+    imported = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
+    imported |= {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+    assert imported and not {m for m in imported if m.startswith(("needlecli.experiments", "needlecli.cli"))}

@@ -94,12 +94,16 @@ def test_grid_axes_cells_and_random_samples_make_the_product():
 def test_seed_rule(files, tmp_path):
     config, _ = files
     g = Grid.model_validate({"seed": 11, "grid": {"observers.0.q.kappa": [1e-6, 2e-6]}})
-    cells = plan_sweep(config, g, out_dir=tmp_path / "out")
+    common = plan_sweep(config, g, out_dir=tmp_path / "out")  # common random numbers by default
+    assert [(c.seed, c.seed_from) for c in common] == [(11, "common"), (11, "common")]
+    assert {yaml.safe_load(c.config_text)["runs"]["seed"] for c in common} == {11}
+    unseeded = plan_sweep(config, Grid.model_validate({"grid": {"observers.0.q.kappa": [1e-6, 2e-6]}}),
+                          out_dir=tmp_path / "out")
+    assert {c.seed for c in unseeded} == {5}  # the sweep seed defaults to the config's runs.seed
+    cells = plan_sweep(config, g.model_copy(update={"seeds": "derived"}), out_dir=tmp_path / "out")
     assert [c.seed_from for c in cells] == ["derived", "derived"]
     assert cells[0].seed == derived_seed(11, {"observers.0.q.kappa": 1e-6}) != cells[1].seed
-    assert cells == plan_sweep(config, g, out_dir=tmp_path / "out")  # deterministic: ids, seeds, configs
-    common = plan_sweep(config, g.model_copy(update={"seeds": "common"}), out_dir=tmp_path / "out")
-    assert {c.seed for c in common} == {11}
+    assert cells == plan_sweep(config, g.model_copy(update={"seeds": "derived"}), out_dir=tmp_path / "out")
     explicit = plan_sweep(config, Grid.model_validate({"grid": {SEED_KEY: [4, 9]}}), out_dir=tmp_path / "out")
     assert [(c.seed, c.seed_from) for c in explicit] == [(4, "grid"), (9, "grid")]
     assert yaml.safe_load(explicit[1].config_text)["runs"]["seed"] == 9
@@ -269,3 +273,36 @@ def test_sweep_reports_do_not_import_the_experiment_layer():
     imported = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
     imported |= {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
     assert imported and not {m for m in imported if m.startswith(("needlecli.experiments", "needlecli.cli"))}
+
+
+# ---------------------------------------------------------------------------------------------- common random numbers
+#: TINY with an open loop that starts from the truth with 5 deg of noise on the angles: its errors come
+#: from the truth and its own draws only, never from the sensors
+TINY_OL = TINY.replace("  - {name: ol, type: open_loop}",
+                       "  - {name: ol, type: open_loop, init: {from: truth, std: {alpha: 0.0873, beta: 0.0873}}}")
+METRICS = ["E_xyz_mean", "E_xyz_std", "E_xyz_max", "E_alpha_mean", "E_beta_mean", "E_kappa_mean"]
+
+
+def test_cells_share_random_numbers_by_default(tmp_path):
+    """Changing only a sensor the open loop does not use leaves its errors unchanged, to the last digit:
+    every cell runs on the same seed, so the cells differ by their overrides alone."""
+    config = tmp_path / "tiny_ol.yaml"
+    config.write_text(TINY_OL)
+    grid = tmp_path / "us_sigma.yaml"
+    grid.write_text("grid: {sensors.0.sigma: [0.1, 0.6]}\n")  # us3d: the UKF's position sensor
+    r = invoke("sweep", config, "--grid", grid, "--out", tmp_path / "crn", "--executor", "inline", "--quiet")
+    assert r.exit_code == 0, r.output
+    t = table(tmp_path / "crn")
+    assert set(t[SEED_KEY]) == {5}  # the config's runs.seed, in every cell
+    ol, ukf = t[t["observer"] == "ol"], t[t["observer"] == "ukf"]
+    assert len(ol) == 2 and (ol["E_xyz_mean"] > 0.05).all()  # an error to compare, not zero
+    assert (ol[METRICS].iloc[0] == ol[METRICS].iloc[1]).all()
+    assert ukf["E_xyz_mean"].iloc[0] != ukf["E_xyz_mean"].iloc[1]  # the UKF does see the sensor
+
+    # asked for, derived seeds give each cell its own noise: the open loop's errors then move with luck
+    grid.write_text("seeds: derived\ngrid: {sensors.0.sigma: [0.1, 0.6]}\n")
+    r = invoke("sweep", config, "--grid", grid, "--out", tmp_path / "derived", "--executor", "inline", "--quiet")
+    assert r.exit_code == 0, r.output
+    t = table(tmp_path / "derived")
+    ol = t[t["observer"] == "ol"]
+    assert t[SEED_KEY].nunique() == 2 and ol["E_xyz_mean"].iloc[0] != ol["E_xyz_mean"].iloc[1]

@@ -144,8 +144,9 @@ class Grid(Strict):
 
     description: str = ""
     seed: int | None = Field(None, ge=0, description="sweep seed (default: the config's runs.seed)")
-    seeds: Literal["derived", "common"] = Field(
-        "derived", description="seed of cells that do not set runs.seed: derived per cell, or the sweep seed")
+    seeds: Literal["common", "derived"] = Field(
+        "common", description="seed of cells that do not set runs.seed: the sweep seed (common random numbers), "
+        "or one derived per cell from its overrides")
     fixed: dict[str, Any] = Field(default_factory=dict, description="overrides applied to every cell")
     grid: dict[str, Any] = Field(default_factory=dict, description="axes: key -> values (cartesian product)")
     cells: list[dict[str, Any]] = Field(default_factory=list, description="explicit cells: key -> value each")

@@ -1,16 +1,19 @@
 """Planning a sweep: every cell's overrides, seed, config (validated), hash, id and results path, all
 made before anything runs.
 
-Seeds (``runs.seed`` of a cell):
+Seeds (``runs.seed`` of a cell). A sweep compares parameters, not luck: by default every cell draws the
+same random numbers, and replicates are an explicit axis of seeds.
 
 * a cell whose overrides set ``runs.seed`` (an axis ``runs.seed: range(10)``, a cell entry or ``fixed``)
-  keeps it as given;
-* otherwise, with ``seeds: derived`` (the default), ``seed = int(sha256("<sweep seed>:<overrides>")[:8],
+  keeps it as given: with a seed axis, every combination of the other parameters runs on the same seeds,
+  and the table and plot summarise over them (mean, std across seeds);
+* otherwise, with ``seeds: common`` (the default), the cell uses the sweep seed: the grid's ``seed``,
+  default the config's ``runs.seed`` (common random numbers: every cell sees the same insertions and the
+  same noise draws of each component, so the differences between cells come from the overrides alone);
+* with ``seeds: derived`` (asked for explicitly) ``seed = int(sha256("<sweep seed>:<overrides>")[:8],
   16) mod 2**31``, where ``<overrides>`` is the cell's varying overrides (not ``fixed``) as JSON with sorted
-  keys and the sweep seed is the grid's ``seed`` (default: the config's ``runs.seed``). Two cells with
-  different overrides thus draw different noise, and the same cell gets the same seed in every sweep;
-* with ``seeds: common`` every such cell uses the sweep seed itself (common random numbers: the cells see
-  the same insertions and noise, so their differences come from the overrides alone).
+  keys: the cells draw different noise (their differences include luck), and the same cell gets the same
+  seed in every sweep.
 
 A cell's id is the first 10 hex digits of the sha256 of its overrides (with the seed) as JSON with sorted
 keys; its config hash the sha256 of the overridden config, the same way (what ``resume`` compares).

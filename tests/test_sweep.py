@@ -306,3 +306,80 @@ def test_cells_share_random_numbers_by_default(tmp_path):
     t = table(tmp_path / "derived")
     ol = t[t["observer"] == "ol"]
     assert t[SEED_KEY].nunique() == 2 and ol["E_xyz_mean"].iloc[0] != ol["E_xyz_mean"].iloc[1]
+
+
+def test_plot_has_error_bars_over_replicate_seeds_and_the_parameter_with_its_unit(tmp_path):
+    from needlecli.reports.sweep import sweep_figure
+
+    config = tmp_path / "tiny_ol.yaml"
+    config.write_text(TINY_OL)
+    grid = Grid.model_validate({"description": "q_kappa", "fixed": {"runs.count": 1},
+                                "grid": {"observers.0.q.kappa": [1e-6, 8e-6], SEED_KEY: "range(3)"}})
+    res = run_sweep(plan_sweep(config, grid, out_dir=tmp_path / "o"), out_dir=tmp_path / "o", executor="inline")
+    assert res.failed == 0
+    fig = sweep_figure(res.table, metric="E_xyz_mean", param="observers.0.q.kappa", units=res.units, title="q_kappa")
+    ax = fig.axes[0]
+    assert ax.get_xlabel() == "ukf: q.kappa (process noise std per state per tick) [1/mm]"
+    assert ax.get_ylabel() == "E_xyz, mean over runs and time steps [mm]"
+    assert "mean over 3 seeds" in ax.get_title() and "the same seeds at every point" in ax.get_title()
+    csv = pd.read_csv(tmp_path / "o" / "sweep.csv")
+    drawn = {c.get_label(): c for c in ax.containers}
+    assert sorted(drawn) == ["ol", "ukf"]
+    for obs, c in drawn.items():
+        expected = csv[csv["observer"] == obs].groupby("observers.0.q.kappa")["E_xyz_mean"]
+        x, y = c.lines[0].get_data()
+        assert list(x) == pytest.approx([1e-6, 8e-6]) and list(y) == pytest.approx(list(expected.mean()))
+        half = [(seg[1, 1] - seg[0, 1]) / 2 for seg in c.lines[2][0].get_segments()]
+        assert half == pytest.approx(list(expected.std(ddof=1)))  # +-1 std across the 3 seeds
+        assert min(half) > 0
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+    md = (tmp_path / "o" / "sweep.md").read_text()
+    assert "`observers.0.q.kappa`: ukf: q.kappa (process noise std per state per tick) [1/mm]" in md
+
+
+PARAM_UNITS = {
+    "observers.0.q.kappa": ("ukf: q.kappa", "1/mm"),
+    "observers.0.p0.alpha": ("ukf: p0.alpha", "rad^2"),
+    "observers.0.init.std.alpha": ("ukf: init.std.alpha", "rad"),
+    "observers.0.measurements.us3d.sigma": ("ukf: measurements.us3d.sigma", "mm"),
+    "observers.1.q.x": ("ol: q.x", "mm/sqrt(s)"),
+    "sensors.0.sigma": ("us3d: sigma", "mm"),
+    "sensors.1.sigma": ("robot: sigma", "rad"),
+    "sensors.2.sigma": ("swe: sigma", "1/mm"),
+    "sensors.0.rate": ("us3d: rate", "Hz"),
+    "sensors.0.dropout": ("us3d: dropout", ""),
+    "model.params.kappa": ("model.params.kappa", "1/mm"),
+    "model.param_std.kappa": ("model.param_std.kappa", "1/mm"),
+    "process_noise.std.kappa": ("process_noise.std.kappa", "(1/mm)/sqrt(s)"),
+    "inputs.v": ("inputs.v", "mm/s"),
+    "stop.depth": ("stop.depth", "mm"),
+    "simulation.dt": ("simulation.dt", "s"),
+    "runs.count": ("runs.count", ""),
+}
+
+
+def test_swept_keys_are_named_with_their_units(files, tmp_path):
+    """Units from the schema's descriptions or the model (states, parameters, inputs, the sensors'
+    channels), checked against the models' own unit attributes."""
+    from needlecli.experiments.config import load_config
+    from needlecli.experiments.sweep.describe import describe_key
+    from needlecli.models import MODELS
+
+    config, _ = files
+    values = {"observers.0.measurements.us3d.sigma": 0.3, "inputs.v": 1.0, "runs.count": 1, "stop.depth": 2.0,
+              "simulation.dt": 0.02, "sensors.0.rate": 2.0, "sensors.0.dropout": 0.0}
+    cell = {k: values.get(k, 1e-3) for k in PARAM_UNITS}
+    (c,) = plan_sweep(config, Grid.model_validate({"cells": [cell]}), out_dir=tmp_path)
+    assert {k: (v["name"], v["unit"]) for k, v in c.param_info.items() if k != SEED_KEY} == PARAM_UNITS
+    model = MODELS.get("modified_unicycle")
+    assert PARAM_UNITS["observers.0.q.kappa"][1] == model.state_units[model.state_names.index("kappa")]
+    assert PARAM_UNITS["inputs.v"][1] == model.input_units["v"]
+
+    root = Path(__file__).resolve().parents[1]
+    cfg, _ = load_config(root / "configs/seed004/t2prelim.yaml")  # a model in metres
+    mnm = MODELS.get(cfg.model.type)
+    assert mnm.length_unit == "m"
+    assert describe_key(cfg, "stop.depth")["unit"] == "m" and describe_key(cfg, "sensors.0.sigma")["unit"] == "m"
+    assert describe_key(cfg, "model.params.c")["unit"] == "1/m"

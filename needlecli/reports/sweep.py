@@ -30,8 +30,10 @@ class CellLike(Protocol):
     index: int
     id: str
     overrides: dict
+    seed: int
     observers: tuple[str, ...]
     n_runs: int
+    param_info: dict  # {key: {name, description, unit}} of its override keys
 
 
 class OutcomeLike(Protocol):
@@ -107,12 +109,20 @@ def cell_metrics(path: str | Path) -> list[dict]:
     return rows
 
 
-
 # ---------------------------------------------------------------------------------------------- the table
 def param_columns(cells: Sequence[CellLike]) -> list[str]:
     """The override keys of a sweep, in first-seen order (``runs.seed`` last)."""
     keys = list(dict.fromkeys(k for c in cells for k in c.overrides))
     return [k for k in keys if k != SEED_KEY] + [SEED_KEY]
+
+
+def param_info(cells: Sequence[CellLike]) -> dict[str, dict[str, str]]:
+    """What each swept key is (name, description, unit), as the first cell that sets it says."""
+    out: dict[str, dict[str, str]] = {}
+    for c in cells:
+        for k, v in getattr(c, "param_info", {}).items():
+            out.setdefault(k, dict(v))
+    return out
 
 
 def _cell_value(v: Any) -> Any:
@@ -126,6 +136,8 @@ def sweep_table(cells: Sequence[CellLike], outcomes: Mapping[str, OutcomeLike]) 
     for c in sorted(cells, key=lambda c: c.index):
         out = outcomes.get(c.id)
         base = {"cell": c.id, **{k: _cell_value(c.overrides.get(k)) for k in params}}
+        if base[SEED_KEY] is None:  # the seed came from fixed (or --set): the table still says which
+            base[SEED_KEY] = c.seed
         status = "not run" if out is None else "ok" if out.status in ("ok", "skipped") else out.status
         seconds = out.seconds if out is not None else 0.0
         if out is not None and out.rows:
@@ -147,6 +159,7 @@ def sweep_table(cells: Sequence[CellLike], outcomes: Mapping[str, OutcomeLike]) 
     df = df[[*lead, *metrics, *tail]]
     df["failures"] = df["failures"].fillna("")
     df.attrs["params"] = params
+    df.attrs["param_info"] = param_info(cells)
     return df, units
 
 
@@ -184,8 +197,11 @@ def write_sweep_table(df: pd.DataFrame, out_dir: Path, units: dict[str, str]) ->
     """``DIR/sweep.{csv,md}``, and ``DIR/sweep_over_seeds.{csv,md}`` when runs.seed is a sweep axis."""
     unit_text = ", ".join(f"{q} in {u}" for q, u in units.items())
     units_note = f" ({unit_text})" if unit_text else ""
-    caption = ("Sweep: one row per cell and observer; mean / std / max of each error over the kept runs and all "
-               "time steps" + units_note + ".")
+    info = df.attrs.get("param_info", {})
+    swept = "; ".join(f"`{k}`: {axis_label(k, info.get(k))}" for k in df.attrs.get("params", []) if k != SEED_KEY)
+    caption = ("Sweep: one row per cell and observer" + (f"; parameters {swept}" if swept else "") +
+               f"; `{SEED_KEY}` the cell's seed (cells with the same seed share every random stream: common random "
+               "numbers); mean / std / max of each error over the kept runs and all time steps" + units_note + ".")
     paths = write_table(df, out_dir / "sweep", ["csv", "md"], caption=caption)
     summary = seed_summary(df)
     if summary is not None:
@@ -213,11 +229,18 @@ def default_plot_choice(df: pd.DataFrame, metric: str | None, param: str | None)
     return metric, param
 
 
-def plot_sweep(df: pd.DataFrame, *, metric: str, param: str, path: str | Path, units: dict[str, str] | None = None,
-               title: str = "") -> Path:
-    """``metric`` against ``param``, one line per observer and combination of the other parameters; the
-    mean over seeds with their std as error bars when several cells differ only in ``runs.seed``."""
-    from needlecli.reports.plots import plt, save_figure
+def axis_label(key: str, info: Mapping[str, str] | None) -> str:
+    """A parameter as an axis shows it: its name, description and unit, e.g. ``ukf: q.kappa (process noise
+    std per state per tick) [1/mm]``; the key itself where nothing is known of it."""
+    info = info or {}
+    desc, unit = info.get("description", ""), info.get("unit", "")
+    return (info.get("name") or key) + (f" ({desc})" if desc else "") + (f" [{unit}]" if unit else "")
+
+
+def sweep_figure(df: pd.DataFrame, *, metric: str, param: str, units: Mapping[str, str] | None = None,
+                 title: str = ""):
+    """The figure of :func:`plot_sweep` (returned open, for tests and callers that add to it)."""
+    from needlecli.reports.plots import plt
 
     if metric not in df.columns:
         known = [c for c in df.columns if c.endswith(("_mean", "_std", "_max"))]
@@ -225,40 +248,80 @@ def plot_sweep(df: pd.DataFrame, *, metric: str, param: str, path: str | Path, u
     params = df.attrs.get("params", [])
     if param not in params:
         raise SweepError(f"--plot-param: {param!r} is not a swept parameter; parameters: {', '.join(params)}")
+    info = df.attrs.get("param_info", {})
     ok = df[df["status"] == "ok"]
     others = [k for k in params if k not in (param, SEED_KEY)]
     groups = ["observer", *others]
-    fig, ax = plt.subplots(figsize=(7, 4.2))
+    fig, ax = plt.subplots(figsize=(7.5, 4.6))
     xs_all = pd.to_numeric(ok[param], errors="coerce")
     numeric = bool(len(ok)) and xs_all.notna().all()
     cats = list(dict.fromkeys(ok[param])) if not numeric else None
-    seeds_axis = False
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    observers = list(dict.fromkeys(ok["observer"]))
+    combos: list[tuple] = []
+    counts: list[int] = []
+    seed_sets: set[frozenset] = set()
     for key, g in ok.groupby(groups, dropna=False, sort=True):
         key = key if isinstance(key, tuple) else (key,)
-        agg = g.groupby(param, sort=True)[metric].agg(["mean", "std", "count"])
-        seeds_axis |= bool((agg["count"] > 1).any())
+        by_x = g.groupby(param, sort=True)
+        agg = by_x[metric].agg(["mean", "std", "count"])
+        counts += agg["count"].tolist()
+        seed_sets |= {frozenset(s) for s in by_x[SEED_KEY].agg(lambda v: tuple(v.dropna()))}
         x = agg.index.to_numpy()
         if not numeric:
             x = np.array([cats.index(v) for v in x])
-        label = ", ".join([str(key[0])] + [f"{k} = {format_value(v)}" for k, v in zip(others, key[1:])])
-        ax.errorbar(x, agg["mean"], yerr=agg["std"].fillna(0.0) if (agg["count"] > 1).any() else None,
-                    marker="o", capsize=3, label=label)
+        if key[1:] not in combos:
+            combos.append(key[1:])
+        k = combos.index(key[1:])
+        label = ", ".join([str(key[0])] + [f"{info.get(o, {}).get('name') or o} = {format_value(v)}"
+                                            for o, v in zip(others, key[1:])])
+        replicated = bool((agg["count"] > 1).any())
+        ax.errorbar(x, agg["mean"], yerr=agg["std"].where(agg["count"] > 1) if replicated else None,
+                    color=colours[observers.index(key[0]) % len(colours)], marker="osD^v<>ph"[k % 9],
+                    linestyle=["-", "--", ":", "-."][k % 4], capsize=3, label=label)
     if numeric and len(xs_all) and (xs_all > 0).all() and xs_all.max() / xs_all.min() >= 20:
         ax.set_xscale("log")
     if cats is not None:
         ax.set_xticks(range(len(cats)), [str(c) for c in cats])
-    q = metric.rsplit("_", 1)[0]
+    q, _, stat = metric.rpartition("_")
     unit = (units or {}).get(q, "")
-    ax.set_xlabel(param)
-    ax.set_ylabel(f"{metric}" + (f" [{unit}]" if unit else ""))
+    ax.set_xlabel(axis_label(param, info.get(param)))
+    ylabel = f"{q}, {stat} over runs and time steps" if stat in ("mean", "std", "max") and q else metric
+    ax.set_ylabel(ylabel + (f" [{unit}]" if unit else ""))
     ax.grid(alpha=0.3)
     if len(ax.get_legend_handles_labels()[0]):
         ax.legend(fontsize="small")
-    note = "mean and std over seeds" if seeds_axis else "one cell per point"
-    ax.set_title((title + ": " if title else "") + f"{metric} against {param} ({note})", fontsize="medium")
+    ax.set_title(("\n".join(filter(None, [title, f"{metric} against {info.get(param, {}).get('name') or param}"]))
+                  + "\n" + _seed_note(counts, seed_sets)), fontsize="medium")
+    return fig
+
+
+def _seed_note(counts: list[int], seed_sets: set[frozenset]) -> str:
+    """What a point and its error bar are: over how many seeds, and whether every point has the same."""
+    same = len(seed_sets) == 1
+    if not counts:
+        return "no cell succeeded"
+    lo, hi = min(counts), max(counts)
+    if hi > 1:
+        n = f"{lo}" if lo == hi else f"{lo} to {hi}"
+        return (f"points: mean over {n} seeds (runs.seed), bars: \u00b11 std across them; "
+                + ("the same seeds at every point" if same else "the seeds differ between points"))
+    if same:
+        seed = next(iter(next(iter(seed_sets))), None)
+        return f"one seed per point ({format_value(seed)}), the same at every point; no replicates"
+    return "one seed per point, not the same at every point: the points differ in their noise too"
+
+
+def plot_sweep(df: pd.DataFrame, *, metric: str, param: str, path: str | Path, units: dict[str, str] | None = None,
+               title: str = "") -> Path:
+    """``metric`` against ``param``, one colour per observer and one line per observer and combination of
+    the other parameters; with replicate seeds (cells that differ only in ``runs.seed``) each point is the
+    mean over them and its error bar their std. The x axis names the parameter with its unit; the title
+    says over which seeds the points are taken."""
+    from needlecli.reports.plots import save_figure
+
+    fig = sweep_figure(df, metric=metric, param=param, units=units, title=title)
     return save_figure(fig, Path(path))
-
-
 
 
 def plot_name(metric: str, param: str) -> str:

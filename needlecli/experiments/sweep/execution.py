@@ -31,7 +31,7 @@ import yaml
 from needlecli.errors import SweepError
 from needlecli.experiments.sweep.plan import Cell, config_hash
 from needlecli.io.atomic import write_text_atomic
-from needlecli.reports.sweep import cell_metrics, sweep_table, write_sweep_table
+from needlecli.reports.sweep import cell_metrics, param_info, sweep_table, write_sweep_table
 
 CONNECT_TIMEOUT = "10s"  # to reach a Dask scheduler
 #: environment variables that size the thread pools of BLAS / OpenMP in a worker process
@@ -293,7 +293,8 @@ def run_sweep(
     out_dir = Path(out_dir)
     (out_dir / "cells").mkdir(parents=True, exist_ok=True)
     doc = {"cells": [{"index": c.index, "id": c.id, "overrides": c.overrides, "seed": c.seed,
-                      "seed_from": c.seed_from, "config_hash": c.config_hash} for c in cells], **(manifest or {})}
+                      "seed_from": c.seed_from, "config_hash": c.config_hash} for c in cells],
+           "params": param_info(cells), **(manifest or {})}
     write_text_atomic(out_dir / "sweep.json", json.dumps(doc, indent=1, default=str) + "\n")
     outcomes: dict[str, CellOutcome] = {}
     todo = []

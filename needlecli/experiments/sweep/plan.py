@@ -24,13 +24,14 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import yaml
 
 from needlecli.errors import ConfigError, NeedleError, SweepError
+from needlecli.experiments.sweep.describe import describe_key
 from needlecli.experiments.sweep.grid import Grid, grid_overrides
 from needlecli.reports.sweep import SEED_KEY, format_value
 
@@ -72,10 +73,18 @@ class Cell:
     n_runs: int
     path: str  # DIR/cells/<id>.h5 (absolute)
     base_dir: str
+    #: what each override key is: {key: {name, description, unit}} (:func:`.describe.describe_key`)
+    param_info: dict = field(default_factory=dict)
 
     def label(self) -> str:
         return ", ".join(f"{k} = {format_value(v)}" for k, v in self.overrides.items()) or "(no overrides)"
 
+
+def _describe(cfg, key: str) -> dict[str, str]:
+    try:
+        return describe_key(cfg, key)
+    except Exception:  # noqa: BLE001 (a label must not stop a sweep: the key as it was given, no unit)
+        return {"name": key, "description": "", "unit": ""}
 
 
 def _n_runs(cfg) -> int:
@@ -154,6 +163,7 @@ def plan_sweep(
             config_source=str(config.resolve()), config_text=cell_text, config_hash=h,
             observers=tuple(o.name or o.type for o in cfg.observers), n_runs=_n_runs(cfg),
             path=str(cells_dir / f"{cid}.h5"), base_dir=str(config.resolve().parent),
+            param_info={k: _describe(cfg, k) for k in ov},
         ))
     return cells
 

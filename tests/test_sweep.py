@@ -321,7 +321,7 @@ def test_plot_has_error_bars_over_replicate_seeds_and_the_parameter_with_its_uni
     ax = fig.axes[0]
     assert ax.get_xlabel() == "ukf: q.kappa (process noise std per state per tick) [1/mm]"
     assert ax.get_ylabel() == "E_xyz, mean over runs and time steps [mm]"
-    assert "mean over 3 seeds" in ax.get_title() and "the same seeds at every point" in ax.get_title()
+    assert "mean over 3 seeds, bars: \u00b11 std" in ax.get_title() and "the same seeds at every point" in ax.get_title()
     csv = pd.read_csv(tmp_path / "o" / "sweep.csv")
     drawn = {c.get_label(): c for c in ax.containers}
     assert sorted(drawn) == ["ol", "ukf"]

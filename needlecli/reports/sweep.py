@@ -273,8 +273,7 @@ def sweep_figure(df: pd.DataFrame, *, metric: str, param: str, units: Mapping[st
         if key[1:] not in combos:
             combos.append(key[1:])
         k = combos.index(key[1:])
-        label = ", ".join([str(key[0])] + [f"{info.get(o, {}).get('name') or o} = {format_value(v)}"
-                                            for o, v in zip(others, key[1:])])
+        label = ", ".join([str(key[0])] + [_legend_entry(o, v, info.get(o)) for o, v in zip(others, key[1:])])
         replicated = bool((agg["count"] > 1).any())
         ax.errorbar(x, agg["mean"], yerr=agg["std"].where(agg["count"] > 1) if replicated else None,
                     color=colours[observers.index(key[0]) % len(colours)], marker="osD^v<>ph"[k % 9],
@@ -296,6 +295,13 @@ def sweep_figure(df: pd.DataFrame, *, metric: str, param: str, units: Mapping[st
     return fig
 
 
+def _legend_entry(key: str, value: Any, info: Mapping[str, str] | None) -> str:
+    """``us3d: rate = 2 Hz``: a parameter's name, value and unit."""
+    info = info or {}
+    unit = info.get("unit", "")
+    return f"{info.get('name') or key} = {format_value(value)}" + (f" {unit}" if unit else "")
+
+
 def _seed_note(counts: list[int], seed_sets: set[frozenset]) -> str:
     """What a point and its error bar are: over how many seeds, and whether every point has the same."""
     same = len(seed_sets) == 1
@@ -304,7 +310,7 @@ def _seed_note(counts: list[int], seed_sets: set[frozenset]) -> str:
     lo, hi = min(counts), max(counts)
     if hi > 1:
         n = f"{lo}" if lo == hi else f"{lo} to {hi}"
-        return (f"points: mean over {n} seeds (runs.seed), bars: \u00b11 std across them; "
+        return (f"points: mean over {n} seeds, bars: \u00b11 std; "
                 + ("the same seeds at every point" if same else "the seeds differ between points"))
     if same:
         seed = next(iter(next(iter(seed_sets))), None)

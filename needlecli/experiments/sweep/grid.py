@@ -116,10 +116,10 @@ class Distribution(Strict):
 
 class RandomSamples(Strict):
     """``count`` random cells, each parameter drawn independently (numpy's PCG64 seeded by ``seed``,
-    default: the sweep seed)."""
+    default: the grid's ``seed``, else 0, whatever the config's runs.seed)."""
 
     count: int = Field(ge=1, le=MAX_CELLS)
-    seed: int | None = Field(None, ge=0, description="seed of the samples (default: the sweep seed)")
+    seed: int | None = Field(None, ge=0, description="seed of the samples (default: the grid's seed, else 0)")
     params: dict[str, Distribution] = Field(min_length=1)
 
     @field_validator("params")

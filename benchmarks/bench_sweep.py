@@ -19,7 +19,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from needlecli.experiments.sweep import Grid, _pin_worker_threads, _thread_env, plan_sweep, run_cell, run_sweep
+from needlecli.experiments.sweep import Grid, plan_sweep, run_cell, run_sweep
+from needlecli.experiments.sweep.execution import _pin_worker_threads, _thread_env
 
 SMALL = """
 name: bench_sweep_cell

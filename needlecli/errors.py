@@ -35,3 +35,8 @@ class ConfigError(NeedleError):
 
 class DataError(NeedleError):
     """A results file or log that is missing, corrupt, truncated or holds bad values."""
+
+
+class SweepError(NeedleError):
+    """A sweep that cannot start: a bad grid, a cell whose config is invalid, an executor not available;
+    or a sweep table asked for a metric or parameter it does not have."""

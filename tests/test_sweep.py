@@ -93,12 +93,16 @@ def test_grid_axes_cells_and_random_samples_make_the_product():
 def test_seed_rule(files, tmp_path):
     config, _ = files
     g = Grid.model_validate({"seed": 11, "grid": {"observers.0.q.kappa": [1e-6, 2e-6]}})
-    cells = plan_sweep(config, g, out_dir=tmp_path / "out")
+    common = plan_sweep(config, g, out_dir=tmp_path / "out")  # common random numbers by default
+    assert [(c.seed, c.seed_from) for c in common] == [(11, "common"), (11, "common")]
+    assert {yaml.safe_load(c.config_text)["runs"]["seed"] for c in common} == {11}
+    unseeded = plan_sweep(config, Grid.model_validate({"grid": {"observers.0.q.kappa": [1e-6, 2e-6]}}),
+                          out_dir=tmp_path / "out")
+    assert {c.seed for c in unseeded} == {5}  # the sweep seed defaults to the config's runs.seed
+    cells = plan_sweep(config, g.model_copy(update={"seeds": "derived"}), out_dir=tmp_path / "out")
     assert [c.seed_from for c in cells] == ["derived", "derived"]
     assert cells[0].seed == derived_seed(11, {"observers.0.q.kappa": 1e-6}) != cells[1].seed
-    assert cells == plan_sweep(config, g, out_dir=tmp_path / "out")  # deterministic: ids, seeds, configs
-    common = plan_sweep(config, g.model_copy(update={"seeds": "common"}), out_dir=tmp_path / "out")
-    assert {c.seed for c in common} == {11}
+    assert cells == plan_sweep(config, g.model_copy(update={"seeds": "derived"}), out_dir=tmp_path / "out")
     explicit = plan_sweep(config, Grid.model_validate({"grid": {SEED_KEY: [4, 9]}}), out_dir=tmp_path / "out")
     assert [(c.seed, c.seed_from) for c in explicit] == [(4, "grid"), (9, "grid")]
     assert yaml.safe_load(explicit[1].config_text)["runs"]["seed"] == 9
@@ -163,7 +167,7 @@ def test_local_processes_and_dask_cluster_give_the_same_table(files, tmp_path):
 
 def test_dask_without_a_scheduler_reports_it(files, tmp_path, monkeypatch):
     pytest.importorskip("distributed", reason="needs dask[distributed]")
-    monkeypatch.setattr("needlecli.experiments.sweep.CONNECT_TIMEOUT", "1s")
+    monkeypatch.setattr("needlecli.experiments.sweep.execution.CONNECT_TIMEOUT", "1s")
     config, grid = files
     r = invoke("sweep", config, "--grid", grid, "--out", tmp_path / "o", "--executor", "dask",
                "--scheduler", "tcp://127.0.0.1:9", "--quiet")
@@ -255,3 +259,126 @@ def test_dask_not_installed_is_a_clear_error(files, tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "distributed", None)  # import distributed -> ImportError
     r = invoke("sweep", config, "--grid", grid, "--out", tmp_path / "o", "--executor", "dask", "--quiet")
     assert r.exit_code == 2 and "pip install 'needlecli[dask]'" in r.output, r.output
+
+
+def test_sweep_reports_do_not_import_the_experiment_layer():
+    """The table and plot read results files only: reports/sweep.py imports nothing from experiments or cli
+    (at the top or inside a function)."""
+    import ast
+
+    import needlecli.reports.sweep as reports_sweep
+
+    tree = ast.parse(Path(reports_sweep.__file__).read_text())
+    imported = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.module}
+    imported |= {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+    assert imported and not {m for m in imported if m.startswith(("needlecli.experiments", "needlecli.cli"))}
+
+
+# ---------------------------------------------------------------------------------------------- common random numbers
+#: TINY with an open loop that starts from the truth with 5 deg of noise on the angles: its errors come
+#: from the truth and its own draws only, never from the sensors
+TINY_OL = TINY.replace("  - {name: ol, type: open_loop}",
+                       "  - {name: ol, type: open_loop, init: {from: truth, std: {alpha: 0.0873, beta: 0.0873}}}")
+METRICS = ["E_xyz_mean", "E_xyz_std", "E_xyz_max", "E_alpha_mean", "E_beta_mean", "E_kappa_mean"]
+
+
+def test_cells_share_random_numbers_by_default(tmp_path):
+    """Changing only a sensor the open loop does not use leaves its errors unchanged, to the last digit:
+    every cell runs on the same seed, so the cells differ by their overrides alone."""
+    config = tmp_path / "tiny_ol.yaml"
+    config.write_text(TINY_OL)
+    grid = tmp_path / "us_sigma.yaml"
+    grid.write_text("grid: {sensors.0.sigma: [0.1, 0.6]}\n")  # us3d: the UKF's position sensor
+    r = invoke("sweep", config, "--grid", grid, "--out", tmp_path / "crn", "--executor", "inline", "--quiet")
+    assert r.exit_code == 0, r.output
+    t = table(tmp_path / "crn")
+    assert set(t[SEED_KEY]) == {5}  # the config's runs.seed, in every cell
+    ol, ukf = t[t["observer"] == "ol"], t[t["observer"] == "ukf"]
+    assert len(ol) == 2 and (ol["E_xyz_mean"] > 0.05).all()  # an error to compare, not zero
+    assert (ol[METRICS].iloc[0] == ol[METRICS].iloc[1]).all()
+    assert ukf["E_xyz_mean"].iloc[0] != ukf["E_xyz_mean"].iloc[1]  # the UKF does see the sensor
+
+    # asked for, derived seeds give each cell its own noise: the open loop's errors then move with luck
+    grid.write_text("seeds: derived\ngrid: {sensors.0.sigma: [0.1, 0.6]}\n")
+    r = invoke("sweep", config, "--grid", grid, "--out", tmp_path / "derived", "--executor", "inline", "--quiet")
+    assert r.exit_code == 0, r.output
+    t = table(tmp_path / "derived")
+    ol = t[t["observer"] == "ol"]
+    assert t[SEED_KEY].nunique() == 2 and ol["E_xyz_mean"].iloc[0] != ol["E_xyz_mean"].iloc[1]
+
+
+def test_plot_has_error_bars_over_replicate_seeds_and_the_parameter_with_its_unit(tmp_path):
+    from needlecli.reports.sweep import sweep_figure
+
+    config = tmp_path / "tiny_ol.yaml"
+    config.write_text(TINY_OL)
+    grid = Grid.model_validate({"description": "q_kappa", "fixed": {"runs.count": 1},
+                                "grid": {"observers.0.q.kappa": [1e-6, 8e-6], SEED_KEY: "range(3)"}})
+    res = run_sweep(plan_sweep(config, grid, out_dir=tmp_path / "o"), out_dir=tmp_path / "o", executor="inline")
+    assert res.failed == 0
+    fig = sweep_figure(res.table, metric="E_xyz_mean", param="observers.0.q.kappa", units=res.units, title="q_kappa")
+    ax = fig.axes[0]
+    assert ax.get_xlabel() == "ukf: q.kappa (process noise std per state per tick) [1/mm]"
+    assert ax.get_ylabel() == "E_xyz, mean over runs and time steps [mm]"
+    assert "mean over 3 seeds, bars: \u00b11 std" in ax.get_title() and "the same seeds at every point" in ax.get_title()
+    csv = pd.read_csv(tmp_path / "o" / "sweep.csv")
+    drawn = {c.get_label(): c for c in ax.containers}
+    assert sorted(drawn) == ["ol", "ukf"]
+    for obs, c in drawn.items():
+        expected = csv[csv["observer"] == obs].groupby("observers.0.q.kappa")["E_xyz_mean"]
+        x, y = c.lines[0].get_data()
+        assert list(x) == pytest.approx([1e-6, 8e-6]) and list(y) == pytest.approx(list(expected.mean()))
+        half = [(seg[1, 1] - seg[0, 1]) / 2 for seg in c.lines[2][0].get_segments()]
+        assert half == pytest.approx(list(expected.std(ddof=1)))  # +-1 std across the 3 seeds
+        assert min(half) > 0
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+    md = (tmp_path / "o" / "sweep.md").read_text()
+    assert "`observers.0.q.kappa`: ukf: q.kappa (process noise std per state per tick) [1/mm]" in md
+
+
+PARAM_UNITS = {
+    "observers.0.q.kappa": ("ukf: q.kappa", "1/mm"),
+    "observers.0.p0.alpha": ("ukf: p0.alpha", "rad^2"),
+    "observers.0.init.std.alpha": ("ukf: init.std.alpha", "rad"),
+    "observers.0.measurements.us3d.sigma": ("ukf: measurements.us3d.sigma", "mm"),
+    "observers.1.q.x": ("ol: q.x", "mm/sqrt(s)"),
+    "sensors.0.sigma": ("us3d: sigma", "mm"),
+    "sensors.1.sigma": ("robot: sigma", "rad"),
+    "sensors.2.sigma": ("swe: sigma", "1/mm"),
+    "sensors.0.rate": ("us3d: rate", "Hz"),
+    "sensors.0.dropout": ("us3d: dropout", ""),
+    "model.params.kappa": ("model.params.kappa", "1/mm"),
+    "model.param_std.kappa": ("model.param_std.kappa", "1/mm"),
+    "process_noise.std.kappa": ("process_noise.std.kappa", "(1/mm)/sqrt(s)"),
+    "inputs.v": ("inputs.v", "mm/s"),
+    "stop.depth": ("stop.depth", "mm"),
+    "simulation.dt": ("simulation.dt", "s"),
+    "runs.count": ("runs.count", ""),
+}
+
+
+def test_swept_keys_are_named_with_their_units(files, tmp_path):
+    """Units from the schema's descriptions or the model (states, parameters, inputs, the sensors'
+    channels), checked against the models' own unit attributes."""
+    from needlecli.experiments.config import load_config
+    from needlecli.experiments.sweep.describe import describe_key
+    from needlecli.models import MODELS
+
+    config, _ = files
+    values = {"observers.0.measurements.us3d.sigma": 0.3, "inputs.v": 1.0, "runs.count": 1, "stop.depth": 2.0,
+              "simulation.dt": 0.02, "sensors.0.rate": 2.0, "sensors.0.dropout": 0.0}
+    cell = {k: values.get(k, 1e-3) for k in PARAM_UNITS}
+    (c,) = plan_sweep(config, Grid.model_validate({"cells": [cell]}), out_dir=tmp_path)
+    assert {k: (v["name"], v["unit"]) for k, v in c.param_info.items() if k != SEED_KEY} == PARAM_UNITS
+    model = MODELS.get("modified_unicycle")
+    assert PARAM_UNITS["observers.0.q.kappa"][1] == model.state_units[model.state_names.index("kappa")]
+    assert PARAM_UNITS["inputs.v"][1] == model.input_units["v"]
+
+    root = Path(__file__).resolve().parents[1]
+    cfg, _ = load_config(root / "configs/seed004/t2prelim.yaml")  # a model in metres
+    mnm = MODELS.get(cfg.model.type)
+    assert mnm.length_unit == "m"
+    assert describe_key(cfg, "stop.depth")["unit"] == "m" and describe_key(cfg, "sensors.0.sigma")["unit"] == "m"
+    assert describe_key(cfg, "model.params.c")["unit"] == "1/m"

@@ -17,6 +17,12 @@ The initial mean of every run, in this order:
 
 The observers that start as a paper prescribes in other terms (seed 000's high-gain observer, seed
 001's rotation error about the measured axis) have their own ``init`` sections.
+
+**A common start.** When the problem carries a :class:`~needlecli.problem.CommonStart` (``needle
+compare``: the reference observer's initial estimate, drawn once), :func:`initial_mean` and
+:func:`initial_covariance` return it, by state name, instead of what the observer's own ``init`` says:
+every observer then starts from the same information. States it does not give start at the nominal
+state (never a run's truth) with the observer's own initial variance.
 """
 
 from __future__ import annotations
@@ -29,7 +35,7 @@ from pydantic import Field, field_validator
 
 from needlecli.models import Model
 from needlecli.numerics import wrap_angle
-from needlecli.problem import EstimationProblem
+from needlecli.problem import CommonStart, EstimationProblem
 from needlecli.schema import NonNeg, Strict
 
 
@@ -113,6 +119,8 @@ def initial_mean(init: InitialEstimate, problem: EstimationProblem, model: Model
     """
     N, n = problem.n_runs, model.n
     x = np.broadcast_to(np.asarray(model.initial_state(params), dtype=float), (N, n)).copy()
+    if problem.start is not None:
+        return _from_start(problem.start, x, model, params, augment)
     if init.from_ == "truth" and problem.initial_truth is not None:
         for i, name in enumerate(model.state_names):
             if name in problem.model.state_names:
@@ -139,8 +147,77 @@ def initial_mean(init: InitialEstimate, problem: EstimationProblem, model: Model
     return x
 
 
-def initial_covariance(init: InitialEstimate, names: Sequence[str], p0: Mapping[str, float], floor: float) -> np.ndarray:
+def _from_start(start: CommonStart, nominal: np.ndarray, model: Model, params: Mapping,
+                augment: Sequence[str]) -> np.ndarray:
+    N = nominal.shape[0]
+    x = nominal
+    if augment:
+        x = np.concatenate([x, np.stack([np.broadcast_to(np.asarray(params[a], dtype=float), (N,)) for a in augment], -1)], -1)
+    names = tuple(model.state_names) + tuple(augment)
+    for i, name in enumerate(names):
+        j = start.index(name)
+        if j is not None:
+            x[:, i] = start.mean[:, j]
+    ang = np.zeros(len(names), dtype=bool)
+    ang[: model.n] = model.angle_mask
+    if ang.any():
+        x[:, ang] = wrap_angle(x[:, ang])
+    x[:, : model.n] = model.normalize(x[:, : model.n])
+    return x
+
+
+def start_state(problem: EstimationProblem, model: Model, params: Mapping) -> np.ndarray:
+    """The state ``(N, model.n)`` of ``model`` that the problem's common start gives (the nominal state
+    where it gives none), for observers with their own ``init`` schema (high-gain, SO(3))."""
+    x = np.broadcast_to(np.asarray(model.initial_state(params), dtype=float), (problem.n_runs, model.n)).copy()
+    return _from_start(problem.start, x, model, params, ()) if problem.start is not None else x
+
+
+def initial_covariance(init: InitialEstimate, names: Sequence[str], p0: Mapping[str, float], floor: float,
+                       start: CommonStart | None = None) -> np.ndarray:
     """``P0 = diag(p0)`` per state, ``std^2`` of ``init`` where ``p0`` does not name a state, each at least
-    ``floor`` (a variance)."""
+    ``floor`` (a variance); with a common ``start``, its covariance for the states it gives."""
     var = np.array([p0.get(k, init.std.get(k, 0.0) ** 2) for k in names], dtype=float)
-    return np.diag(np.maximum(var, floor))
+    return with_start_covariance(np.diag(np.maximum(var, floor)), names, start)
+
+
+def with_start_covariance(P: np.ndarray, names: Sequence[str], start: CommonStart | None) -> np.ndarray:
+    """``P (n, n)`` of states ``names`` with the common start's covariance where the start gives them."""
+    if start is None:
+        return P
+    P = P.copy()
+    mine = [i for i, k in enumerate(names) if start.index(k) is not None]
+    theirs = [start.index(names[i]) for i in mine]
+    P[np.ix_(mine, mine)] = start.cov[np.ix_(theirs, theirs)]
+    return P
+
+
+def describe(init: InitialEstimate, names: Sequence[str]) -> str:
+    """An ``init`` section in words, naming every state that starts at a run's exact truth."""
+    first = {k: v for k, v in init.first_measurement.items() if k in names}
+    noisy = [k for k in names if init.std.get(k, 0.0) > 0 and k not in first]
+    fixed = [k for k in names if k in init.values and k not in first]
+    exact = [k for k in names if init.from_ == "truth" and k not in first and k not in noisy and k not in fixed]
+    parts = [("truth" if init.from_ == "truth" else "nominal")
+             + (f" + N(0, std) on {', '.join(noisy)}" if noisy else "")]
+    if fixed:
+        parts.append(f"fixed {', '.join(fixed)}")
+    if first:
+        by: dict[str, list[str]] = {}
+        for k, spec in first.items():
+            by.setdefault(spec.rsplit(".", 1)[0], []).append(k)
+        parts.append("first sample of " + "; ".join(f"{ch} ({', '.join(ks)})" for ch, ks in by.items()))
+    if exact:
+        parts.append(f"EXACT TRUTH: {', '.join(exact)}")
+    return "; ".join(parts)
+
+
+def make_start(init: InitialEstimate, problem: EstimationProblem, model: Model, params: Mapping,
+               rng: np.random.Generator | None, cov: np.ndarray, observer: str,
+               augment: Sequence[str] = ()) -> CommonStart:
+    """The common start an observer with this ``init`` and initial covariance ``cov`` gives (its own draw
+    from ``rng``, the stream it would start from)."""
+    names = tuple(model.state_names) + tuple(augment)
+    mean = initial_mean(init, problem, model, params, rng, augment)
+    return CommonStart(names=names, mean=mean, cov=np.asarray(cov, dtype=float),
+                       source=f"{observer}'s initial estimate: {describe(init, names)}")

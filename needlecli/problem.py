@@ -66,7 +66,31 @@ class EstimationProblem:
     initial_truth: np.ndarray | None = None  # (N, n) only for observers configured to start from it
     cov_stride: int = 1  # keep covariances every k-th step of the time grid
     cov_layout: str = "full"  # "full" (..., n, n), "diag" (..., n) or "none"
+    start: CommonStart | None = None  # one initial estimate for every observer (needle compare), or None
 
     @property
     def n_runs(self) -> int:
         return self.inputs.shape[0]
+
+
+@dataclass(frozen=True)
+class CommonStart:
+    """One initial estimate handed to every observer of a comparison (``needle compare``), so that none
+    starts better informed than another: the reference observer's initial mean of every run (its random
+    draw, made once) and its initial covariance, by state name.
+
+    Attributes
+    ----------
+    names : the states (and augmented constants) it gives
+    mean : (N, len(names)) initial mean per run
+    cov : (len(names), len(names)) initial covariance
+    source : which observer it comes from and how it was made, in words (for the comparison's table)
+    """
+
+    names: tuple[str, ...]
+    mean: np.ndarray
+    cov: np.ndarray
+    source: str
+
+    def index(self, name: str) -> int | None:
+        return self.names.index(name) if name in self.names else None

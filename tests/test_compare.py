@@ -55,11 +55,12 @@ def tiny(tmp_path_factory) -> Path:
 def test_compare_prints_the_appendix_table_with_ukf_and_open_loop(tiny, tmp_path):
     r = invoke("compare", tiny, "--out", tmp_path, "--quiet")
     assert r.exit_code == 0, r.output
-    header = next(line for line in r.output.splitlines() if line.startswith("|"))
+    md = (tmp_path / "compare.md").read_text()
+    header = next(line for line in md.splitlines() if line.startswith("|"))
     assert "ukf" in header and "open_loop" in header
     for row in ("Sensor frequency", "Online curvature estimation", "Instantaneous error", "Prediction error* (mm)",
-                "Runtime per step", "Runs that failed", "Number of insertions"):
-        assert f"| {row}" in r.output
+                "Runtime per step", "Runs that failed", "Number of insertions", "Start"):
+        assert f"| {row}" in md
     assert "1 Hz" in r.output and "50 Hz" in r.output and "2 Hz" in r.output
     assert "skipped: so3_invariant" in r.output and "tangent sensor" in r.output  # no tangent sensor here
     df = pd.read_csv(tmp_path / "compare.csv").set_index("observer")
@@ -154,3 +155,77 @@ def test_compare_user_errors(tiny, tmp_path, args, message):
     r = invoke("compare", tiny, "--out", tmp_path, "--quiet", *args)
     assert r.exit_code == 2 and message in r.output, r.output
     assert "Traceback" not in r.output
+
+
+OWN_UKF = """observers:
+  - name: my_ukf
+    type: ukf
+    q: {x: 2.0e-3, y: 2.0e-3, z: 2.0e-3, alpha: 2.0e-5, beta: 2.0e-5, gamma: 5.0e-4, kappa: 2.0e-6}
+    p0: {x: 1.0, y: 1.0, z: 1.0, alpha: 5.0e-3, beta: 5.0e-3, gamma: 0.1, kappa: 2.0e-6}
+    init: {from: truth, std: {alpha: 0.0873, beta: 0.0873}, first_measurement: {x: us3d.x, y: us3d.y, z: us3d.z, gamma: robot.roll, kappa: swe.kappa}}
+"""
+
+
+def test_no_observer_starts_better_informed_than_the_reference(tiny, tmp_path):
+    """Every observer starts from the reference's initial estimate (the same draw): the open loop's
+    start is the UKF's to the bit, and no observer's curvature starts at the run's truth."""
+    cfg_path = tmp_path / "fair.yaml"
+    cfg_path.write_text(tiny.read_text() + OWN_UKF)
+    res = compare_observers(cfg_path, out_dir=tmp_path / "o")
+    from needlecli.io.results import read_results
+
+    f = read_results(res.path)
+    est = f.data["estimates"].data
+    ukf0 = est["my_ukf"].data["state"][:, 0]
+    np.testing.assert_array_equal(est["open_loop"].data["state"][:, 0], ukf0)
+    truth = f.data["truth"].data["state"]
+    k = list(f.data["truth"].attrs["names"]).index("kappa")
+    for name in ("ekf", "eks", "open_loop"):
+        names = list(est[name].attrs["names"])
+        err0 = np.abs(est[name].data["state"][:, 0, names.index("kappa")] - truth[:, 0, k])
+        assert err0.min() > 1e-6, (name, err0)  # not the run's own truth
+    df = compare_table(res).set_index("observer")
+    assert df.loc["my_ukf", "start"] == "common (reference)"
+    assert (df.drop(index="my_ukf")["start"].str.startswith("common")).all()
+    assert df.loc["high_gain", "start"] == "common; x, beta = 0"  # seed 000's prescribed start on top
+    assert not df.loc["eks", "causal"] and df.loc["ekf", "causal"]
+    assert "my_ukf's initial estimate" in res.start and "EXACT TRUTH" not in res.start
+
+
+def test_the_common_start_is_what_each_observer_starts_from(tiny, tmp_path):
+    """The mechanism, observer by observer: with a common start in the problem, the initial mean and
+    covariance each observer builds are the start's, whatever its own init says."""
+    import dataclasses
+
+    from needlecli.experiments.runner import build_problem, simulate_and_measure
+    from needlecli.experiments.truth import stream
+    from needlecli.initial import initial_covariance, initial_mean
+
+    cfg_path = tmp_path / "fair.yaml"
+    cfg_path.write_text(tiny.read_text() + OWN_UKF)
+    cfg, _ = load_config(cfg_path)
+    truth, sensors, streams, _ = simulate_and_measure(cfg)
+    problem = build_problem(cfg, truth, sensors, streams)
+    ukf = OBSERVERS.get("ukf")
+    start = ukf.initial_estimate(cfg.observers[0], problem, stream(cfg.runs.seed, "observer/my_ukf"))
+    shared = dataclasses.replace(problem, start=start)
+    model = truth.model
+    for init in ({}, {"from": "nominal", "values": {"kappa": 0.1}}, {"std": {"x": 5.0}}):
+        s = OBSERVERS.get("open_loop").Settings.model_validate({"type": "open_loop", "init": init})
+        x = initial_mean(s.init, shared, model, model.param_arrays(), np.random.default_rng(9))
+        np.testing.assert_array_equal(x, start.mean)
+        P = initial_covariance(s.init, model.state_names, {"x": 7.0}, 1e-12, start=start)
+        np.testing.assert_array_equal(P, start.cov)
+    # without it, the UKF's own init gives the same numbers (the reference is unchanged by the mechanism)
+    own = initial_mean(cfg.observers[0].init, problem, model, model.param_arrays(), stream(cfg.runs.seed, "observer/my_ukf"))
+    np.testing.assert_array_equal(own, start.mean)
+
+
+def test_compare_table_fits_80_columns_and_names_results_once(tiny, tmp_path):
+    r = invoke("compare", tiny, "--out", tmp_path, "--quiet")
+    assert r.exit_code == 0, r.output
+    lines = r.output.splitlines()
+    long = [ln for ln in lines if len(ln) > 80 and not ln.startswith(("table:", "results:"))]
+    assert not long, long
+    assert sum(ln.startswith("results:") for ln in lines) == 1
+    assert any(ln.startswith("| observer") and "start" in ln for ln in lines)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from needlecli.cli.common import log, progress_bar, setup_logging, user_errors
+from needlecli.cli.common import progress_bar, setup_logging, user_errors
 
 
 @user_errors
@@ -23,7 +23,9 @@ def compare(
     """Simulate (or replay) once and run every registered observer that can run on the experiment's
     sensors on the same insertions and measurements; print the table in the form of seed 003's
     appendix A and write it (compare.md, compare.csv) with the results file."""
-    from needlecli.experiments.compare import FOOTNOTE, appendix_form, compare_observers, compare_table
+    import textwrap
+
+    from needlecli.experiments.compare import FOOTNOTE, appendix_form, compare_observers, compare_table, terminal_form
     from needlecli.reports.tables import _atomic_text, to_markdown, write_table
 
     setup_logging(quiet)
@@ -37,14 +39,12 @@ def compare(
     skipped = [f"{c.name} ({c.type}): {c.skip}" for c in result.skipped]
     caption = f"Observers on the same insertions of {result.cfg.name} ({result.n_runs} runs)."
     write_table(df, out_dir / "compare", ["csv"])
-    notes = FOOTNOTE + ("\n\nSkipped:\n" + "\n".join(f"- {s}" for s in skipped) if skipped else "")
+    notes = FOOTNOTE + f"\n\nStart: {result.start}." + ("\n\nSkipped:\n" + "\n".join(f"- {s}" for s in skipped) if skipped else "")
     _atomic_text(out_dir / "compare.md", f"{caption}\n\n{to_markdown(wide)}\n\n{notes}\n")
-    log.info("results: %s", result.path)
-    typer.echo(to_markdown(wide) if len(df) else "(no observer could run)")
-    typer.echo("\n" + FOOTNOTE)
+    typer.echo(terminal_form(df, result) if len(df) else "(no observer could run)")
     if result.truth_failed:
         typer.echo(f"{result.truth_failed} run(s) of the truth stopped early (not counted above)")
     for s in skipped:
-        typer.echo(f"skipped: {s}")
+        typer.echo(textwrap.fill(f"skipped: {s}", 80, subsequent_indent="  "))
     typer.echo(f"table: {out_dir / 'compare.md'}, {out_dir / 'compare.csv'}")
     typer.echo(f"results: {result.path}")

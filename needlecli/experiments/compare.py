@@ -10,6 +10,16 @@ Which observers, with which settings:
 * an observer is applicable when its settings pass its schema and its ``check(settings, model,
   sensors)``; otherwise it is skipped and the reason (the first problem) is reported.
 
+Every observer starts from the same information: the **common start** is the initial estimate of the
+reference observer (the config's first observer that can give one, else the UKF with derived settings)
+-- its initial mean of every run, drawn once from its random stream, and its initial covariance -- and
+every observer that can take it (``Observer.takes_common_start``) starts from it, whatever its own
+``init`` says, the open-loop reference included. Where a paper prescribes its own start in terms of the
+common one (seed 000's high-gain observer: x_hat0 = beta_hat0 = 0), that applies on top. No observer
+starts from a run's own truth unless the reference does, and the table names, per observer, where it
+started (``start``) and the common start's recipe (footnote), flagging any state taken exactly from
+the truth.
+
 Observers with a ``predict_at_depths`` setting also predict the final tip position from 25 % of the
 insertion length (added to the depths they already have), the prediction error of seed 003's
 appendix A.
@@ -18,6 +28,7 @@ appendix A.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -153,6 +164,11 @@ def ukf_defaults(ctx: Context) -> dict:
         p0[kappa] = float((spread or 0.25 * abs(params[kappa]) or 1e-3) ** 2)
     for k, v in std.items():
         p0.setdefault(k, v**2)
+    if not ctx.replay:  # states no channel measures and no noise covers start at the nominal state, not the truth
+        nominal = np.asarray(model.initial_state(params), dtype=float).reshape(-1)
+        for i, k in enumerate(model.state_names):
+            if k not in first and k not in std and k not in values:
+                values[k] = float(nominal[i])
     for k in model.state_names:
         p0.setdefault(k, 1e-6)
     proc = ctx.cfg.process_noise.std if ctx.cfg.source is None else {}
@@ -185,8 +201,26 @@ def open_loop_defaults(ctx: Context) -> dict:
     return {"type": "open_loop", "init": {"from": "nominal", "std": std}}
 
 
+def kalman_defaults(ctx: Context) -> dict:
+    """The EKF / EKS tuned as :func:`ukf_defaults` tunes the UKF: the same measurement sigmas (no distance
+    growth: the EKF has none), the same process noise as a std per square-root second (the UKF's per tick
+    over sqrt(dt)), the same init and initial variances (which the common start replaces anyway)."""
+    u = ukf_defaults(ctx)
+    root_dt = float(np.sqrt(ctx.dt))
+    return {"q": {k: v / root_dt for k, v in u["q"].items()}, "p0": u["p0"], "init": u["init"],
+            "measurements": {n: {"sigma": m["sigma"]} for n, m in u["measurements"].items()}}
+
+
+def high_gain_defaults(ctx: Context) -> dict:
+    """Seed 000's start, x_hat0 = beta_hat0 = 0 (the roll from the common start)."""
+    return {"type": "high_gain", "init": {"from": "nominal", "values": {"x": 0.0, "beta": 0.0}}}
+
+
 #: observer type -> function deriving its settings from the experiment (a type not here: schema defaults)
-DEFAULTS: dict[str, Callable[[Context], dict]] = {"ukf": ukf_defaults, "open_loop": open_loop_defaults}
+DEFAULTS: dict[str, Callable[[Context], dict]] = {
+    "ukf": ukf_defaults, "open_loop": open_loop_defaults, "high_gain": high_gain_defaults,
+    "ekf": lambda ctx: {"type": "ekf", **kalman_defaults(ctx)}, "eks": lambda ctx: {"type": "eks", **kalman_defaults(ctx)},
+}
 
 
 # ---------------------------------------------------------------------------------------------- config
@@ -256,6 +290,8 @@ class Candidate:
     origin: str  # "config" or "defaults"
     settings: dict | None = None  # the settings mapping (YAML form), None when skipped
     skip: str = ""  # why it does not run
+    start: str = ""  # where it starts: "common (reference)", "common", "common; x, beta = 0", "own settings"
+    causal: bool = True  # an estimate at t uses samples up to t only (False: a smoother)
 
 
 @dataclass
@@ -282,6 +318,7 @@ class CompareResult:
     predictions: dict = field(default_factory=dict)  # observer -> (depths, errors)
     curvature: dict = field(default_factory=dict)  # observer -> "yes" / "no (...)"
     status: dict = field(default_factory=dict)  # observer -> (failed runs, reasons)
+    start: str = ""  # the common start's recipe (which observer, how), or why there is none
 
 
 def _with_prediction(settings: dict, cls, depth: float) -> dict:
@@ -399,6 +436,8 @@ def compare_observers(
     data["observers"] = [c.settings for c in chosen]
     cfg1, text1 = load_config(source, text=yaml.safe_dump(data, sort_keys=False))
     problem = build_problem(cfg1, truth, sensors, streams)
+    start, start_text = common_start(ctx, chosen, cfg1, problem, seed_)
+    problem = dataclasses.replace(problem, start=start)
     estimates, runs_out = {}, []
     for c, o in zip(chosen, cfg1.observers):
         obs = OBSERVERS.get(o.type)(o)
@@ -428,7 +467,54 @@ def compare_observers(
         length_unit=truth.model.length_unit,
         errors=errors, predictions=preds,
         curvature={n: _online_curvature(p, truth.model) for n, p in estimates.items()}, status=status,
+        start=start_text,
     )
+
+
+def common_start(ctx: Context, chosen: list[Candidate], cfg, problem, seed: int):
+    """The initial estimate every observer of the comparison starts from: that of the config's first
+    observer that can give one, else of the UKF with derived settings (:func:`ukf_defaults`), drawn from
+    the reference's own random stream. Marks each candidate's ``start``; returns ``(start, recipe)``
+    (``(None, why)`` when no observer can give one)."""
+    from needlecli.experiments.truth import stream
+    from needlecli.observers import OBSERVERS
+
+    by_name = {o.name or o.type: o for o in cfg.observers}
+    start, ref = None, None
+    # the config's own observers first (its first that gives a start), then the UKF with derived settings
+    order = [c for c in chosen if c.origin == "config"] + [c for c in chosen if c.origin != "config" and c.type == "ukf"]
+    for c in order:
+        cls = OBSERVERS.get(c.type)
+        start = cls.initial_estimate(by_name[c.name], problem, stream(seed, f"observer/{c.name}"))
+        if start is not None:
+            ref = c.name
+            break
+    if start is None:  # no chosen observer gives one: the UKF's derived settings do (it need not run)
+        try:
+            ukf = OBSERVERS.get("ukf")
+            settings = ukf.Settings.model_validate({**ukf_defaults(ctx), "name": "ukf_reference"})
+            start = ukf.initial_estimate(settings, problem, stream(seed, "observer/ukf_reference"))
+            ref = "ukf_reference"
+        except (NotApplicable, ValidationError, ValueError):
+            start = None
+    for c in chosen:
+        cls = OBSERVERS.get(c.type)
+        if start is None or not cls.takes_common_start:
+            c.start = "own settings"
+        elif c.name == ref:
+            c.start = "common (reference)"
+        elif c.type == "high_gain" and by_name[c.name].init.values:  # seed 000's prescribed start on top
+            vals = by_name[c.name].init.values
+            same = len(set(vals.values())) == 1
+            c.start = "common; " + (f"{', '.join(vals)} = {next(iter(vals.values())):g}" if same
+                                    else ", ".join(f"{k} = {v:g}" for k, v in vals.items()))
+        else:
+            c.start = "common"
+        c.causal = cls.causal
+    if start is None:
+        return None, "no observer gives an initial estimate: each starts from its own settings"
+    derived = " (derived settings; not run)" if ref == "ukf_reference" else ""
+    return start, start.source + derived
 
 
 # ---------------------------------------------------------------------------------------------- table
@@ -485,7 +571,8 @@ def compare_table(result: CompareResult) -> pd.DataFrame:
         model = (c.settings or {}).get("model") or result.cfg.model.type
         steps = max(result.n_steps, 1)
         rows.append({
-            "observer": name, "type": c.type, "settings": c.origin, "sensors": sensors, "sensor_rates": rates,
+            "observer": name, "type": c.type, "settings": c.origin, "start": c.start, "causal": c.causal,
+            "sensors": sensors, "sensor_rates": rates,
             "model": model, "online_curvature": result.curvature.get(name, "n/a"),
             "insertion_length": result.final_depth, "runs": result.n_runs,
             "inst_quantity": q, "inst_unit": unit, "inst_mean": m, "inst_std": s,
@@ -516,7 +603,7 @@ def appendix_form(df: pd.DataFrame, result: CompareResult) -> pd.DataFrame:
     property."""
     length_unit = result.length_unit
     rows: dict[str, list[str]] = {
-        "Sensor": [], "Sensor frequency": [], "Model": [], "Observer": [], "Settings": [],
+        "Sensor": [], "Sensor frequency": [], "Model": [], "Observer": [], "Settings": [], "Start": [],
         "Online curvature estimation": [], f"Length of insertion ({length_unit})": [],
         "Instantaneous error": [], "Curvature error": [], "Prediction error* (mm)": [],
         "Number of insertions": [], "Runs that failed": [], "Runtime per step": [],
@@ -527,6 +614,7 @@ def appendix_form(df: pd.DataFrame, result: CompareResult) -> pd.DataFrame:
         rows["Model"].append(str(r["model"]))
         rows["Observer"].append(f"{r['observer']} ({r['type']})")
         rows["Settings"].append(r["settings"])
+        rows["Start"].append(r["start"] + ("" if r["causal"] else " (smoother: every sample of the run)"))
         rows["Online curvature estimation"].append(r["online_curvature"])
         rows[f"Length of insertion ({length_unit})"].append(f"{r['insertion_length']:.3g}")
         inst = _pm(r["inst_mean"], r["inst_std"], r["inst_unit"])
@@ -538,6 +626,71 @@ def appendix_form(df: pd.DataFrame, result: CompareResult) -> pd.DataFrame:
         rows["Runs that failed"].append(failed)
         rows["Runtime per step"].append(f"{_num(r['ms_per_step'])} ms ({_num(r['us_per_run_step'])} µs per run-step)")
     return pd.DataFrame([{"": k, **dict(zip(df["observer"], v))} for k, v in rows.items()])
+
+
+def _short(v: float) -> str:
+    """3 significant digits, scientific below 0.01 with a short exponent (``1.9e-4``)."""
+    if not np.isfinite(v):
+        return "n/a"
+    if v == 0:
+        return "0"
+    if abs(v) < 1e-2:
+        m, e = f"{v:.2e}".split("e")
+        return f"{m}e{int(e)}"
+    return f"{v:.3g}"
+
+
+def _spread(m: float, s: float) -> str:
+    return "n/a" if not np.isfinite(m) else f"{_short(m)} ± {_short(s)}"
+
+
+def _narrow_markdown(df: pd.DataFrame) -> str:
+    """A Markdown table with one space of padding (tabulate pads more): for a terminal's width."""
+    cols = [str(c) for c in df.columns]
+    cells = [[str(v) for v in row] for row in df.itertuples(index=False)]
+    w = [max([len(c)] + [len(r[i]) for r in cells]) for i, c in enumerate(cols)]
+    line = lambda vals: "| " + " | ".join(v.ljust(w[i]) for i, v in enumerate(vals)) + " |"  # noqa: E731
+    return "\n".join([line(cols), "|" + "|".join("-" * (x + 2) for x in w) + "|"] + [line(r) for r in cells])
+
+
+def terminal_form(df: pd.DataFrame, result: CompareResult, width: int = 80) -> str:
+    """The comparison for a terminal of ``width`` columns: what every observer shares in a few lines,
+    then two narrow tables (how each observer ran; its errors), then the notes, wrapped."""
+    import textwrap
+
+    unit = result.length_unit
+    parts = [textwrap.fill(f"Observers on the same insertions of {result.cfg.name}: {result.n_runs} run(s) of "
+                           f"{result.cfg.model.type}, {result.final_depth:.3g} {unit} long.", width)]
+    sens = "; ".join(f"{s.name}: {s.registered_name} ({', '.join(s.channel_names)}) {getattr(s.settings, 'rate', 0):g} Hz"
+                     for s in result.sensors)
+    parts.append(textwrap.fill(f"Sensors: {sens}.", width))
+    how = pd.DataFrame({
+        "observer": [f"{o} ({t})" if o != t else o for o, t in zip(df["observer"], df["type"])],
+        "settings": df["settings"], "start": df["start"],
+        "failed": [f"{f}/{n}" for f, n in zip(df["runs_failed"], df["runs"])],
+        "ms/step": [_short(v) for v in df["ms_per_step"]],
+    })
+    errs = pd.DataFrame({
+        "observer": df["observer"],
+        "error after init.": [f"{_spread(m, s)} {u} {q}".strip() if q else "n/a"
+                              for m, s, u, q in zip(df["inst_mean"], df["inst_std"], df["inst_unit"], df["inst_quantity"])],
+        f"E_kappa (1/{unit})": [_spread(m, s) for m, s in zip(df["kappa_mean"], df["kappa_std"])],
+        "prediction* (mm)": [_spread(m, s) for m, s in zip(df["pred_mean_mm"], df["pred_std_mm"])],
+    })
+    parts += [_narrow_markdown(how), _narrow_markdown(errs)]
+    notes = [f"Start: every observer marked 'common' starts from one initial estimate, the {result.start}."
+             if result.start and not result.start.startswith("no ") else f"Start: {result.start}."]
+    online = [o for o, c in zip(df["observer"], df["online_curvature"]) if c == "yes"]
+    notes.append(f"Curvature estimated online by: {', '.join(online) or 'none'}.")
+    offline = [o for o, c in zip(df["observer"], df["causal"]) if not c]
+    if offline:
+        notes.append(f"Smoothers (every sample of a run, also later ones; not a filter): {', '.join(offline)}.")
+    notes.append(FOOTNOTE)
+    failed = [f"{o}: {r}" for o, r in zip(df["observer"], df["failure_reasons"]) if r]
+    if failed:
+        notes.append("Failed runs: " + "; ".join(failed) + ".")
+    parts += [textwrap.fill(n, width) for n in notes]
+    return "\n\n".join(parts)
 
 
 FOOTNOTE = ("*Prediction error of the final tip position from the estimate after observing 25 % of the "

@@ -114,7 +114,7 @@ def build_system(
         q_index = tuple(range(dm.nx))
     Qc = np.diag([q.get(s, 0.0) ** 2 for s in dm.names])
     m0 = initial_mean(setup.init, problem, model, model.param_arrays(), rng, augment=dm.augment)
-    P0 = initial_covariance(setup.init, dm.names, setup.p0, 1e-18)
+    P0 = initial_covariance(setup.init, dm.names, setup.p0, 1e-18, start=problem.start)
     return System(dm, meas, m0, P0, Qc, R, floors, q_index)
 
 

@@ -19,7 +19,7 @@ from pydantic import Field
 
 from needlecli.models import Model
 from needlecli.observers import OBSERVERS  # noqa: F401  (the registry, at the package's front door)
-from needlecli.problem import Channel, EstimationProblem  # noqa: F401  (part of the observer contract)
+from needlecli.problem import Channel, CommonStart, EstimationProblem  # noqa: F401  (part of the observer contract)
 from needlecli.schema import Strict
 
 STATUS_OK = "ok"
@@ -73,6 +73,11 @@ class Observer:
 
     Settings: ClassVar[type[ObserverSettings]] = ObserverSettings
     registered_name: ClassVar[str] = ""
+    #: whether :meth:`run` starts from ``problem.start`` when the problem carries a common start
+    #: (``needle compare``); an observer that cannot is marked as starting from its own settings
+    takes_common_start: ClassVar[bool] = False
+    #: whether the estimate at time t uses the samples available up to t only (False: a smoother)
+    causal: ClassVar[bool] = True
 
     def __init__(self, settings: ObserverSettings) -> None:
         self.settings = settings
@@ -82,6 +87,13 @@ class Observer:
     def check(cls, settings: ObserverSettings, model: Model, sensors: Mapping) -> list[tuple[tuple, str]]:
         """Problems with running on ``model`` with ``sensors`` (name -> Sensor): ``[(loc, message)]``."""
         return []
+
+    @classmethod
+    def initial_estimate(cls, settings: ObserverSettings, problem: EstimationProblem,
+                         rng: np.random.Generator) -> CommonStart | None:
+        """The initial estimate this observer would start from (its own draw from ``rng``), as a common
+        start for the others of a comparison; None for an observer that cannot give one."""
+        return None
 
     def run(self, problem: EstimationProblem, rng: np.random.Generator, progress=None) -> Posterior:
         raise NotImplementedError

@@ -44,6 +44,7 @@ import numpy as np
 from pydantic import Field, model_validator
 from scipy.linalg import expm
 
+from needlecli.initial import start_state
 from needlecli.numerics import wrap_angle
 from needlecli.observers.base import (
     OBSERVERS,
@@ -232,6 +233,7 @@ class HighGainObserver(Observer):
     """Seed 000's observer, batched over runs (module docstring for the equations and numerics)."""
 
     Settings = HighGainSettings
+    takes_common_start = True  # with a common start, seed 000's prescribed init.values apply on top of it
 
     @classmethod
     def _position_channels(cls, sensors) -> list[str]:
@@ -291,14 +293,20 @@ class HighGainObserver(Observer):
 
         # --- initial estimate
         x0 = np.zeros((N, 3))
-        if s.init.from_ == "truth" and problem.initial_truth is not None:
+        if problem.start is not None:  # a comparison's common start; seed 000's prescribed values on top
+            xs = start_state(problem, model, problem.params)
+            for i, k in enumerate(ESTIMATED):
+                if k in model.state_names:
+                    x0[:, i] = xs[:, model.index(k)]
+        elif s.init.from_ == "truth" and problem.initial_truth is not None:
             for i, k in enumerate(ESTIMATED):
                 if k in model.state_names:
                     x0[:, i] = problem.initial_truth[:, model.index(k)]
         for k, val in s.init.values.items():
             x0[:, ESTIMATED.index(k)] = val
-        std = np.array([s.init.std.get(k, 0.0) for k in ESTIMATED])
-        x0 = x0 + std * rng.standard_normal(x0.shape)
+        if problem.start is None:
+            std = np.array([s.init.std.get(k, 0.0) for k in ESTIMATED])
+            x0 = x0 + std * rng.standard_normal(x0.shape)
         s0 = to_transformed(x0[:, 0], x0[:, 1], x0[:, 2])
         zeta = np.where(np.cos(x0[:, 2]) < 0, -1.0, 1.0)
         root0 = np.sqrt(np.maximum(1.0 - s0[:, 1] ** 2 - s0[:, 2] ** 2, 0.0))

@@ -24,7 +24,7 @@ from pydantic import Field
 from needlecli.fitting.problem import build_system, check_setup, own_model
 from needlecli.fitting.settings import KalmanSetup
 from needlecli.fitting.smoother import ekf, eks, ieks
-from needlecli.initial import InitialEstimate
+from needlecli.initial import InitialEstimate, describe
 from needlecli.models import MODELS
 from needlecli.observers.base import (
     OBSERVERS,
@@ -38,6 +38,7 @@ from needlecli.observers.base import (
     cov_steps,
     shrink_cov,
 )
+from needlecli.problem import CommonStart
 from needlecli.schema import Positive
 
 
@@ -58,6 +59,7 @@ class EKSSettings(EKFSettings):
 
 class _Kalman(Observer):
     smoother = False
+    takes_common_start = True
 
     @classmethod
     def check(cls, settings, model, sensors):
@@ -69,6 +71,12 @@ class _Kalman(Observer):
             if k not in model.input_names:
                 out.append((("model",), f"the filter's model needs input {k!r}, which the experiment does not give"))
         return out
+
+    @classmethod
+    def initial_estimate(cls, settings, problem, rng):
+        S = build_system(problem, settings, own_model(settings, problem.model), settings.augment, rng=rng)
+        return CommonStart(names=S.names, mean=S.m0, cov=S.P0,
+                           source=f"{settings.name or settings.type}'s initial estimate: {describe(settings.init, S.names)}")
 
     def run(self, problem: EstimationProblem, rng: np.random.Generator, progress=None) -> Posterior:
         s = self.settings
@@ -152,3 +160,4 @@ class ExtendedKalmanSmoother(_Kalman):
 
     Settings = EKSSettings
     smoother = True
+    causal = False

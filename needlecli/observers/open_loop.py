@@ -12,7 +12,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from needlecli.initial import InitialEstimate, check_initial, initial_mean
+from needlecli.initial import InitialEstimate, check_initial, initial_mean, make_start, with_start_covariance
 from needlecli.numerics import complex_step_jacobian
 from needlecli.observers.base import (
     OBSERVERS,
@@ -46,6 +46,24 @@ class OpenLoopSettings(ObserverSettings):
 @OBSERVERS.register("open_loop")
 class OpenLoop(Observer):
     Settings = OpenLoopSettings
+    takes_common_start = True
+
+    @staticmethod
+    def _params(problem, settings) -> dict:
+        params = {k: np.asarray(v, dtype=float) for k, v in problem.params.items()}
+        params.update({k: np.asarray(v, dtype=float) for k, v in settings.params.items()})
+        return params
+
+    @staticmethod
+    def _p0(settings, model, start=None) -> np.ndarray:
+        std = np.array([settings.init.std.get(k, 0.0) for k in model.state_names])
+        return with_start_covariance(np.diag(std**2 + settings.init.p0_floor), model.state_names, start)
+
+    @classmethod
+    def initial_estimate(cls, settings, problem, rng):
+        model = problem.model
+        return make_start(settings.init, problem, model, cls._params(problem, settings), rng,
+                          cls._p0(settings, model), settings.name or settings.type)
 
     @classmethod
     def check(cls, settings, model, sensors):
@@ -62,11 +80,9 @@ class OpenLoop(Observer):
         model = problem.model
         s = self.settings
         n_runs, T, n = problem.n_runs, len(problem.time), model.n
-        params = {k: np.asarray(v, dtype=float) for k, v in problem.params.items()}
-        params.update({k: np.asarray(v, dtype=float) for k, v in s.params.items()})
+        params = self._params(problem, s)
         x = initial_mean(s.init, problem, model, params, rng)
-        std = np.array([s.init.std.get(k, 0.0) for k in model.state_names])
-        P = np.broadcast_to(np.diag(std**2 + s.init.p0_floor), (n_runs, n, n)).copy()
+        P = np.broadcast_to(self._p0(s, model, problem.start), (n_runs, n, n)).copy()
         dt_all = np.diff(problem.time)
         qd = np.array([s.q.get(k, 0.0) for k in model.state_names]) ** 2
 

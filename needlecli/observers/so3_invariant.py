@@ -30,6 +30,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, field_validator
 
+from needlecli.initial import start_state
 from needlecli.models import NotMeasurable
 from needlecli.numerics import matrix_to_euler_xyz, so3_exp
 from needlecli.observers.base import (
@@ -162,6 +163,7 @@ class SO3InvariantObserver(Observer):
     """Seed 001's invariant observer, batched over runs (module docstring for the equations)."""
 
     Settings = SO3InvariantSettings
+    takes_common_start = True  # with a common start, init.error_deg does not apply
 
     @classmethod
     def check(cls, settings, model, sensors):
@@ -234,14 +236,16 @@ class SO3InvariantObserver(Observer):
 
         # --- initial estimate
         try:
-            if s.init.from_ == "truth" and problem.initial_truth is not None:
+            if problem.start is not None:  # a comparison's common start, without seed 001's error rotation
+                r0 = np.asarray(model.tip_rotation(start_state(problem, model, problem.params)), dtype=float)
+            elif s.init.from_ == "truth" and problem.initial_truth is not None:
                 r0 = np.asarray(model.tip_rotation(problem.initial_truth), dtype=float)
             else:
                 x0 = np.asarray(model.initial_state(problem.params), dtype=float)
                 r0 = np.broadcast_to(model.tip_rotation(x0), (N, 3, 3)).copy()
         except NotMeasurable as e:
             raise ValueError(str(e)) from None
-        err = s.init.error_deg
+        err = s.init.error_deg if problem.start is None else 0.0
         if isinstance(err, tuple):
             angle = np.deg2rad(rng.uniform(err[0], err[1], N))
         else:

@@ -28,7 +28,7 @@ import numpy as np
 from pydantic import Field, model_validator
 from scipy.stats import chi2
 
-from needlecli.initial import InitialEstimate, check_initial, initial_covariance, initial_mean
+from needlecli.initial import InitialEstimate, check_initial, initial_covariance, initial_mean, make_start
 from needlecli.models import MODELS, Model, StateSelection
 from needlecli.numerics import wrap_angle
 from needlecli.numerics.unscented import (
@@ -107,6 +107,7 @@ class UnscentedKalmanFilter(Observer):
     """
 
     Settings = UKFSettings
+    takes_common_start = True
 
     # ------------------------------------------------------------------ configuration checks
     @classmethod
@@ -155,15 +156,19 @@ class UnscentedKalmanFilter(Observer):
         return out
 
     # ------------------------------------------------------------------ run
-    def run(self, problem: EstimationProblem, rng: np.random.Generator, progress=None) -> Posterior:
+    def _model(self, problem: EstimationProblem) -> Model:
+        """The filter's own model: the experiment's, or ``model`` with ``params`` of the settings."""
         s = self.settings
         mcls = self._model_cls(s, problem.model)
         if mcls is type(problem.model) and not s.params:
-            model: Model = problem.model
-        else:
-            base = problem.model.params.model_dump() if mcls is type(problem.model) else {}
-            base.update(s.params)
-            model = mcls(mcls.Params(**base))
+            return problem.model
+        base = problem.model.params.model_dump() if mcls is type(problem.model) else {}
+        base.update(s.params)
+        return mcls(mcls.Params(**base))
+
+    def run(self, problem: EstimationProblem, rng: np.random.Generator, progress=None) -> Posterior:
+        s = self.settings
+        model: Model = self._model(problem)
         params = model.param_arrays()
         n, N = model.n, problem.n_runs
         angles = model.angle_mask
@@ -405,7 +410,13 @@ class UnscentedKalmanFilter(Observer):
     def _initial(self, problem, model, params, rng, chans):
         s = self.settings
         x = initial_mean(s.init, problem, model, params, rng)
-        return x, initial_covariance(s.init, model.state_names, s.p0, 1e-12)
+        return x, initial_covariance(s.init, model.state_names, s.p0, 1e-12, start=problem.start)
+
+    @classmethod
+    def initial_estimate(cls, settings, problem, rng):
+        model = cls(settings)._model(problem)
+        P0 = initial_covariance(settings.init, model.state_names, settings.p0, 1e-12)
+        return make_start(settings.init, problem, model, model.param_arrays(), rng, P0, settings.name or settings.type)
 
     def _interfaces(self, problem, N) -> np.ndarray:
         r = self.settings.kappa_reset

@@ -23,6 +23,7 @@ from needlecli.experiments.config import load_config
 from needlecli.experiments.runner import build_problem, simulate_and_measure
 from needlecli.experiments.truth import Truth
 from needlecli.fitting.em import EMOptions, EMResult, fit_em
+from needlecli.fitting.identify import Identifiability, IdentifyOptions, identify
 from needlecli.fitting.problem import System, build_system, fit_augment, own_model
 from needlecli.fitting.settings import FitSettings
 from needlecli.io.fit import FIT_FORMAT, FIT_VERSION
@@ -134,6 +135,7 @@ class ModelFit:
     system: System
     result: EMResult
     seconds: float = 0.0
+    identifiability: Identifiability | None = None
 
 
 @dataclass
@@ -175,7 +177,7 @@ def fit_trials(
         S = systems[name]
         t0 = time.perf_counter()
         res = fit_em(S.dm, S.meas, S.m0, S.P0, S.Qc, S.R, em_options(fit, S), progress=cb)
-        return res, time.perf_counter() - t0
+        return res, assess(S, res, fit), time.perf_counter() - t0
 
     # models are independent: all but the first go to child processes (forked, so nothing is pickled
     # but the results), the first runs here; the children report progress through a queue
@@ -183,6 +185,16 @@ def fit_trials(
         _run_models(names, workers, run, systems, out, progress)
     out.fits = {name: out.fits[name] for name in names}
     return out
+
+
+def assess(S: System, res: EMResult, fit: FitSettings) -> Identifiability | None:
+    """What the data identify in each trial's fit (None when ``fit.identify.enabled`` is off)."""
+    s = fit.identify
+    if not s.enabled:
+        return None
+    sd = np.sqrt(np.maximum(np.diagonal(res.P[:, 0], axis1=-2, axis2=-1), 0.0))[:, S.dm.nx:]
+    return identify(S.dm, S.meas, res.x0, S.P0, res.Qc, res.R, res.status == "ok", const_sd=sd,
+                    options=IdentifyOptions(rse_max=s.rse_max, nats=s.nats))
 
 
 def _run_models(names, workers, run, systems, out, progress) -> None:
@@ -226,8 +238,8 @@ def _run_models(names, workers, run, systems, out, progress) -> None:
                 if progress is not None:
                     progress(f"EM {_m}", k, n)
                 drain()
-            res, secs = run(name, cb)
-            out.fits[name] = ModelFit(name, systems[name], res, secs)
+            res, idf, secs = run(name, cb)
+            out.fits[name] = ModelFit(name, systems[name], res, secs, idf)
         for name, (p, conn) in children.items():
             while not conn.poll(0.2):
                 drain()
@@ -238,8 +250,8 @@ def _run_models(names, workers, run, systems, out, progress) -> None:
             drain()
             if kind != "ok":
                 raise RuntimeError(f"the EM of model {name!r} failed: {payload}")
-            res, secs = payload
-            out.fits[name] = ModelFit(name, systems[name], res, secs)
+            res, idf, secs = payload
+            out.fits[name] = ModelFit(name, systems[name], res, secs, idf)
     finally:
         for p, _ in children.values():
             if p.is_alive():
@@ -334,7 +346,24 @@ def _model_group(mf: ModelFit, fit: FitSettings) -> Group:
         if v is not None:
             g.data[k] = v
     g.data["history"] = Group(data={k.replace("/", "_"): v for k, v in r.history.items()})
+    if mf.identifiability is not None:
+        g.data["identifiability"] = identifiability_group(mf.identifiability, fit)
     return g
+
+
+def identifiability_group(idf: Identifiability, fit: FitSettings) -> Group:
+    """``/fit/<model>/identifiability`` (README, "Fit file")."""
+    return Group(
+        data={
+            "estimate": idf.estimate, "se": idf.se, "rse": idf.rse, "hessian": idf.hessian, "step": idf.theta_step,
+            "decade": idf.decade, "verdict": idf.verdict.astype(str), "reason": idf.reason.astype(str),
+            "used": idf.used, "loglik": idf.loglik, "pooled_se": idf.pooled_se, "pooled_rse": idf.pooled_rse,
+            "pooled_verdict": idf.pooled_verdict.astype(str), "pooled_reason": idf.pooled_reason.astype(str),
+        },
+        attrs={"quantities": idf.names, "units": [q.unit for q in idf.quantities],
+               "kinds": [q.kind for q in idf.quantities], "rse_max": fit.identify.rse_max, "nats": fit.identify.nats,
+               "parameters": "constants as they are; Q blocks and R_j by a log scale (tr scales by exp)"},
+    )
 
 
 def default_fit_output(cfg) -> Path:

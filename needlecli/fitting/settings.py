@@ -72,6 +72,15 @@ class EMSettings(Strict):
                              "fall-back to the plain EM step when it lowers the likelihood")
 
 
+class IdentifySettings(Strict):
+    """What the data identify (:mod:`needlecli.fitting.identify`): standard errors from the observed
+    information of the EKF log-likelihood at the fit, and a verdict per quantity."""
+
+    enabled: bool = Field(True, description="assess every fitted quantity after EM (adds about 50 filter passes)")
+    rse_max: Positive = Field(0.5, description="largest relative standard error of an identified quantity")
+    nats: Positive = Field(2.0, description="log-likelihood a decade of a noise level must cost to be identified")
+
+
 class FitSettings(KalmanSetup):
     """The ``fit:`` section of a config: how ``needle fit-em`` fits every trial.
 
@@ -87,5 +96,6 @@ class FitSettings(KalmanSetup):
     ticks: Ticks = "measurements"
     substeps: int | None = Field(1, ge=1, le=1000)
     em: EMSettings = Field(default_factory=EMSettings)
+    identify: IdentifySettings = Field(default_factory=IdentifySettings, description="standard errors and verdicts")
     store: Literal["full", "diag"] = Field("diag", description="smoothed covariances in the fit file")
     repeats: int = Field(100, ge=1, le=100_000, description="re-simulations per parameter for 'SD as trajectory error'")

@@ -244,3 +244,16 @@ class Model:
 def _expand(p: Params) -> dict[str, np.ndarray]:
     """Add a perturbation axis to per-batch parameters for the complex-step Jacobian."""
     return {k: np.asarray(v)[..., None] if np.ndim(v) else v for k, v in p.items()}
+
+
+def state_blocks(names, skip=()) -> dict[str, list[int]]:
+    """State indices grouped by their stem (``px, py, pz -> p``; ``hx, hy, hz -> h``; a name of one
+    letter is its own block), the names in ``skip`` (e.g. augmented constants) left out: the blocks whose
+    process noise seed 004's tables report (``tr(Q_p)``, ...)."""
+    out: dict[str, list[int]] = {}
+    for i, s in enumerate(names):
+        if s in skip:
+            continue
+        stem = s[:-1] if len(s) > 1 and s[-1] in "xyz" else s
+        out.setdefault(stem, []).append(i)
+    return out

@@ -90,9 +90,8 @@ real:
 	done
 	@if needle fit-em --help > /dev/null 2>&1; then \
 	  needle fit-em configs/real/em_tracker.yaml --out $(REAL)/em_tracker.h5 --quiet && \
-	  needle evaluate $(REAL)/em_tracker.h5 --out $(REAL)/tables --tables fit_status --no-plots --quiet && \
-	  $(PY) -c "from needlecli.reports.real import write_fit_tables; write_fit_tables('$(REAL)/em_tracker.h5', '$(REAL)/tables')" \
-	  || exit 1; \
+	  needle evaluate $(REAL)/em_tracker.h5 --out $(REAL)/tables --tables fit_status,em_per_trial,em_per_speed,em_loglik \
+	    --no-plots --quiet || exit 1; \
 	else \
 	  echo "needle fit-em is not available: table (c), EM on the 18 tracker trials, is skipped"; \
 	fi

@@ -4,6 +4,7 @@ the arc, and the Fig. 3 plot of the error against distance per input case)."""
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -11,8 +12,18 @@ import pandas as pd
 
 from needlecli.io.results import Group
 from needlecli.metrics import ErrorSet, depth_axis
-from needlecli.reports.plots import PLOTS, plt, save_figure
-from needlecli.reports.tables import TABLES
+from needlecli.reports.plots import (
+    PLOTS,
+    PlotSkipped,
+    curve_against_depth,
+    observer_colours,
+    observer_style,
+    plt,
+    run_depths,
+    save_figure,
+    subplots,
+)
+from needlecli.reports.tables import TABLES, count_cell
 
 _TABLE1_STATS = ("Average Absolute Estimation Error", "RMSE", "Standard Deviation")
 
@@ -60,7 +71,7 @@ def seed000_table1(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
             else:
                 row.update({k: np.nan for k in _TABLE1_STATS})
             row["Final"] = float(np.mean(last)) if last.size else np.nan
-            row["Runs"] = f"{kept}/{es.n_runs}"
+            row["Runs"] = count_cell(kept, es.n_runs)
             rows.append(row)
     return pd.DataFrame(rows, columns=["Observer", "Error", *_TABLE1_STATS, "Final", "Runs"])
 
@@ -90,14 +101,15 @@ def _half_turn(res: Group) -> float | None:
     return float(np.pi / k) if k > 0 else None
 
 
-def _rotation_groups(res: Group, errors: dict[str, ErrorSet]):
-    """``(observer, case label, E_R (n, T) deg)`` for every observer with a rotation error."""
+def _rotation_groups(res: Group, errors: dict[str, ErrorSet], with_runs: bool = False):
+    """``(observer, case label, E_R (n, T) deg, number of runs)`` for every observer with a rotation
+    error (and the runs' indices ``(n,)`` last, ``with_runs``)."""
     for obs, es in errors.items():
         qe = es.quantities.get("E_R")
         if qe is None or qe.values.shape[0] == 0:
             continue
         for label, sel in _cases(res, qe.runs):
-            yield obs, label, qe.values[sel], es.n_runs
+            yield (obs, label, qe.values[sel], es.n_runs) + ((qe.runs[sel],) if with_runs else ())
 
 
 def _first_below(depth: np.ndarray, curve: np.ndarray, level: float) -> float:
@@ -119,8 +131,10 @@ def seed001_convergence(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame
     marks = [d for d in (50.0, 70.0, 100.0, 150.0, 200.0, 300.0) if d <= depth[-1] + 1e-9]
     rows = []
     for obs, label, e, n_runs in _rotation_groups(res, errors):
-        m = np.nanmean(e, 0)
-        row = {"Observer": obs, "Case": label, "Runs": f"{e.shape[0]}/{n_runs}", "E_R at 0 [deg]": float(m[0])}
+        with warnings.catch_warnings():  # steps without truth (replays): NaN
+            warnings.simplefilter("ignore", RuntimeWarning)
+            m = np.nanmean(e, 0)
+        row = {"Observer": obs, "Case": label, "Runs": count_cell(e.shape[0], n_runs), "E_R at 0 [deg]": float(m[0])}
         for d in marks:
             row[f"at {d:g} {unit}"] = float(m[min(np.searchsorted(depth, d - 1e-9), len(m) - 1)])
         row["final [deg]"] = float(m[-1])
@@ -150,11 +164,13 @@ def seed001_half_turns(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
         prev = None
         for j in range(0, n_half + 1, step):
             i = min(np.searchsorted(depth, j * half - 1e-9), len(depth) - 1)
-            m = float(np.nanmean(e[:, i]))
+            with warnings.catch_warnings():  # steps without truth (replays): NaN
+                warnings.simplefilter("ignore", RuntimeWarning)
+                m, mx = float(np.nanmean(e[:, i])), float(np.nanmax(e[:, i]))
             red = 100.0 * (1.0 - (m / prev) ** (1.0 / step)) if prev else np.nan
             rows.append({"Observer": obs, "Case": label, "Half turns": j, f"Distance [{unit}]": float(depth[i]),
-                         "E_R mean [deg]": m, "E_R max [deg]": float(np.nanmax(e[:, i])),
-                         "Reduction [%]": red, "Runs": f"{e.shape[0]}/{n_runs}"})
+                         "E_R mean [deg]": m, "E_R max [deg]": mx,
+                         "Reduction [%]": red, "Runs": count_cell(e.shape[0], n_runs)})
             prev = m
     return pd.DataFrame(rows, columns=cols)
 
@@ -162,30 +178,46 @@ def seed001_half_turns(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
 @PLOTS.register("seed001_rotation_error")
 def rotation_error_plot(res: Group, errors: dict[str, ErrorSet], path_stem: Path, max_runs: int = 20) -> Path | None:
     """Seed 001 Fig. 3: rotation error against insertion distance, one panel per input case, one colour
-    per observer (thin: single runs, thick: mean)."""
-    groups = list(_rotation_groups(res, errors))
+    per observer (thin: single runs, thick: mean), from the steps where truth exists; dotted verticals
+    mark half turns of the arc (pi / kappa) where the insertion reaches one."""
+    groups = list(_rotation_groups(res, errors, with_runs=True))
     if not groups:
         return None
-    cases = list(dict.fromkeys(label for _, label, _, _ in groups))
-    observers = list(dict.fromkeys(obs for obs, _, _, _ in groups))
-    depth = depth_axis(res)
+    cases = list(dict.fromkeys(g[1] for g in groups))
+    colours = observer_colours(res)
+    depth = run_depths(res)
     unit = res.attrs.get("length_unit", "mm")
-    fig, axs = plt.subplots(1, len(cases), figsize=(5.5 * len(cases), 3.8), squeeze=False, sharey=True)
-    for obs, label, e, _ in groups:
+    fig, axs = subplots(1, len(cases), figsize=(5.5 * len(cases), 4.0), squeeze=False, sharey=True)
+    handles = {}
+    kinds = set()
+    for obs, label, e, _, runs in groups:
         ax = axs[0, cases.index(label)]
-        color = f"C{observers.index(obs) % 10}"
+        st = observer_style(colours, obs)
         for r in range(min(e.shape[0], max_runs)):
-            ax.plot(depth, e[r], color=color, lw=0.5, alpha=0.4)
-        ax.plot(depth, np.nanmean(e, 0), color=color, lw=1.8, label=obs)
+            fin = np.isfinite(e[r]) & np.isfinite(depth[runs[r]])
+            if fin.sum() >= 2:
+                ax.plot(depth[runs[r], fin], e[r, fin], lw=0.5, alpha=0.4, **st)
+        d, m, _, _, kind = curve_against_depth(depth[runs], e)
+        if d.size:
+            kinds.add(kind)
+            (line,) = ax.plot(d, m, lw=1.8, **st)
+            handles.setdefault(obs, line)
+    if not handles:
+        plt.close(fig)
+        raise PlotSkipped("no rotation error where the truth exists")
     half = _half_turn(res)
+    reach = float(np.nanmax(depth))
+    if half is not None and reach >= half:
+        for ax in axs[0]:
+            for j in range(1, int(reach / half) + 1):
+                line = ax.axvline(j * half, color="grey", lw=0.6, ls=":")
+        handles[f"half turns of the arc (pi / kappa = {half:.0f} {unit})"] = line
     for c, ax in zip(cases, axs[0]):
-        if half is not None:
-            for j in range(1, int(depth[-1] / half) + 1):
-                ax.axvline(j * half, color="grey", lw=0.6, ls=":")
-        ax.set_title(c)
+        ax.set_title(c, fontsize=9)
         ax.set_xlabel(f"insertion distance [{unit}]")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize="small")
-    axs[0, 0].set_ylabel("rotation error [deg]")
-    fig.suptitle(f"{res.attrs.get('name', '')}: rotation error against distance (dotted: half turns of the arc)")
+    axs[0, 0].set_ylabel("rotation error E_R [deg]")
+    fig.legend(handles.values(), handles.keys(), loc="outside lower center", ncol=min(len(handles), 4), fontsize="small")
+    what = "thick: mean over runs" + (", binned in depth" if "bins" in kinds else "") + "; thin: single runs"
+    fig.suptitle(f"{res.attrs.get('name', '')}: rotation error against insertion distance ({what})", fontsize=10)
     return save_figure(fig, Path(f"{path_stem}_rotation_error.png"))

@@ -107,7 +107,7 @@ def drawn(sim, replayed, tmp_path_factory):
 def test_every_plot_holds_data_in_one_colour_per_observer(which, drawn):
     res, figs, written = drawn[which]
     names = {p.name.split("p_", 1)[1].rsplit(".", 1)[0] for p in written}
-    assert {"error_vs_depth", "trajectories", "curvature", "rotation_error", "prediction"} <= names, names
+    assert {"error_vs_depth", "trajectories", "curvature", "rotation_error", "prediction", "nees_vs_depth"} <= names, names
     assert len(figs) == len(written)
     colours = observer_colours(res)
     assert colours == {"open_loop": "C0", "ukf": "C1"}  # the results file's observer order

@@ -48,8 +48,9 @@ def _is_reference_line(ax, line) -> bool:
     return line.get_transform() != ax.transData
 
 
-def figure_problems(fig: Figure, colours: dict[str, str], max_gap_px: float = 30.0) -> list[str]:
-    """Everything a reader would find wrong with ``fig`` (empty list: none)."""
+def figure_problems(fig: Figure, colours: dict[str, str], max_gap_in: float = 0.3, layout: bool = True) -> list[str]:
+    """Everything a reader would find wrong with ``fig`` (empty list: none); ``layout``: also render it
+    and measure the band under its title (slower)."""
     title = fig._suptitle.get_text() if fig._suptitle is not None else (fig.axes[0].get_title() if fig.axes else "?")
     out = []
     drawn: dict[str, int] = {}  # gid -> finite points over the figure
@@ -88,14 +89,16 @@ def figure_problems(fig: Figure, colours: dict[str, str], max_gap_px: float = 30
     if "half turn" in title or any("half turn" in x.get_text() for leg in legends for x in leg.get_texts()):
         if not any(_is_reference_line(ax, ln) for ax in fig.axes for ln in ax.lines):
             out.append(f"{title!r}: claims half turns it does not draw")
-    if fig._suptitle is not None and fig.axes:
+    if layout and fig._suptitle is not None and fig.axes:
+        fig.set_dpi(30)  # the layout in inches does not depend on it; a coarse rendering is quicker
         canvas = FigureCanvasAgg(fig)  # a closed figure keeps its artists, not its canvas
         canvas.draw()
         r = canvas.get_renderer()
         below = fig._suptitle.get_window_extent(r).y0
         top = max(ax.get_tightbbox(r).y1 for ax in fig.axes)
-        if below - top > max_gap_px:
-            out.append(f"{title!r}: a blank band of {below - top:.0f} px under the title")
+        gap = (below - top) / fig.dpi
+        if gap > max_gap_in:
+            out.append(f"{title!r}: a blank band of {gap:.2f} in under the title")
     return out
 
 

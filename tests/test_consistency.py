@@ -132,13 +132,13 @@ def test_verdicts_follow_the_covariance(linear, tmp_path):
     assert _row(df, "kf", "ANIS", "pos")["Verdict"] == "consistent"
     assert not (df["Observer"] == "model_only").any() or (df[(df["Observer"] == "model_only")]["Test"] == "ANEES").all()
     # R four times too small: the filter believes its measurements and itself too much
-    opt = consistency_table(read_results(_run(tmp_path, "opt", ["observers.0.measurements.pos.sigma=0.15"])))
+    opt = consistency_table(read_results(_run(tmp_path, "opt", ["runs.count=100", "observers.0.measurements.pos.sigma=0.15"])))
     assert _row(opt, "kf", "ANIS", "pos")["Verdict"] == "optimistic"
     assert _row(opt, "kf", "ANEES", "all states")["Verdict"] == "optimistic"
     # P0 and Q ten times too large in std: it believes itself far too little
     big = {f"observers.0.q.{s}": v for s, v in zip(STATES, [0.1] * 3 + [0.5] * 3)}
     big.update({f"observers.0.p0.{s}": v for s, v in zip(STATES, [4.0] * 3 + [25.0] * 3)})
-    pes = consistency_table(read_results(_run(tmp_path, "pes", [f"{k}={v}" for k, v in big.items()])))
+    pes = consistency_table(read_results(_run(tmp_path, "pes", ["runs.count=100"] + [f"{k}={v}" for k, v in big.items()])))
     assert _row(pes, "kf", "ANEES", "all states")["Verdict"] == "pessimistic"
     assert _row(pes, "kf", "ANIS", "pos")["Verdict"] == "pessimistic"
 

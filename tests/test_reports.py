@@ -53,8 +53,8 @@ observers:
     kappa_max: 0.05
     predict_at_depths: [5, 10]
   - {name: open_loop, type: open_loop, init: {from: truth, std: {alpha: 0.0873, beta: 0.0873}}}
-runs: {count: 6, seed: 5}
-stop: {depth: 15}
+runs: {count: 4, seed: 5}
+stop: {depth: 12}
 output: {store_every: 5}
 """
 
@@ -111,7 +111,7 @@ def test_every_plot_holds_data_in_one_colour_per_observer(which, drawn):
     assert len(figs) == len(written)
     colours = observer_colours(res)
     assert colours == {"open_loop": "C0", "ukf": "C1"}  # the results file's observer order
-    problems = [p for fig in figs for p in figure_problems(fig, colours)]
+    problems = [p for fig in figs for p in figure_problems(fig, colours, layout=which == "sim")]  # the same layout
     assert not problems, "\n".join(problems)
     # the same observer has the same colour in every figure (and in every panel: figure_problems)
     seen = {}
@@ -147,7 +147,7 @@ def test_trajectories_draw_the_truth_they_list(drawn):
 
 
 def test_titles_claim_only_what_is_drawn(drawn):
-    """15 mm of an arc of radius 200 mm: no half turn is reached, none is claimed."""
+    """12 mm of an arc of radius 200 mm: no half turn is reached, none is claimed."""
     _, figs, _ = drawn["sim"]
     fig = next(f for f in figs if "rotation error" in title(f))
     assert "half turn" not in title(fig)

@@ -204,7 +204,7 @@ def consistency_table(res: Group, errors: dict[str, ErrorSet] | None = None) -> 
     interval of an average over the runs (a consistent filter: Mean = Dof); optimistic above it (errors
     larger than the covariance says), pessimistic below; how often the average at one time left its own
     interval, and over which times (spans of at least 1 s or 2 % of the run) it stayed above it."""
-    rows, skipped, no_nis = [], [], []
+    rows, skipped, no_nis, unused = [], [], [], []
     for obs, g in res.data.get("estimates", Group()).data.items():
         nv = nees(res, obs)
         if nv is None:
@@ -212,6 +212,9 @@ def consistency_table(res: Group, errors: dict[str, ErrorSet] | None = None) -> 
             continue
         for test, items in (("ANEES", nv), ("ANIS", nis(res, obs))):
             for it in items:
+                if test == "ANIS" and not np.isfinite(it.values).any():
+                    unused.append(f"{obs} {it.label}")
+                    continue
                 s = summarise(it)
                 rows.append({"Observer": obs, "Test": test, "Of": it.label,
                              **{k: v for k, v in s.items() if not k.startswith("_")}})
@@ -223,6 +226,8 @@ def consistency_table(res: Group, errors: dict[str, ErrorSet] | None = None) -> 
         notes.append(f"Without a covariance (not tabulated): {', '.join(skipped)}.")
     if no_nis:
         notes.append(f"Innovations not recorded (no ANIS): {', '.join(no_nis)}.")
+    if unused:
+        notes.append(f"No sample used after initialisation (no ANIS): {', '.join(unused)}.")
     if notes:
         df.attrs["note"] = " ".join(notes)
     df.attrs["keys"] = ["Observer", "Test", "Of"]

@@ -209,6 +209,8 @@ def test_markdown_and_latex_say_the_same(sim, tmp_path):
     assert latex_escape(caption) in tex
     cells = [c.strip() for c in md.splitlines()[4].split("|")[1:-1]]
     assert " & ".join(latex_escape(c) for c in cells) + r" \\" in tex
+    # the summary counts the initial step too, and says so
+    assert "the initial one included" in evaluate_results(sim, tables=["summary"])["summary"].attrs["caption"]
 
 
 def test_run_counts_have_one_form(sim, replayed):

@@ -52,8 +52,9 @@ def _rows(errors: dict[str, ErrorSet], stats: dict[str, Callable[[np.ndarray], f
 
 @TABLES.register("summary")
 def summary_table(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
-    """Instantaneous estimation error over all kept runs and time steps: Mean, Std, Max
-    (the form of seed 003's Table 1)."""
+    """Instantaneous estimation error over all kept runs and all time steps, the initial one included:
+    Mean, Std, Max (seed 003's statistics; its Table 1, table seed003_table1, counts only the steps after
+    initialisation)."""
     return _rows(errors, {"Mean": np.mean, "Std": np.std, "Max": np.max})
 
 

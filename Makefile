@@ -3,7 +3,7 @@ PY ?= python
 
 STUDIES := results/studies
 
-.PHONY: help install demo test bench lint clean seed003 seed004 datasets regress real
+.PHONY: help install demo test bench lint clean seed000 seed001 seed003 seed004 datasets regress real
 
 help:
 	@echo "make install  - install needlecli with test extras (editable)"
@@ -11,7 +11,9 @@ help:
 	@echo "make test     - run the test suite (what .ci/run runs)"
 	@echo "make bench    - speed benchmarks (figures also as ratios against an in-run reference)"
 	@echo "make lint     - ruff"
-	@echo "make seed003  - seed 003's simulation study: Table 1, Figs. 6-8 (results and tables in $(STUDIES))"
+	@echo "make seed000  - seed 000's simulation and experiment-like studies: Table I, the sweep of theta (in $(STUDIES))"
+	@echo "make seed001  - seed 001's helix studies: convergence, half turns, Fig. 3, the alternative reading (in $(STUDIES))"
+	@echo "make seed003  - seed 003's simulation study: Table 1 (and its variant), Figs. 6-8 (results and tables in $(STUDIES))"
 	@echo "make datasets - rebuild the synthetic logs in datasets/ from configs/datasets/"
 	@echo "make regress  - replay every bundled data set and check its tables against datasets/baselines/"
 	@echo "make real     - import the recorded ultrasteer insertions (../shared/real-data) and make their tables in $(REAL)"
@@ -43,8 +45,20 @@ lint:
 clean:
 	rm -rf results .pytest_cache .ruff_cache .hypothesis
 
+seed000:
+	@for c in simulation experiment_like; do \
+	  needle simulate configs/seed000/$$c.yaml --out $(STUDIES)/seed000_$$c.h5 --quiet > /dev/null && \
+	  needle evaluate $(STUDIES)/seed000_$$c.h5 --out $(STUDIES)/seed000 || exit 1; \
+	done
+
+seed001:
+	@for c in helix helix_batch helix_kappa35; do \
+	  needle simulate configs/seed001/$$c.yaml --out $(STUDIES)/seed001_$$c.h5 --quiet > /dev/null && \
+	  needle evaluate $(STUDIES)/seed001_$$c.h5 --out $(STUDIES)/seed001 || exit 1; \
+	done
+
 seed003:
-	@for c in table1 fig6 fig7 fig8; do \
+	@for c in table1 table1_growth_stream fig6 fig7 fig8; do \
 	  needle simulate configs/seed003/$$c.yaml --out $(STUDIES)/seed003_$$c.h5 --quiet > /dev/null && \
 	  needle evaluate $(STUDIES)/seed003_$$c.h5 --out $(STUDIES)/seed003 || exit 1; \
 	done
@@ -91,9 +105,8 @@ real:
 	done
 	@if needle fit-em --help > /dev/null 2>&1; then \
 	  needle fit-em configs/real/em_tracker.yaml --out $(REAL)/em_tracker.h5 --quiet && \
-	  needle evaluate $(REAL)/em_tracker.h5 --out $(REAL)/tables --tables fit_status --no-plots --quiet && \
-	  $(PY) -c "from needlecli.reports.real import write_fit_tables; write_fit_tables('$(REAL)/em_tracker.h5', '$(REAL)/tables')" \
-	  || exit 1; \
+	  needle evaluate $(REAL)/em_tracker.h5 --out $(REAL)/tables --tables fit_status,em_per_trial,em_per_speed,em_loglik \
+	    --no-plots --quiet || exit 1; \
 	else \
 	  echo "needle fit-em is not available: table (c), EM on the 18 tracker trials, is skipped"; \
 	fi

@@ -10,6 +10,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from report_checks import capture_figures, compile_tables, figure_problems, needs_pdflatex
 from typer.testing import CliRunner
 
 from needlecli.cli.app import app
@@ -280,3 +281,42 @@ def test_fit_em_needs_a_fit_section(tmp_path):
     (tmp_path / "noq.yaml").write_text(FIT.replace("  q: {px: 3.0e-5, py: 3.0e-5, hx: 5.0e-3, hy: 5.0e-3, Bx: 3.0e-4, By: 3.0e-4}\n", ""))
     r = invoke("fit-em", tmp_path / "noq.yaml", "--quiet")
     assert r.exit_code == 2 and "[fit -> q] required key is missing" in r.output
+
+
+def test_evaluate_writes_the_em_tables_of_a_fit_file(fitted):
+    """Issue 15: the tables documented for fit files are reachable from the command line."""
+    d, out = fitted
+    r = invoke("evaluate", out, "--out", d / "em", "--tables", "em_per_trial,em_per_speed,em_loglik", "--no-plots")
+    assert r.exit_code == 0, r.output + repr(r.exception)
+    for t in ("em_per_trial", "em_per_speed", "em_loglik"):
+        assert (d / "em" / f"tiny_fit_{t}.tex").exists() and f"## {t}" in r.output
+    per_trial = (d / "em" / "tiny_fit_em_per_trial.csv").read_text().splitlines()
+    assert len(per_trial) == 1 + 2 * 4  # two models x four trials
+
+
+@needs_pdflatex
+def test_fit_tables_compile(fitted, tmp_path):
+    from needlecli.reports.evaluate import evaluate_results
+    from needlecli.reports.seed004 import ALL_FIT_TABLES
+
+    d, out = fitted
+    evaluate_results(out, tables=list(ALL_FIT_TABLES), out_dir=tmp_path / "t", formats=["tex"])
+    compile_tables(sorted((tmp_path / "t").glob("*.tex")), tmp_path)
+
+
+def test_fit_figures_hold_data_in_one_colour_per_model(fitted, tmp_path, monkeypatch):
+    from needlecli.io.fit import read_fit
+    from needlecli.reports.plots import draw_plots, observer_colours
+    from needlecli.reports.seed004 import FIT_PLOTS
+
+    d, out = fitted
+    figs = capture_figures(monkeypatch, render=False)
+    res = read_fit(out)
+    written = draw_plots(res, None, tmp_path / "p", FIT_PLOTS)
+    assert len(written) == 2 and len(figs) == 2
+    colours = observer_colours(res)
+    assert colours == {"binm": "C0", "mnm": "C1"} or colours == {"mnm": "C0", "binm": "C1"}
+    problems = [p for fig in figs for p in figure_problems(fig, colours)]
+    assert not problems, "\n".join(problems)
+    title = figs[1].axes[0].get_title()
+    assert "through" not in title and ("closest" in title or "reached the singularity" in title)

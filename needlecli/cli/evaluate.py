@@ -50,6 +50,8 @@ def evaluate(
     if not quiet:
         for name, df in written.items():
             typer.echo(f"## {name}\n")
+            if df.attrs.get("caption"):
+                typer.echo(df.attrs["caption"] + "\n")
             typer.echo(to_markdown(df) if not df.empty else "(empty)")
             typer.echo("")
         typer.echo(f"tables: {out_dir}")

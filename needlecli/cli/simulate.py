@@ -44,7 +44,7 @@ def simulate(
     tables = evaluate_results(result.path, tables=wanted, out_dir=None) if wanted else {}
     for df in tables.values():
         if not df.empty:
-            typer.echo(to_markdown(df) + "\n")
+            typer.echo((df.attrs["caption"] + "\n\n" if df.attrs.get("caption") else "") + to_markdown(df) + "\n")
     if not cfg.observers:
         typer.echo("no observers configured: truth and measurements only")
     typer.echo(f"results: {result.path}")

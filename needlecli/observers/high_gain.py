@@ -413,5 +413,7 @@ class HighGainObserver(Observer):
                 "theta": theta, "gain": list(gain), "kappa": kappa, "hold": hold, "measurement": ch_name,
                 "zeta_eps": s.zeta_eps, "hurwitz": bool(is_hurwitz(max(vmax, 1e-12), max(kappa, 1e-300), gain)),
                 "sample_period": period, "sampled_loop_radius": radius,
+                # continuous-time error poles theta * eig(A + L C) at the largest insertion speed, 1/s
+                "error_poles": np.sort(theta * np.linalg.eigvals(error_matrix(vmax, kappa, gain)).real).tolist(),
             },
         )

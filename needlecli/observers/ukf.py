@@ -214,6 +214,7 @@ class UnscentedKalmanFilter(Observer):
         resets = np.zeros(N, dtype=np.int64)
         gated = {c["name"]: np.zeros(N, dtype=np.int64) for c in chans}
         used = {c["name"]: np.zeros(N, dtype=np.int64) for c in chans}
+        nis = {c["name"]: np.full(c["valid"].shape, np.nan) for c in chans}  # per sample used: nu^T S^-1 nu
         depths = np.asarray(s.predict_at_depths, dtype=float)
         pred_final = np.full((N, len(depths), n), np.nan)
         pred_tick = np.full(len(depths), -1, dtype=np.int64)
@@ -275,7 +276,7 @@ class UnscentedKalmanFilter(Observer):
                 # ---- update with what arrived in (t_k0, t_k1]
                 if len(schedule[i]) == 1 and schedule[i][0][0]["scalar"] and len(schedule[i][0][1]) == 1:
                     (c, (j,)), = schedule[i]  # one scalar sample that is a state (seed 003's roll at 100 Hz)
-                    x, P = self._update_scalar(x, P, c, j, alive, used)
+                    x, P = self._update_scalar(x, P, c, j, alive, used, nis)
                     if ang_sel is not None:
                         wrap_where_needed(x, ang_sel)
                 elif schedule[i]:
@@ -289,7 +290,7 @@ class UnscentedKalmanFilter(Observer):
                         repairs += bad & alive
                         X = sigma_points(x, root, w, angles)
                         dX = residual(X, x[..., None, :], angles)
-                    x, P = self._update(x, P, X, dX, schedule[i], w, alive, gated, used)
+                    x, P = self._update(x, P, X, dX, schedule[i], w, alive, gated, used, nis)
                     if ang_sel is not None:  # the update may carry an angle across the cut
                         wrap_where_needed(x, ang_sel)
                 # ---- curvature constraint: keep the previous estimate outside [0, kappa_max]
@@ -341,6 +342,7 @@ class UnscentedKalmanFilter(Observer):
         for c in chans:
             extras[f"used/{c['name']}"] = used[c["name"]]
             extras[f"gated/{c['name']}"] = gated[c["name"]]
+            extras[f"nis/{c['name']}"] = nis[c["name"]]
         if depths.size:
             extras["prediction/depth"] = depths
             extras["prediction/time"] = np.where(pred_tick >= 0, time[np.maximum(pred_tick, 0)], np.nan)
@@ -439,7 +441,7 @@ class UnscentedKalmanFilter(Observer):
         return schedule
 
     @staticmethod
-    def _update_scalar(x, P, c, j, alive, used):
+    def _update_scalar(x, P, c, j, alive, used, nis):
         """:meth:`_update` for one scalar sample ``j`` of channel ``c`` that measures one state ``i``:
         ``Pyy = P_ii + r``, ``Pxy = P[:, i]``, no solve; ``P - u u^T`` with ``u = Pxy / sqrt(Pyy)`` stays
         exactly symmetric. Runs without a valid sample are left unchanged."""
@@ -453,13 +455,15 @@ class UnscentedKalmanFilter(Observer):
             nu = wrap_angle(nu)
         nu = np.where(v, nu, 0.0)
         s = np.where(v, P[:, i, i] + float(c["sigma"][0]) ** 2, 1.0)
+        nis[c["name"]][v, j] = (nu**2 / s)[v]
         pxy = P[:, :, i] * v[:, None]
         x = x + pxy * (nu / s)[:, None]
         u = pxy / np.sqrt(s)[:, None]
         return x, P - u[:, :, None] * u[:, None, :]
 
-    def _update(self, x, P, X, dX, arrived, w, alive, gated, used):
-        """Update with the samples that arrived at this tick, per run where valid."""
+    def _update(self, x, P, X, dX, arrived, w, alive, gated, used, nis):
+        """Update with the samples that arrived at this tick, per run where valid; the normalised
+        innovation squared of each channel's sample used goes to ``nis`` (its own block of ``S``)."""
         N = x.shape[0]
         ys, masks, rs, hs, angs, blocks = [], [], [], [], [], []
         start = 0
@@ -468,12 +472,15 @@ class UnscentedKalmanFilter(Observer):
                 j = samples[0]
                 v = c["valid"][:, j] & alive
                 y = np.where(v[:, None], c["value"][:, j], 0.0)
+                jsel = np.full(N, j)
             else:  # several samples of a channel in one tick: the latest valid one wins
                 y = np.zeros((N, c["m"]))
                 v = np.zeros(N, dtype=bool)
+                jsel = np.zeros(N, dtype=np.int64)
                 for j in samples:
                     vj = c["valid"][:, j] & alive
                     y = np.where(vj[:, None], c["value"][:, j], y)
+                    jsel = np.where(vj, j, jsel)
                     v |= vj
             if not v.any():
                 continue
@@ -482,7 +489,7 @@ class UnscentedKalmanFilter(Observer):
                 f = c["growth"].factor(y[:, c["pos_cols"]], axes=c["pos_axes"])
                 r = r.copy()
                 r[:, c["pos_cols"]] *= (f**2)[:, None]
-            blocks.append((c, start, c["m"]))
+            blocks.append((c, start, c["m"], jsel))
             start += c["m"]
             ys.append(y)
             masks.append(np.broadcast_to(v[:, None], (N, c["m"])))
@@ -513,18 +520,22 @@ class UnscentedKalmanFilter(Observer):
         Pyy[:, np.arange(M), np.arange(M)] += R
         nu = residual(y, y_hat, ang_y) * mask
         # chi-square gating per channel block
-        for c, b0, m in blocks:
+        for c, b0, m, jsel in blocks:
             sl = slice(b0, b0 + m)
             on = mask[:, b0] > 0
+            if m == 1:
+                q = nu[:, b0] ** 2 / Pyy[:, b0, b0]
+            else:
+                q = np.einsum("ni,ni->n", nu[:, sl], np.linalg.solve(Pyy[:, sl, sl], nu[:, sl][..., None])[..., 0])
             if c["gate"] is not None:
-                nis = np.einsum("ni,ni->n", nu[:, sl], np.linalg.solve(Pyy[:, sl, sl], nu[:, sl][..., None])[..., 0])
-                out = on & ~(nis <= c["gate"])
+                out = on & ~(q <= c["gate"])
                 if out.any():
                     mask[out, sl] = 0.0
                     nu[out, sl] = 0.0
                     gated[c["name"]] += out
                     on = on & ~out
             used[c["name"]] += on
+            nis[c["name"]][on, jsel[on]] = q[on]
         if mask.all():
             Pyy_m, Pxy_m = Pyy, Pxy
         else:  # missing entries: zero their rows and columns, unit diagonal, so their gain is zero

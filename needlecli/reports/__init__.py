@@ -15,6 +15,7 @@ _TABLE_MODULES = {
     "needlecli.reports.seed004": ("seed004_table1", "seed004_table2", "seed004_table3", "seed004_recovery", "fit_status"),
     "needlecli.reports.imaging": ("measurements",),
     "needlecli.reports.control": ("planar_control",),
+    "needlecli.reports.consistency": ("consistency",),
     "needlecli.reports.real": ("real_tip_error", "measurement_use", "real_error_vs_depth", "per_trial",
                                "em_per_trial", "em_per_speed", "em_loglik"),
 }
@@ -24,6 +25,7 @@ _PLOT_MODULES = {
     "needlecli.reports.seed000_001": ("seed001_rotation_error",),
     "needlecli.reports.seed004": ("seed004_fig5", "seed004_fig10"),
     "needlecli.reports.imaging": ("imaging_frames",),
+    "needlecli.reports.consistency": ("nees_vs_depth",),
 }
 
 #: table functions ``(results, errors) -> DataFrame``

@@ -15,6 +15,7 @@ written by ``--write-baseline FILE.yaml``::
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -72,13 +73,19 @@ def load_baseline(path: str | Path) -> Baseline:
 
 def _key_columns(df: pd.DataFrame) -> list[str]:
     """Columns that identify a row: the table's ``attrs["keys"]`` if it declares them, else its text
-    columns (counts such as ``Runs`` are values, not keys)."""
+    columns (counts such as ``Runs``, ``kept/total``, are values, not keys)."""
     if df.attrs.get("keys"):
         return list(df.attrs["keys"])
-    return [c for c in df.columns if not pd.api.types.is_numeric_dtype(df[c]) and c != "Runs"]
+    return [c for c in df.columns if not pd.api.types.is_numeric_dtype(df[c]) and c not in COUNT_COLUMNS]
+
+
+#: columns that hold counts in the form ``kept/total`` (compared by the kept count)
+COUNT_COLUMNS = ("Runs", "Trials", "Converged")
 
 
 def _value(v) -> float | None:
+    if isinstance(v, str) and re.fullmatch(r"\s*\d+\s*/\s*\d+\s*", v):  # a count, kept/total: the kept
+        return float(v.split("/")[0])
     try:
         return float(v)
     except (TypeError, ValueError):

@@ -12,7 +12,7 @@ from needlecli.errors import DataError
 from needlecli.io.fit import is_fit_file
 from needlecli.io.results import read_results
 from needlecli.metrics import compute_errors
-from needlecli.reports.tables import TABLES, write_table
+from needlecli.reports.tables import TABLES, table_caption, write_table
 
 log = logging.getLogger("needlecli")
 
@@ -66,22 +66,22 @@ def evaluate_results(
     except KeyError as e:  # a readable HDF5 file that lacks part of the layout
         raise DataError(f"{path}: incomplete results file (missing {e})") from None
     names = tables or configured_tables(res)
+    from needlecli.reports.seed004 import ALL_FIT_TABLES
+
+    for name in names:
+        if name in ALL_FIT_TABLES:
+            raise DataError(f"{path}: table {name!r} needs a fit file of needle fit-em; this is a results file")
     out: dict[str, pd.DataFrame] = {}
     for name in names:
-        out[name] = TABLES.get(name)(res, errors)
+        out[name] = df = TABLES.get(name)(res, errors)
+        df.attrs["caption"] = table_caption(name, df, res)
     if out_dir is not None:
         out_dir = Path(out_dir)
         stem = res.attrs.get("name", path.stem)
         for name, df in out.items():
-            doc = " ".join((TABLES.get(name).__doc__ or "").strip().split("\n\n")[0].split())
-            if res.attrs.get("source") == "replay":
-                doc += f" Replayed logs; errors against: {res.attrs.get('truth_kind', 'the logs')}."
-            write_table(df, out_dir / f"{stem}_{name}", formats or ["md", "csv", "tex"], caption=doc)
+            write_table(df, out_dir / f"{stem}_{name}", formats or ["md", "csv", "tex"], caption=df.attrs["caption"])
         if plots:
-            from needlecli.reports.plots import PLOTS
+            from needlecli.reports.plots import draw_plots
 
-            for name in PLOTS.names():
-                p = PLOTS.get(name)(res, errors, out_dir / stem)
-                if p is not None:
-                    log.info("plot: %s", p)
+            draw_plots(res, errors, out_dir / stem)
     return out

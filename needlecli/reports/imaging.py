@@ -6,14 +6,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
 from needlecli.io.results import Group
 from needlecli.metrics import ErrorSet
-from needlecli.reports.plots import PLOTS, save_figure
-from needlecli.reports.tables import TABLES
+from needlecli.reports.plots import PLOTS, save_figure, subplots
+from needlecli.reports.tables import TABLES, count_cell
 
 _LENGTH_TO_MM = {"mm": 1.0, "m": 1000.0, "cm": 10.0}
 
@@ -38,7 +37,7 @@ def imaging_frames(res: Group, errors: dict[str, ErrorSet], path_stem: Path) -> 
     if not sensors:
         return None
     panels = sum(2 if g.data["frames"].ndim == 4 else 1 for _, g in sensors)
-    fig, axes = plt.subplots(1, panels, figsize=(4.2 * panels, 4.2), squeeze=False)
+    fig, axes = subplots(1, panels, figsize=(4.2 * panels, 4.4), squeeze=False)
     k = 0
     for name, g in sensors:
         i = _pick_frame(g)
@@ -70,7 +69,7 @@ def imaging_frames(res: Group, errors: dict[str, ErrorSet], path_stem: Path) -> 
             ax.set_title(f"{name} ({g.attrs.get('pipeline', '')}): run {run}, t = {t:.1f} s", fontsize=9)
             k += 1
     axes[0, 0].legend(loc="upper right", fontsize="small")
-    fig.suptitle(f"{res.attrs.get('name', '')}: imaging frames with the detected tip")
+    fig.suptitle(f"{res.attrs.get('name', '')}: imaging frames with the detected tip", fontsize=10)
     return save_figure(fig, Path(f"{path_stem}_imaging_frames.png"))
 
 
@@ -102,6 +101,6 @@ def measurement_table(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
                          "Std [mm]": float(e.std()) if e.size else np.nan,
                          "Max [mm]": float(np.abs(e).max()) if e.size else np.nan,
                          "Valid [%]": 100.0 * valid.mean() if valid.size else np.nan,
-                         "Runs": f"{int(keep.sum())}/{len(keep)}"})
+                         "Runs": count_cell(keep.sum(), len(keep))})
     return pd.DataFrame(rows, columns=["Sensor", "Pipeline", "Axis", "Mean [mm]", "Std [mm]", "Max [mm]",
                                        "Valid [%]", "Runs"])

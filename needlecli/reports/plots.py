@@ -1,4 +1,11 @@
-"""PNG plots from a results file: error against depth, and trajectories."""
+"""PNG plots from a results file: error against depth, and trajectories; the style every plot shares.
+
+Every figure of a run draws each observer in one colour (:func:`observer_colours`: a shared map from the
+observer order of the results file), the truth in black, and gives every axis its unit. A plot function
+``(results, errors, path_stem) -> Path | None`` returns None where it does not apply to the file (a
+fit-file figure on a results file), and raises :class:`PlotSkipped` with the reason where it applies but
+its quantity cannot be computed: ``needle evaluate`` then writes nothing and logs the reason once.
+"""
 
 from __future__ import annotations
 
@@ -12,8 +19,41 @@ import numpy as np  # noqa: E402
 
 from needlecli.io.atomic import atomic_path  # noqa: E402
 from needlecli.io.results import Group  # noqa: E402
-from needlecli.metrics import ErrorSet, depth_axis  # noqa: E402
+from needlecli.metrics import ErrorSet, QuantityError  # noqa: E402
 from needlecli.reports import PLOTS  # noqa: E402, F401  (the registry of plots; the plots register in it)
+
+TRUTH_COLOUR = "k"
+#: line styles that tell input cases (or other groups) of one observer apart; the colour stays the observer's
+CASE_STYLES = ("-", "--", ":", "-.", (0, (5, 1, 1, 1, 1, 1)), (0, (1, 3)), (0, (8, 2)), (0, (3, 1, 3, 3)))
+_LENGTH_TO_MM = {"mm": 1.0, "m": 1000.0, "cm": 10.0}
+
+
+class PlotSkipped(Exception):
+    """A plot that applies to the file but cannot be drawn from it: the message says why."""
+
+
+def observer_colours(res: Group) -> dict[str, str]:
+    """One colour per observer (or, in a fit file, per fitted model), the same in every panel and figure
+    of a run: the observer order of the results file (``/estimates``; ``/fit`` of a fit file) mapped
+    onto matplotlib's colour cycle (``tab20`` beyond ten)."""
+    group = res.data.get("fit") if res.attrs.get("format") == "needlecli-fit" else res.data.get("estimates")
+    names = list(group.data) if isinstance(group, Group) else []
+    if len(names) <= 10:
+        return {n: f"C{i}" for i, n in enumerate(names)}
+    cmap = plt.get_cmap("tab20")
+    return {n: matplotlib.colors.to_hex(cmap(i % 20)) for i, n in enumerate(names)}
+
+
+def observer_style(colours: dict[str, str], obs: str) -> dict:
+    """Line keywords of an observer's artists: its colour, and a ``gid`` naming it (checked by the tests)."""
+    return {"color": colours.get(obs, "0.4"), "gid": f"observer:{obs}"}
+
+
+def subplots(*args, **kwargs):
+    """``plt.subplots`` with the constrained layout: titles, legends and labels get the room they need
+    and no more (no blank band under a figure title)."""
+    kwargs.setdefault("layout", "constrained")
+    return plt.subplots(*args, **kwargs)
 
 
 def save_figure(fig, path: Path) -> Path:
@@ -26,61 +66,156 @@ def save_figure(fig, path: Path) -> Path:
     return path
 
 
+def length_scale(res: Group) -> float:
+    """Factor from the results file's length unit to mm (plots draw lengths in mm)."""
+    return _LENGTH_TO_MM.get(str(res.attrs.get("length_unit", "mm")), 1.0)
+
+
+def run_depths(res: Group) -> np.ndarray:
+    """The inserted depth ``(N, T)`` of every run (simulated runs share one, replayed trials each have
+    their own), in the model's length unit."""
+    depth = np.asarray(res.data["depth"], dtype=float)
+    n = res.data["truth"].data["state"].shape[0]
+    return np.broadcast_to(depth, (n, depth.shape[-1])) if depth.ndim == 1 else depth
+
+
+def curve_against_depth(depth: np.ndarray, values: np.ndarray, bins: int = 60):
+    """Mean and 5-95 % band over runs of ``values (n, T)`` against ``depth (n, T)``, from the samples that
+    exist (finite) only. Where every run has its samples at the same steps (a simulation, or one recording
+    replayed several times) the curve is taken at those steps; otherwise (replayed trials with truth only
+    at their own tracker frames) the samples are pooled in depth bins. Returns ``(d, mean, lo, hi, kind)``,
+    ``kind`` saying which; empty arrays when there is no sample."""
+    fin = np.isfinite(values) & np.isfinite(depth)
+    cols = np.nonzero(fin.any(0))[0]
+    empty = np.zeros(0)
+    if cols.size == 0:
+        return empty, empty, empty, empty, "none"
+    if fin[:, cols].all():
+        v, d = values[:, cols], depth[:, cols].mean(0)
+        lo, hi = np.percentile(v, [5, 95], axis=0)
+        return d, v.mean(0), lo, hi, "steps"
+    d_all, v_all = depth[fin], values[fin]
+    edges = np.linspace(d_all.min(), d_all.max() + 1e-9, min(bins, max(2, cols.size)) + 1)
+    which = np.clip(np.searchsorted(edges, d_all, side="right") - 1, 0, len(edges) - 2)
+    counts = np.bincount(which, minlength=len(edges) - 1)
+    has = np.nonzero(counts)[0]
+    mean = np.bincount(which, v_all, minlength=len(edges) - 1)[has] / counts[has]
+    lo = np.array([np.percentile(v_all[which == b], 5) for b in has])  # a loop over depth bins, not runs
+    hi = np.array([np.percentile(v_all[which == b], 95) for b in has])
+    centres = 0.5 * (edges[:-1] + edges[1:])[has]
+    return centres, mean, lo, hi, "bins"
+
+
+def _band_words(kinds: set[str]) -> str:
+    if kinds == {"bins"}:
+        return "mean and 5-95 % of the samples per depth bin (truth only at some frames)"
+    if "bins" in kinds:
+        return "mean and 5-95 % over runs (binned in depth where truth exists only at some frames)"
+    return "mean and 5-95 % over runs"
+
+
 @PLOTS.register("error_vs_depth")
 def error_vs_depth(res: Group, errors: dict[str, ErrorSet], path_stem: Path) -> Path | None:
-    """Mean and 5-95 % band of each error quantity against inserted depth, one panel per quantity."""
+    """Mean and 5-95 % band of each error quantity against inserted depth, one panel per quantity, from
+    the steps where truth exists; one colour per observer, one legend for all panels."""
     from needlecli.reports.tables import order_quantities
 
-    quantities = order_quantities({q for es in errors.values() for q in es.quantities})
+    quantities = order_quantities({q for es in errors.values() for q, qe in es.quantities.items()
+                                   if np.isfinite(qe.values).any()})
     if not quantities:
-        return None
-    depth = depth_axis(res)  # replayed trials each have their own depth: the axis is their mean
+        raise PlotSkipped("no error quantity could be computed (no truth where any observer estimated)")
+    depth = run_depths(res)
     unit = res.attrs.get("length_unit", "mm")
-    fig, axes = plt.subplots(len(quantities), 1, figsize=(7, 2.2 * len(quantities)), sharex=True, squeeze=False)
+    colours = observer_colours(res)
+    fig, axes = subplots(len(quantities), 1, figsize=(7, 1.9 * len(quantities) + 0.9), sharex=True, squeeze=False)
+    kinds: set[str] = set()
+    handles = {}
     for ax, q in zip(axes[:, 0], quantities):
         for obs, es in errors.items():
-            if q not in es.quantities or es.quantities[q].values.size == 0:
+            qe: QuantityError | None = es.quantities.get(q)
+            if qe is None or qe.values.size == 0:
                 continue
-            qe = es.quantities[q]
-            v = qe.values
-            ax.plot(depth, np.nanmean(v, 0), label=obs)
-            lo, hi = np.nanpercentile(v, [5, 95], axis=0)
-            ax.fill_between(depth, lo, hi, alpha=0.2)
+            d, m, lo, hi, kind = curve_against_depth(depth[qe.runs], qe.values)
+            if d.size == 0:
+                continue
+            kinds.add(kind)
+            st = observer_style(colours, obs)
+            (line,) = ax.plot(d, m, lw=1.3, label=obs, marker="." if d.size < 30 else None, **st)
+            ax.fill_between(d, lo, hi, alpha=0.18, color=st["color"], lw=0)
+            handles.setdefault(obs, line)
             ax.set_ylabel(f"{q} [{qe.unit}]")
         ax.grid(alpha=0.3)
-    axes[0, 0].legend(loc="upper right", fontsize="small")
     axes[-1, 0].set_xlabel(f"inserted depth [{unit}]")
-    fig.suptitle(f"{res.attrs.get('name', '')}: error against depth (mean, 5-95 % of runs)")
+    fig.legend(handles.values(), handles.keys(), loc="outside lower center", ncol=min(len(handles), 4), fontsize="small")
+    fig.suptitle(f"{res.attrs.get('name', '')}: error against depth ({_band_words(kinds)})", fontsize=10)
     return save_figure(fig, Path(f"{path_stem}_error_vs_depth.png"))
+
+
+_POSITION_AXES = (("x", "y", "z"), ("px", "py", "pz"))
 
 
 @PLOTS.register("trajectories")
 def trajectories(res: Group, errors: dict[str, ErrorSet], path_stem: Path, max_runs: int = 10) -> Path | None:
-    """Tip paths of the first runs in two projections, truth and every position estimate."""
+    """Tip paths of the first runs in two projections (z-x and z-y, mm): the truth where it exists (a
+    replayed trial: its reference frames, joined) and every observer that estimates the position."""
     truth = res.data["truth"]
     names = list(truth.attrs["names"])
-    axes_names = next((ax for ax in (("x", "y", "z"), ("px", "py", "pz")) if all(a in names for a in ax)), None)
+    axes_names = next((ax for ax in _POSITION_AXES if all(a in names for a in ax)), None)
     if axes_names is None:
         return None
+    scale = length_scale(res)
+    colours = observer_colours(res)
     ix = [names.index(a) for a in axes_names]
-    st = truth.data["state"][:max_runs]
-    fig, axs = plt.subplots(1, 2, figsize=(11, 4))
+    st = truth.data["state"][:max_runs][..., ix] * scale
+    n_runs = st.shape[0]
+    kind = str(res.attrs.get("truth_kind", "simulation"))
+    truth_label = "truth" if kind == "simulation" else f"reference ({kind})"
+    estimates = [(obs, g) for obs, g in res.data.get("estimates", Group()).data.items()
+                 if all(n in list(g.attrs["names"]) for n in axes_names)]
+    fig, axs = subplots(1, 2, figsize=(11, 4.2))
+    drawn = {}
     for k, (a, b) in enumerate(((2, 0), (2, 1))):
         ax = axs[k]
-        for r in range(st.shape[0]):
-            ax.plot(st[r, :, ix[a]], st[r, :, ix[b]], color="k", lw=0.8, alpha=0.7, label="truth" if r == 0 else None)
-        for j, (obs, g) in enumerate(res.data.get("estimates", Group()).data.items()):
+        for r in range(n_runs):
+            fin = np.isfinite(st[r, :, a]) & np.isfinite(st[r, :, b])
+            if fin.sum() >= 2:
+                (line,) = ax.plot(st[r, fin, a], st[r, fin, b], color=TRUTH_COLOUR, lw=0.9, alpha=0.8,
+                                  label=truth_label if truth_label not in drawn else None, gid="truth")
+                drawn.setdefault(truth_label, line)
+        for obs, g in estimates:
             en = list(g.attrs["names"])
-            if not all(n in en for n in axes_names):
-                continue
-            e = g.data["state"][:max_runs]
-            ei = [en.index(n) for n in axes_names]
+            e = g.data["state"][:max_runs][..., [en.index(n) for n in axes_names]] * scale
             for r in range(e.shape[0]):
-                ax.plot(e[r, :, ei[a]], e[r, :, ei[b]], color=f"C{j}", lw=0.8, ls="--",
-                        label=obs if r == 0 else None)
-        ax.set_xlabel(axes_names[a])
-        ax.set_ylabel(axes_names[b])
+                fin = np.isfinite(e[r, :, a]) & np.isfinite(e[r, :, b])
+                if fin.sum() >= 2:
+                    (line,) = ax.plot(e[r, fin, a], e[r, fin, b], lw=0.8, ls="--",
+                                      label=obs if obs not in drawn else None, **observer_style(colours, obs))
+                    drawn.setdefault(obs, line)
+        ax.set_xlabel(f"{axes_names[a]} [mm]")
+        ax.set_ylabel(f"{axes_names[b]} [mm]")
         ax.grid(alpha=0.3)
-    axs[0].legend(fontsize="small")
-    fig.suptitle(f"{res.attrs.get('name', '')}: tip paths of the first {st.shape[0]} runs")
+    if not drawn:
+        plt.close(fig)
+        raise PlotSkipped("neither the truth nor any estimate has a finite tip position")
+    fig.legend(drawn.values(), drawn.keys(), loc="outside lower center", ncol=min(len(drawn), 5), fontsize="small")
+    fig.suptitle(f"{res.attrs.get('name', '')}: tip paths of the first {n_runs} runs", fontsize=10)
     return save_figure(fig, Path(f"{path_stem}_trajectories.png"))
+
+
+def draw_plots(res: Group, errors, path_stem: Path, names=None) -> list[Path]:
+    """Draw the registered plots (or ``names``) of a results or fit file; a plot that cannot be drawn is
+    not written, and the log says why, once per plot."""
+    import logging
+
+    log = logging.getLogger("needlecli")
+    out = []
+    for name in names if names is not None else PLOTS.names():
+        try:
+            p = PLOTS.get(name)(res, errors, path_stem)
+        except PlotSkipped as e:
+            log.info("plot %s: not written (%s)", name, e)
+            continue
+        if p is not None:
+            log.info("plot: %s", p)
+            out.append(p)
+    return out

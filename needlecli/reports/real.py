@@ -9,7 +9,7 @@ import pandas as pd
 
 from needlecli.io.results import Group
 from needlecli.metrics import ErrorSet
-from needlecli.reports.tables import TABLES, order_quantities
+from needlecli.reports.tables import TABLES, count_cell, order_quantities
 
 _LENGTH_TO_MM = {"mm": 1.0, "m": 1000.0, "cm": 10.0}
 _AXES = (("x", "y", "z"), ("px", "py", "pz"))
@@ -62,7 +62,7 @@ def real_tip_error(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
     def row(source, at, err, runs, n_runs):
         fin = np.isfinite(err)
         rows.append({"Source": source, "Compared at": at, "Frames": int(fin.sum()), **_stats(err),
-                     "Runs": f"{runs}/{n_runs}"})
+                     "Runs": count_cell(runs, n_runs)})
 
     n_runs = state.shape[0]
     for name, names, value, valid, index in _position_streams(res):
@@ -96,8 +96,9 @@ def real_tip_error(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
 
 @TABLES.register("measurement_use")
 def measurement_use(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
-    """Per observer, channel and run (trial): the channel's samples, how many were valid (the rest lost:
-    missing measurements), used in an update, and rejected by the chi-square gate."""
+    """Per observer, channel and trial: the channel's samples, how many were valid (the rest lost:
+    missing measurements), used in an update, and rejected by the chi-square gate; runs of the same trial
+    with the same counts share one row (Runs: how many of the observer's runs it stands for)."""
     ids = _trial_ids(res)
     meas = res.data.get("measurements", Group()).data
     frames = []
@@ -113,10 +114,15 @@ def measurement_use(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
             samples = meas[ch].data["valid"].shape[1] if ch in meas else -1
             with np.errstate(invalid="ignore", divide="ignore"):
                 pct = np.where(valid > 0, 100.0 * gt / np.maximum(valid, 1), np.nan)
-            frames.append(pd.DataFrame({"Observer": obs, "Channel": ch, "Trial": ids, "Samples": samples,
-                                        "Valid": valid, "Used": np.asarray(u), "Gated": gt,
-                                        "Gated [% of valid]": pct.astype(float)}))
-    cols = ["Observer", "Channel", "Trial", "Samples", "Valid", "Used", "Gated", "Gated [% of valid]"]
+            per_run = pd.DataFrame({"Observer": obs, "Channel": ch, "Trial": ids, "Samples": samples,
+                                    "Valid": valid, "Used": np.asarray(u), "Gated": gt,
+                                    "Gated [% of valid]": pct.astype(float)})
+            keys = ["Observer", "Channel", "Trial", "Samples", "Valid", "Used", "Gated"]
+            rows = per_run.groupby(keys, sort=False, dropna=False).agg(
+                pct=("Gated [% of valid]", "first"), n=("Trial", "size")).reset_index()
+            rows["Runs"] = [count_cell(k, len(ids)) for k in rows["n"]]
+            frames.append(rows.rename(columns={"pct": "Gated [% of valid]"}).drop(columns="n"))
+    cols = ["Observer", "Channel", "Trial", "Samples", "Valid", "Used", "Gated", "Gated [% of valid]", "Runs"]
     return pd.concat(frames, ignore_index=True)[cols] if frames else pd.DataFrame(columns=cols)
 
 
@@ -178,7 +184,7 @@ def real_error_vs_depth(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame
             last = v.shape[1] - 1 - np.argmax(fin[:, ::-1], axis=1)
             final = v[np.arange(len(v)), last][has]
             row["final"] = float(np.mean(final)) if final.size else np.nan
-            row["Trials"] = f"{int(has.sum())}/{es.n_runs}"
+            row["Trials"] = count_cell(has.sum(), es.n_runs)
             rows.append(row)
     return pd.DataFrame(rows)
 
@@ -269,7 +275,7 @@ def em_per_speed(res: Group, errors=None) -> pd.DataFrame:
     rows = []
     for (model, sp), d in per.groupby(["Model", "Speed [mm/s]"], dropna=False):
         ok = d[d["Status"] == "ok"]
-        row = {"Model": model, "Speed [mm/s]": sp, "Trials": len(d), "Converged": len(ok)}
+        row = {"Model": model, "Speed [mm/s]": sp, "Converged": count_cell(len(ok), len(d))}
         for c in const:
             v = ok[c].to_numpy(dtype=float)
             row[f"{c} median"] = float(np.median(v)) if v.size else np.nan
@@ -301,22 +307,5 @@ def em_loglik(res: Group, errors=None) -> pd.DataFrame:
     return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
 
 
+#: this module's tables of a fit file of ``needle fit-em`` (``needle evaluate FIT.h5 --tables em_per_trial``)
 FIT_TABLES_HERE = ("em_per_trial", "em_per_speed", "em_loglik")
-
-
-def write_fit_tables(path, out_dir, formats=("md", "csv", "tex")) -> list:
-    """Write this module's fit tables of a fit file of ``needle fit-em`` to ``out_dir`` (``needle evaluate``
-    writes only the fit tables it lists)."""
-    from pathlib import Path
-
-    from needlecli.io.fit import read_fit
-    from needlecli.reports.tables import write_table
-
-    res = read_fit(path)
-    stem = res.attrs.get("name", Path(path).stem)
-    out = []
-    for n in FIT_TABLES_HERE:
-        doc = " ".join((TABLES.get(n).__doc__ or "").strip().split("\n\n")[0].split())
-        out += write_table(TABLES.get(n)(res), Path(out_dir) / f"{stem}_{n}", list(formats), caption=doc)
-    return out
-

@@ -4,6 +4,7 @@ the arc, and the Fig. 3 plot of the error against distance per input case)."""
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -11,8 +12,18 @@ import pandas as pd
 
 from needlecli.io.results import Group
 from needlecli.metrics import ErrorSet, depth_axis
-from needlecli.reports.plots import PLOTS, plt, save_figure
-from needlecli.reports.tables import TABLES
+from needlecli.reports.plots import (
+    PLOTS,
+    PlotSkipped,
+    curve_against_depth,
+    observer_colours,
+    observer_style,
+    plt,
+    run_depths,
+    save_figure,
+    subplots,
+)
+from needlecli.reports.tables import TABLES, count_cell
 
 _TABLE1_STATS = ("Average Absolute Estimation Error", "RMSE", "Standard Deviation")
 
@@ -60,9 +71,34 @@ def seed000_table1(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
             else:
                 row.update({k: np.nan for k in _TABLE1_STATS})
             row["Final"] = float(np.mean(last)) if last.size else np.nan
-            row["Runs"] = f"{kept}/{es.n_runs}"
+            row["Runs"] = count_cell(kept, es.n_runs)
             rows.append(row)
-    return pd.DataFrame(rows, columns=["Observer", "Error", *_TABLE1_STATS, "Final", "Runs"])
+    df = pd.DataFrame(rows, columns=["Observer", "Error", *_TABLE1_STATS, "Final", "Runs"])
+    note = _convergence_note(res)
+    if note:
+        df.attrs["note"] = note
+    return df
+
+
+def _convergence_note(res: Group) -> str:
+    """What each high-gain observer's linear error dynamics allow within the run: its slowest error pole
+    (``theta * eig(A + L C)``, recorded by the observer), the time constant and the time to 1 % of an
+    initial error, against the run's duration."""
+    duration = float(res.data["time"][-1])
+    parts = []
+    for obs, g in res.data.get("estimates", Group()).data.items():
+        poles = g.attrs.get("error_poles")
+        if poles is None or not len(np.atleast_1d(poles)):
+            continue
+        slow = -float(np.max(np.atleast_1d(poles)))
+        if slow <= 0:
+            parts.append(f"{obs} (theta {float(g.attrs.get('theta', np.nan)):g}): not stable")
+            continue
+        t1 = np.log(100.0) / slow
+        verdict = f"within the {duration:.0f} s run" if t1 <= duration else f"not within the {duration:.0f} s run"
+        parts.append(f"{obs} (theta {float(g.attrs.get('theta', np.nan)):g}): slowest error pole {slow:.3g} /s, "
+                     f"time constant {1 / slow:.3g} s, 1 % of an initial error after {t1:.3g} s, {verdict}")
+    return ("Convergence of the linear error dynamics: " + "; ".join(parts) + ".") if parts else ""
 
 
 # ---------------------------------------------------------------------------------------------- seed 001
@@ -90,14 +126,15 @@ def _half_turn(res: Group) -> float | None:
     return float(np.pi / k) if k > 0 else None
 
 
-def _rotation_groups(res: Group, errors: dict[str, ErrorSet]):
-    """``(observer, case label, E_R (n, T) deg)`` for every observer with a rotation error."""
+def _rotation_groups(res: Group, errors: dict[str, ErrorSet], with_runs: bool = False):
+    """``(observer, case label, E_R (n, T) deg, number of runs)`` for every observer with a rotation
+    error (and the runs' indices ``(n,)`` last, ``with_runs``)."""
     for obs, es in errors.items():
         qe = es.quantities.get("E_R")
         if qe is None or qe.values.shape[0] == 0:
             continue
         for label, sel in _cases(res, qe.runs):
-            yield obs, label, qe.values[sel], es.n_runs
+            yield (obs, label, qe.values[sel], es.n_runs) + ((qe.runs[sel],) if with_runs else ())
 
 
 def _first_below(depth: np.ndarray, curve: np.ndarray, level: float) -> float:
@@ -113,21 +150,63 @@ def _first_below(depth: np.ndarray, curve: np.ndarray, level: float) -> float:
 @TABLES.register("seed001_convergence")
 def seed001_convergence(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
     """Seed 001: rotation error E_R (mean over the case's kept runs, deg) against insertion distance, and
-    the distance from which it stays under 10 and 5 deg. Paper: about 7 cm of insertion from 90 deg."""
+    the distance from which it stays under 10 and 5 deg. Paper: about 7 cm of insertion for an adequate
+    estimate from 90 deg, and about 80 % less error per half turn of the arc."""
     depth = depth_axis(res)
     unit = res.attrs.get("length_unit", "mm")
     marks = [d for d in (50.0, 70.0, 100.0, 150.0, 200.0, 300.0) if d <= depth[-1] + 1e-9]
     rows = []
     for obs, label, e, n_runs in _rotation_groups(res, errors):
-        m = np.nanmean(e, 0)
-        row = {"Observer": obs, "Case": label, "Runs": f"{e.shape[0]}/{n_runs}", "E_R at 0 [deg]": float(m[0])}
+        with warnings.catch_warnings():  # steps without truth (replays): NaN
+            warnings.simplefilter("ignore", RuntimeWarning)
+            m = np.nanmean(e, 0)
+        row = {"Observer": obs, "Case": label, "Runs": count_cell(e.shape[0], n_runs), "E_R at 0 [deg]": float(m[0])}
         for d in marks:
             row[f"at {d:g} {unit}"] = float(m[min(np.searchsorted(depth, d - 1e-9), len(m) - 1)])
         row["final [deg]"] = float(m[-1])
         row[f"under 10 deg from [{unit}]"] = _first_below(depth, m, 10.0)
         row[f"under 5 deg from [{unit}]"] = _first_below(depth, m, 5.0)
         rows.append(row)
-    return pd.DataFrame(rows)
+    df = pd.DataFrame(rows)
+    note = _seed001_note(res, errors)
+    if note:
+        df.attrs["note"] = note
+    return df
+
+
+def _seed001_note(res: Group, errors: dict[str, ErrorSet]) -> str:
+    """What this file says about seed 001's two claims, for every observer and case starting about 90 deg
+    off: the error at 7 cm, after one half turn and the reduction over the second, and whether "about
+    7 cm from 90 deg" holds (under 10 deg, an adequate estimate, by 8 cm at the latest)."""
+    depth = depth_axis(res)
+    half = _half_turn(res)
+    unit = res.attrs.get("length_unit", "mm")
+    if depth[-1] < 70.0 - 1e-9:
+        return ""
+    parts = []
+    with warnings.catch_warnings():  # steps without truth (replays): NaN
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for obs, label, e, _ in _rotation_groups(res, errors):
+            m = np.nanmean(e, 0)
+            if not (80.0 <= m[0] <= 100.0):
+                continue
+
+            def at(d, m=m):
+                return float(m[min(np.searchsorted(depth, d - 1e-9), len(m) - 1)])
+
+            text = f"{obs}, {label}: E_R {m[0]:.0f} deg at 0, {at(70.0):.0f} deg at 70 {unit}"
+            if half is not None and 2 * half <= depth[-1] + 1e-9:
+                e1, e2 = at(half), at(2 * half)
+                text += f", {e1:.0f} deg after one half turn ({half:.0f} {unit}), {100 * (1 - e2 / e1):.0f} % less over the second"
+            below = _first_below(depth, m, 10.0)
+            held = np.isfinite(below) and below <= 80.0 + 1e-9  # "about 7 cm": by 8 cm at the latest
+            text += (f": seed 001's about 7 cm from 90 deg holds (under 10 deg from {below:.0f} {unit})" if held else
+                     ": seed 001's about 7 cm from 90 deg is not reproduced" +
+                     (f" (under 10 deg from {below:.0f} {unit})" if np.isfinite(below) else " (never under 10 deg)"))
+            parts.append(text)
+    k = res.data["truth"].data.get("params", Group()).data.get("kappa")
+    radius = f" (arc radius {1.0 / float(np.nanmean(k)):.1f} {unit})" if k is not None and np.nanmean(k) > 0 else ""
+    return (f"Here{radius}: " + "; ".join(parts) + ".") if parts else ""
 
 
 @TABLES.register("seed001_half_turns")
@@ -135,7 +214,8 @@ def seed001_half_turns(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
     """Seed 001: rotation error after each half turn of the arc (pi / kappa of insertion) and its
     reduction per half turn, 1 - E_R(j) / E_R(j - 1), from the case's mean error (at most 12 rows per
     case: with more half turns, every k-th and the mean reduction per half turn over the k). Paper:
-    about 80 % per half turn with a hand-tuned gain."""
+    about 80 % per half turn with a hand-tuned gain, and about 7 cm of insertion for an adequate estimate
+    from 90 deg."""
     depth = depth_axis(res)
     unit = res.attrs.get("length_unit", "mm")
     half = _half_turn(res)
@@ -150,42 +230,64 @@ def seed001_half_turns(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
         prev = None
         for j in range(0, n_half + 1, step):
             i = min(np.searchsorted(depth, j * half - 1e-9), len(depth) - 1)
-            m = float(np.nanmean(e[:, i]))
+            with warnings.catch_warnings():  # steps without truth (replays): NaN
+                warnings.simplefilter("ignore", RuntimeWarning)
+                m, mx = float(np.nanmean(e[:, i])), float(np.nanmax(e[:, i]))
             red = 100.0 * (1.0 - (m / prev) ** (1.0 / step)) if prev else np.nan
             rows.append({"Observer": obs, "Case": label, "Half turns": j, f"Distance [{unit}]": float(depth[i]),
-                         "E_R mean [deg]": m, "E_R max [deg]": float(np.nanmax(e[:, i])),
-                         "Reduction [%]": red, "Runs": f"{e.shape[0]}/{n_runs}"})
+                         "E_R mean [deg]": m, "E_R max [deg]": mx,
+                         "Reduction [%]": red, "Runs": count_cell(e.shape[0], n_runs)})
             prev = m
-    return pd.DataFrame(rows, columns=cols)
+    df = pd.DataFrame(rows, columns=cols)
+    note = _seed001_note(res, errors)
+    if note:
+        df.attrs["note"] = note
+    return df
 
 
 @PLOTS.register("seed001_rotation_error")
 def rotation_error_plot(res: Group, errors: dict[str, ErrorSet], path_stem: Path, max_runs: int = 20) -> Path | None:
     """Seed 001 Fig. 3: rotation error against insertion distance, one panel per input case, one colour
-    per observer (thin: single runs, thick: mean)."""
-    groups = list(_rotation_groups(res, errors))
+    per observer (thin: single runs, thick: mean), from the steps where truth exists; dotted verticals
+    mark half turns of the arc (pi / kappa) where the insertion reaches one."""
+    groups = list(_rotation_groups(res, errors, with_runs=True))
     if not groups:
         return None
-    cases = list(dict.fromkeys(label for _, label, _, _ in groups))
-    observers = list(dict.fromkeys(obs for obs, _, _, _ in groups))
-    depth = depth_axis(res)
+    cases = list(dict.fromkeys(g[1] for g in groups))
+    colours = observer_colours(res)
+    depth = run_depths(res)
     unit = res.attrs.get("length_unit", "mm")
-    fig, axs = plt.subplots(1, len(cases), figsize=(5.5 * len(cases), 3.8), squeeze=False, sharey=True)
-    for obs, label, e, _ in groups:
+    fig, axs = subplots(1, len(cases), figsize=(5.5 * len(cases), 4.0), squeeze=False, sharey=True)
+    handles = {}
+    kinds = set()
+    for obs, label, e, _, runs in groups:
         ax = axs[0, cases.index(label)]
-        color = f"C{observers.index(obs) % 10}"
+        st = observer_style(colours, obs)
         for r in range(min(e.shape[0], max_runs)):
-            ax.plot(depth, e[r], color=color, lw=0.5, alpha=0.4)
-        ax.plot(depth, np.nanmean(e, 0), color=color, lw=1.8, label=obs)
+            fin = np.isfinite(e[r]) & np.isfinite(depth[runs[r]])
+            if fin.sum() >= 2:
+                ax.plot(depth[runs[r], fin], e[r, fin], lw=0.5, alpha=0.4, **st)
+        d, m, _, _, kind = curve_against_depth(depth[runs], e)
+        if d.size:
+            kinds.add(kind)
+            (line,) = ax.plot(d, m, lw=1.8, **st)
+            handles.setdefault(obs, line)
+    if not handles:
+        plt.close(fig)
+        raise PlotSkipped("no rotation error where the truth exists")
     half = _half_turn(res)
+    reach = float(np.nanmax(depth))
+    if half is not None and reach >= half:
+        for ax in axs[0]:
+            for j in range(1, int(reach / half) + 1):
+                line = ax.axvline(j * half, color="grey", lw=0.6, ls=":")
+        handles[f"half turns of the arc (pi / kappa = {half:.0f} {unit})"] = line
     for c, ax in zip(cases, axs[0]):
-        if half is not None:
-            for j in range(1, int(depth[-1] / half) + 1):
-                ax.axvline(j * half, color="grey", lw=0.6, ls=":")
-        ax.set_title(c)
+        ax.set_title(c, fontsize=9)
         ax.set_xlabel(f"insertion distance [{unit}]")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize="small")
-    axs[0, 0].set_ylabel("rotation error [deg]")
-    fig.suptitle(f"{res.attrs.get('name', '')}: rotation error against distance (dotted: half turns of the arc)")
+    axs[0, 0].set_ylabel("rotation error E_R [deg]")
+    fig.legend(handles.values(), handles.keys(), loc="outside lower center", ncol=min(len(handles), 4), fontsize="small")
+    what = "thick: mean over runs" + (", binned in depth" if "bins" in kinds else "") + "; thin: single runs"
+    fig.suptitle(f"{res.attrs.get('name', '')}: rotation error against insertion distance ({what})", fontsize=10)
     return save_figure(fig, Path(f"{path_stem}_rotation_error.png"))

@@ -27,12 +27,15 @@ import pandas as pd
 from needlecli.errors import DataError
 from needlecli.io.results import Group
 from needlecli.models import MODELS
-from needlecli.reports.plots import PLOTS, plt, save_figure
-from needlecli.reports.tables import TABLES, write_table
+from needlecli.reports.plots import PLOTS, draw_plots, observer_colours, observer_style, save_figure, subplots
+from needlecli.reports.real import FIT_TABLES_HERE
+from needlecli.reports.tables import TABLES, count_cell, table_caption, write_table
 
 log = logging.getLogger("needlecli")
 
 FIT_TABLES = ("seed004_table1", "seed004_table2", "seed004_table3", "seed004_recovery", "fit_status")
+#: every table of a fit file: :data:`FIT_TABLES` (written by default) and those asked for by name
+ALL_FIT_TABLES = FIT_TABLES + FIT_TABLES_HERE
 FIT_PLOTS = ("seed004_fig5", "seed004_fig10")
 FAILED = ("singular", "diverged")
 _TO_MM = {"m": 1000.0, "mm": 1.0, "cm": 10.0}
@@ -336,7 +339,7 @@ def recovery_table(res: Group, errors=None) -> pd.DataFrame:
     df = pd.DataFrame(rows, columns=["Model", "Quantity", "Truth", "Fitted mean", "Fitted SD"])
     with np.errstate(all="ignore"):
         df["Error of mean (%)"] = 100.0 * (df["Fitted mean"] - df["Truth"]) / df["Truth"]
-    df["Trials"] = int(keep.sum())
+    df["Trials"] = count_cell(keep.sum(), len(keep))
     return df
 
 
@@ -355,7 +358,7 @@ def fit_status_table(res: Group, errors=None) -> pd.DataFrame:
             sel = status == s
             reasons = sorted({r.split(" (EM iteration")[0] for r in reason[sel] if r})
             rows.append({
-                "Model": model, "Status": s, "Trials": int(sel.sum()),
+                "Model": model, "Status": s, "Trials": count_cell(sel.sum(), len(sel)),
                 "Iterations (median)": float(np.median(it[sel])), "Iterations (max)": int(it[sel].max()),
                 "E-step passes / iteration": float(np.mean(np.asarray(g.data["estep_passes"])[sel] / np.maximum(it[sel], 1))),
                 "LL decreases": int(np.asarray(g.data["ll_decreases"])[sel].sum()),
@@ -404,26 +407,28 @@ def fig5(res: Group, errors, path_stem: Path) -> Path | None:
     y = np.asarray(mg.data["value"])[i][:, cols] * scale
     valid = np.asarray(mg.data["valid"])[i]
     t_meas = np.asarray(mg.data["t"])
-    fig, axs = plt.subplots(1, 2, figsize=(12, 4.8))
+    colours = observer_colours(res)
+    fig, axs = subplots(1, 2, figsize=(12, 4.8))
     axs[0].plot(y[valid, 0], y[valid, 1], ".", ms=3, color="0.5", label=f"{ch} measurements")
     tr = res.data.get("truth", Group())
     if "state" in tr.data:
         tn = [str(x) for x in tr.attrs["names"]]
         ts = np.asarray(tr.data["state"])[i]
-        axs[0].plot(ts[:, tn.index("px")] * scale, ts[:, tn.index("py")] * scale, "k--", lw=0.8, label="truth")
-    for j, (model, g) in enumerate(res.data["fit"].data.items()):
+        axs[0].plot(ts[:, tn.index("px")] * scale, ts[:, tn.index("py")] * scale, "k--", lw=0.8, label="truth", gid="truth")
+    for model, g in res.data["fit"].data.items():
         gn = [str(x) for x in g.attrs["names"]]
         z = np.asarray(g.data["state"])[i]
         px, py = z[:, gn.index("px")] * scale, z[:, gn.index("py")] * scale
         status = str(np.asarray(g.data["status"]).astype(str)[i])
-        axs[0].plot(px, py, color=f"C{j}", lw=1.2, label=f"{model} EM ({status})")
+        st = observer_style(colours, model)
+        axs[0].plot(px, py, lw=1.2, label=f"{model} EM ({status})", **st)
         ticks = np.asarray(g.data["ticks"])
         at = np.clip(np.searchsorted(ticks, np.asarray(mg.data["index"])), 0, len(ticks) - 1)
         d = np.hypot(px[at] - y[:, 0], py[at] - y[:, 1])
         d = np.where(valid, d, np.nan)
         run = np.sqrt(np.nancumsum(d**2) / np.maximum(np.cumsum(valid), 1))
-        axs[1].plot(t_meas, d, color=f"C{j}", lw=0.5, alpha=0.5)
-        axs[1].plot(t_meas, run, color=f"C{j}", lw=1.5, label=f"{model}: running RMS {run[-1]:.3f} mm")
+        axs[1].plot(t_meas, d, lw=0.5, alpha=0.5, **st)
+        axs[1].plot(t_meas, run, lw=1.5, label=f"{model}: running RMS {run[-1]:.3f} mm", **st)
     axs[0].set_xlabel("x [mm]")
     axs[0].set_ylabel("y [mm]")
     axs[0].set_aspect("equal", adjustable="datalim")
@@ -437,7 +442,7 @@ def fig5(res: Group, errors, path_stem: Path) -> Path | None:
     case = res.data["inputs"].data.get("case")
     pcase, plabels = _cases(res)
     what = (labels[int(case[i])] + ", " if labels and case is not None else "") + plabels[int(pcase[i])]
-    fig.suptitle(f"{res.attrs.get('name', '')}: trial {i} ({what}): EM estimates of both models")
+    fig.suptitle(f"{res.attrs.get('name', '')}: trial {i} ({what}): EM estimates of both models", fontsize=10)
     return save_figure(fig, Path(f"{path_stem}_seed004_fig5.png"))
 
 
@@ -450,8 +455,9 @@ def _cos_hb(z: np.ndarray, names: list[str]) -> np.ndarray:
 
 @PLOTS.register("seed004_fig10")
 def fig10(res: Group, errors, path_stem: Path) -> Path | None:
-    """Seed 004 Fig. 10: h . B (cosine of the angle between heading and field) against time for one trial:
-    the MNM's EM estimate, the BiNM's first EKF pass and its EM estimate (until it failed), the truth."""
+    """Seed 004 Fig. 10: h . B (cosine of the angle between heading and field) against time for one trial
+    (the first whose BiNM fit became singular, else the one coming closest to h . B = 0): the MNM's EM
+    estimate, the BiNM's first EKF pass and its EM estimate (until it failed), the truth."""
     if not is_fit(res) or not {"mnm", "binm"} <= set(res.data["fit"].data):
         return None
     fits = res.data["fit"].data
@@ -461,13 +467,15 @@ def fig10(res: Group, errors, path_stem: Path) -> Path | None:
     if not all(s in mn for s in ("hx", "Bx")):
         return None
     zm = np.asarray(fits["mnm"].data["state"])
-    i = int(sing[0]) if sing.size else int(np.nanargmin(np.nanmin(np.abs(_cos_hb(zm, mn)), 1)))
+    closest = np.nanmin(np.abs(_cos_hb(zm, mn)), 1)
+    i = int(sing[0]) if sing.size else int(np.nanargmin(closest))
     time = np.asarray(res.data["time"])
-    fig, ax = plt.subplots(figsize=(8, 4))
+    colours = observer_colours(res)
+    fig, ax = subplots(figsize=(8, 4.2))
     tr = res.data.get("truth", Group())
     if "state" in tr.data:
         tn = [str(x) for x in tr.attrs["names"]]
-        ax.plot(time, _cos_hb(np.asarray(tr.data["state"])[i], tn), "k--", lw=0.8, label="truth (MNM)")
+        ax.plot(time, _cos_hb(np.asarray(tr.data["state"])[i], tn), "k--", lw=0.8, label="truth (MNM)", gid="truth")
     for model, key, style in (("mnm", "state", "-"), ("binm", "ekf_state", ":"), ("binm", "state", "-")):
         g = fits[model]
         names = [str(x) for x in g.attrs["names"]]
@@ -475,14 +483,18 @@ def fig10(res: Group, errors, path_stem: Path) -> Path | None:
         z = np.asarray(g.data[key])[i]
         lbl = {"state": "EM estimate", "ekf_state": "EKF forward pass"}[key]
         st = str(np.asarray(g.data["status"]).astype(str)[i])
-        ax.plot(time[ticks], _cos_hb(z, names), style, lw=1.3, color="C0" if model == "mnm" else "C1",
-                label=f"{model} {lbl}" + (f" ({st})" if key == "state" else ""))
+        ax.plot(time[ticks], _cos_hb(z, names), style, lw=1.3,
+                label=f"{model} {lbl}" + (f" ({st})" if key == "state" else ""), **observer_style(colours, model))
     ax.axhline(0.0, color="r", lw=0.8, label="BiNM singularity (h . B = 0)")
     ax.set_xlabel("time [s]")
-    ax.set_ylabel("h . B / (|h| |B|)")
+    ax.set_ylabel("h . B / (|h| |B|) [-]")
     ax.grid(alpha=0.3)
     ax.legend(fontsize="small")
-    ax.set_title(f"{res.attrs.get('name', '')}: trial {i}, heading against field through the singularity")
+    if sing.size:
+        what = f"the BiNM fit reached the singularity ({str(fits['binm'].data['reason'][i])})"
+    else:
+        what = f"no trial reached the singularity; the closest, min |h . B| = {float(closest[i]):.2f} of the MNM estimate"
+    ax.set_title(f"{res.attrs.get('name', '')}: trial {i}, heading against field: {what}", fontsize=9, wrap=True)
     return save_figure(fig, Path(f"{path_stem}_seed004_fig10.png"))
 
 
@@ -495,7 +507,7 @@ def evaluate_fit(
     formats: list[str] | None = None,
     plots: bool = False,
 ) -> dict[str, pd.DataFrame]:
-    """``needle evaluate FIT.h5``: the fit tables (default all of :data:`FIT_TABLES`), written to
+    """``needle evaluate FIT.h5``: the fit tables (default :data:`FIT_TABLES`; any of :data:`ALL_FIT_TABLES`), written to
     ``out_dir`` with the figures when asked."""
     from needlecli.io.fit import read_fit
 
@@ -503,18 +515,16 @@ def evaluate_fit(
     res = read_fit(path)
     names = tables or list(FIT_TABLES)
     for n in names:
-        if n not in FIT_TABLES:
-            raise DataError(f"{path}: table {n!r} needs a results file; a fit file has {', '.join(FIT_TABLES)}")
+        if n not in ALL_FIT_TABLES:
+            raise DataError(f"{path}: table {n!r} needs a results file; a fit file has {', '.join(ALL_FIT_TABLES)}")
     out = {n: TABLES.get(n)(res, None) for n in names}
+    for n, df in out.items():
+        df.attrs["caption"] = table_caption(n, df, res)
     if out_dir is not None:
         out_dir = Path(out_dir)
         stem = res.attrs.get("name", path.stem)
         for n, df in out.items():
-            doc = " ".join((TABLES.get(n).__doc__ or "").strip().split("\n\n")[0].split())
-            write_table(df, out_dir / f"{stem}_{n}", formats or ["md", "csv", "tex"], caption=doc)
+            write_table(df, out_dir / f"{stem}_{n}", formats or ["md", "csv", "tex"], caption=df.attrs["caption"])
         if plots:
-            for n in FIT_PLOTS:
-                p = PLOTS.get(n)(res, None, out_dir / stem)
-                if p is not None:
-                    log.info("plot: %s", p)
+            draw_plots(res, None, out_dir / stem, FIT_PLOTS)
     return out

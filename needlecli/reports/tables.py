@@ -7,6 +7,7 @@ Table I, seed 003 Table 1, seed 004 Tables 1-3) register here from their own mod
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from pathlib import Path
 
@@ -37,12 +38,12 @@ def _rows(errors: dict[str, ErrorSet], stats: dict[str, Callable[[np.ndarray], f
             row = {"Observer": obs, "Quantity": f"{q} [{qe.unit}]"}
             for col, fn in stats.items():
                 row[col] = fn(v) if v.size else np.nan
-            row["Runs"] = f"{len(qe.runs)}/{es.n_runs}"
+            row["Runs"] = count_cell(len(qe.runs), es.n_runs)
             rows.append(row)
         for q, why in es.not_computable.items():
             row = {"Observer": obs, "Quantity": f"{q}: not computable ({why})"}
             row.update({col: np.nan for col in stats})
-            row["Runs"] = f"0/{es.n_runs}"
+            row["Runs"] = count_cell(0, es.n_runs)
             rows.append(row)
     cols = ["Observer", "Quantity", *stats, "Runs"]
     return pd.DataFrame(rows, columns=cols)
@@ -50,14 +51,17 @@ def _rows(errors: dict[str, ErrorSet], stats: dict[str, Callable[[np.ndarray], f
 
 @TABLES.register("summary")
 def summary_table(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
-    """Instantaneous estimation error over all kept runs and time steps: Mean, Std, Max
-    (the form of seed 003's Table 1)."""
+    """Instantaneous estimation error over all kept runs and all time steps, the initial one included:
+    Mean, Std, Max (seed 003's statistics; its Table 1, table seed003_table1, counts only the steps after
+    initialisation)."""
     return _rows(errors, {"Mean": np.mean, "Std": np.std, "Max": np.max})
 
 
 @TABLES.register("accuracy")
 def accuracy_table(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
-    """Average absolute estimation error, RMSE and standard deviation (the form of seed 000's Table I)."""
+    """Average absolute error, RMSE and standard deviation of every error quantity over all kept runs and
+    time steps, in each quantity's own unit (seed 000's statistics; its Table I itself, e_x in mm and
+    e_beta in rad, is the table seed000_table1)."""
     return _rows(
         errors,
         {
@@ -84,12 +88,14 @@ def status_table(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
             if when is not None and s != "ok" and np.isfinite(when[sel]).any():
                 w = when[sel][np.isfinite(when[sel])]
                 stopped = f"{w.min():.2f}" if w.min() == w.max() else f"{w.min():.2f} to {w.max():.2f}"
-            rows.append({"Source": name, "Status": s, "Runs": int(sel.sum()),
+            rows.append({"Source": name, "Status": s, "Runs": count_cell(sel.sum(), len(st)),
                          "Stopped at [s]": stopped, "Reasons": "; ".join(reasons)})
     return pd.DataFrame(rows, columns=["Source", "Status", "Runs", "Stopped at [s]", "Reasons"])
 
 
 def _float_format(x: float) -> str:
+    """One number on its own (4 significant digits, small values in scientific notation). Tables use
+    :func:`column_formatter` instead: one format per column."""
     if not np.isfinite(x):
         return "n/a"
     if x == 0:
@@ -97,10 +103,113 @@ def _float_format(x: float) -> str:
     return f"{x:.4g}" if abs(x) >= 1e-3 else f"{x:.3e}"
 
 
+def count_cell(kept: int, total: int) -> str:
+    """The one form of a run (or trial) count in every table: ``kept/total``."""
+    return f"{int(kept)}/{int(total)}"
+
+
+def column_formatter(values) -> Callable[[object], str]:
+    """One number format for a whole column: integers when every value is whole; else fixed-point
+    notation with 4 significant digits (0.3594, 15.09, 0.0001992), or, when a nonzero magnitude of the
+    column is under 1e-4 or from 1e6 on, scientific notation with 4 significant digits for every value
+    (never the two mixed in a column). Missing values are ``n/a``; text passes through."""
+    nums = np.array([float(v) for v in values if _is_number(v)], dtype=float)
+    fin = nums[np.isfinite(nums)]
+    if fin.size and np.all(fin == np.round(fin)) and np.all(np.abs(fin) < 1e15):
+        def fmt(x: float) -> str:
+            return f"{x:.0f}"
+    else:
+        nz = np.abs(fin[fin != 0])
+        lo, hi = (float(nz.min()), float(nz.max())) if nz.size else (1.0, 1.0)
+        if lo < 1e-4 or hi >= 1e6:
+            def fmt(x: float) -> str:
+                return f"{x:.3e}"
+        else:
+            def fmt(x: float) -> str:
+                if x == 0:
+                    return "0"
+                dec = int(max(0, 3 - np.floor(np.log10(abs(float(f"{x:.4g}"))))))  # 4 significant digits
+                return f"{x:.{dec}f}"
+
+    def cell(v) -> str:
+        if isinstance(v, (bool, np.bool_)):
+            return str(bool(v))
+        if not _is_number(v):
+            return "" if v is None else str(v)
+        x = float(v)
+        return fmt(x) if np.isfinite(x) else "n/a"
+
+    return cell
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
+
+
+def formatted(df: pd.DataFrame) -> pd.DataFrame:
+    """``df`` as text, each column in its one format (:func:`column_formatter`)."""
+    return pd.DataFrame({c: [column_formatter(df[c].tolist())(v) for v in df[c].tolist()] for c in df.columns},
+                        columns=df.columns, index=df.index)
+
+
 def to_markdown(df: pd.DataFrame) -> str:
-    """GitHub Markdown with 4 significant digits (small values in scientific notation)."""
-    shown = df.map(lambda v: _float_format(v) if isinstance(v, float) else v)
-    return shown.to_markdown(index=False, tablefmt="github", disable_numparse=True)
+    """GitHub Markdown, each column in one number format."""
+    return formatted(df).to_markdown(index=False, tablefmt="github", disable_numparse=True)
+
+
+# LaTeX specials and the non-ASCII characters the tables use (pdflatex, OT1: < > | need math mode)
+_LATEX = {"\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "$": r"\$", "#": r"\#", "_": r"\_",
+          "{": r"\{", "}": r"\}", "~": r"\textasciitilde{}", "^": r"\textasciicircum{}", "<": r"$<$",
+          ">": r"$>$", "|": r"$|$", "±": r"$\pm$", "°": r"$^\circ$", "µ": r"$\mu$", "μ": r"$\mu$",
+          "×": r"$\times$", "≤": r"$\leq$", "≥": r"$\geq$", "–": "--", "—": "---", "·": r"$\cdot$",
+          "√": r"$\surd$", "²": r"$^2$", "³": r"$^3$", "…": r"\ldots{}", "→": r"$\rightarrow$",
+          "’": "'", "‘": "`", "“": "``", "”": "''"}
+
+#: LaTeX packages the ``.tex`` tables need (named in each file's first line)
+LATEX_PACKAGES = ("booktabs", "longtable")
+LONG_TABLE_ROWS = 40  # longer tables are a longtable (breaks across pages) instead of a float
+
+
+def latex_escape(text: str) -> str:
+    """``text`` as LaTeX text for pdflatex: specials escaped, the tables' non-ASCII symbols as commands,
+    any other non-ASCII character replaced by ``?`` (never a compile error)."""
+    out = []
+    for ch in str(text):
+        if ch in _LATEX:
+            out.append(_LATEX[ch])
+        elif ord(ch) < 128:
+            out.append(ch)
+        else:
+            out.append("?")
+    return "".join(out)
+
+
+def to_latex(df: pd.DataFrame, caption: str = "", label: str = "") -> str:
+    """A LaTeX table (booktabs rules; a ``longtable`` beyond :data:`LONG_TABLE_ROWS` rows) with every
+    name, header, cell and the caption escaped, numbers in the column formats of the Markdown."""
+    shown = formatted(df)
+    align = "".join("r" if pd.api.types.is_numeric_dtype(df[c]) and not pd.api.types.is_bool_dtype(df[c]) else "l"
+                    for c in df.columns) or "l"
+    head = " & ".join(latex_escape(c) for c in df.columns) + r" \\"
+    body = [" & ".join(latex_escape(v) for v in row) + r" \\" for row in shown.itertuples(index=False)]
+    cap = latex_escape(" ".join(caption.split()))
+    lab = rf"\label{{{re.sub(r'[^A-Za-z0-9:.-]', '-', label)}}}" if label else ""
+    long = len(df) > LONG_TABLE_ROWS
+    needs = r"\usepackage{booktabs}" + (r" and \usepackage{longtable}" if long else "")
+    lines = [f"% needlecli table; needs {needs}"]
+    if long:
+        lines += [rf"\begin{{longtable}}{{{align}}}"]
+        if cap or lab:
+            lines += [rf"\caption{{{cap}}}{lab} \\"]
+        lines += [r"\toprule", head, r"\midrule", r"\endfirsthead", r"\toprule", head, r"\midrule", r"\endhead",
+                  r"\bottomrule", r"\endfoot", *body, r"\end{longtable}"]
+    else:
+        lines += [r"\begin{table}[htbp]", r"\centering"]
+        if cap or lab:
+            lines += [rf"\caption{{{cap}}}{lab}"]
+        lines += [rf"\begin{{tabular}}{{{align}}}", r"\toprule", head, r"\midrule", *body, r"\bottomrule",
+                  r"\end{tabular}", r"\end{table}"]
+    return "\n".join(lines) + "\n"
 
 
 def _atomic_text(path: Path, text: str) -> None:
@@ -108,7 +217,8 @@ def _atomic_text(path: Path, text: str) -> None:
 
 
 def write_table(df: pd.DataFrame, stem: Path, formats: list[str], caption: str = "") -> list[Path]:
-    """Write ``df`` as ``stem.md``, ``stem.csv``, ``stem.tex`` (those in ``formats``), each atomically."""
+    """Write ``df`` as ``stem.md``, ``stem.csv``, ``stem.tex`` (those in ``formats``), each atomically;
+    the Markdown and the LaTeX carry the same caption and the same number formats."""
     out = []
     for fmt in formats:
         p = stem.with_suffix(f".{fmt}")
@@ -117,9 +227,19 @@ def write_table(df: pd.DataFrame, stem: Path, formats: list[str], caption: str =
         elif fmt == "csv":
             text = df.to_csv(index=False)
         elif fmt == "tex":
-            text = df.to_latex(index=False, float_format=_float_format, caption=caption or None, na_rep="n/a")
+            text = to_latex(df, caption, label=f"tab:{stem.name}")
         else:
             raise ValueError(f"unknown table format {fmt!r}")
         _atomic_text(p, text)
         out.append(p)
     return out
+
+
+def table_caption(name: str, df: pd.DataFrame, res: Group | None = None) -> str:
+    """A table's caption: the first paragraph of its function's docstring, what a replay compared
+    against, and what the table measured on this file (``df.attrs["note"]``)."""
+    doc = " ".join((TABLES.get(name).__doc__ or "").strip().split("\n\n")[0].split())
+    if res is not None and res.attrs.get("source") == "replay":
+        doc += f" Replayed logs; errors against: {res.attrs.get('truth_kind', 'the logs')}."
+    note = df.attrs.get("note")
+    return f"{doc} {note}" if note else doc

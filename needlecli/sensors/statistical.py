@@ -170,12 +170,14 @@ class ElastographySettings(SensorSettings):
     type: Literal["elastography"]
     sigma: NonNeg = Field(1e-3, description="curvature noise std, 1/(model length unit)")
     interface_sigma: NonNeg = Field(0.0, description="std of the interface depths it reports")
+    preoperative: bool = Field(False, description="a pre-operative map (seed 003): one acquisition at start, not a stream at rate")
 
 
 @SENSORS.register("elastography")
 class ElastographySensor(Sensor):
     """Shear-wave elastography (seed 003): the stiffness map gives the curvature at the tip's depth
-    and the tissue interfaces (reported in the stream's attributes)."""
+    and the tissue interfaces (reported in the stream's attributes); ``preoperative: true`` makes it the
+    pre-operative map of seed 003's simulations: one acquisition at ``start``, no stream."""
 
     Settings = ElastographySettings
 
@@ -201,6 +203,10 @@ class ElastographySensor(Sensor):
     def state_selection(self):
         name = self.model.curvature_param
         return np.array([self.model.index(name)]) if name in self.model.state_names else None
+
+    def sample_indices(self, time):
+        idx = super().sample_indices(time)
+        return idx[:1] if self.settings.preoperative else idx  # the map, once, before the insertion goes on
 
     def ideal(self, truth, idx):
         return truth.params[self.model.curvature_param][:, idx][..., None]

@@ -1,0 +1,247 @@
+"""What ``needle evaluate`` writes, as a reader sees it (issue 15, items 2 and 3): every registered plot of a
+simulated and of a replayed results file (truth only at some frames) holds data in every panel, in one
+colour per observer, with units and no blank band; plots that cannot be computed are not written and the
+log says why once; every ``.tex`` table compiles; one number format per column; one form of run counts."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+from report_checks import capture_figures, compile_tables, figure_problems, needs_pdflatex
+from typer.testing import CliRunner
+
+from needlecli.cli.app import app
+from needlecli.experiments.config import load_config
+from needlecli.experiments.runner import run_experiment
+from needlecli.io.logs import log_from_results, write_log
+from needlecli.io.results import read_results
+from needlecli.metrics import compute_errors
+from needlecli.reports.evaluate import evaluate_results
+from needlecli.reports.plots import PLOTS, draw_plots, observer_colours
+from needlecli.reports.seed004 import ALL_FIT_TABLES
+from needlecli.reports.tables import TABLES, column_formatter, latex_escape, to_latex, to_markdown
+
+SIM = """\
+name: reports_sim
+model: {type: modified_unicycle, params: {kappa: 0.005, beta_cut: 0.035}, param_std: {kappa: 0.0005}}
+inputs:
+  v: 1.5
+  u: {kind: cases, labels: [no rotation, 0.19 rad/s], cases: [0.0, 0.19]}
+process_noise: {std: {x: 0.02, y: 0.02, z: 0.02, alpha: 2.0e-4, beta: 2.0e-4, gamma: 5.0e-3}}
+sensors:
+  - {name: us3d, type: position, rate: 1.0, sigma: 0.3}
+  - {name: robot, type: encoder, rate: 100.0, channels: [roll], sigma: 0.0035}
+  - {name: swe, type: elastography, rate: 1.0, sigma: 0.001}
+observers:
+  - name: ukf
+    type: ukf
+    q: {x: 2.0e-3, y: 2.0e-3, z: 2.0e-3, alpha: 2.0e-5, beta: 2.0e-5, gamma: 5.0e-4, kappa: 2.0e-6}
+    p0: {x: 1.0, y: 1.0, z: 1.0, alpha: 5.0e-3, beta: 5.0e-3, gamma: 0.1, kappa: 2.0e-6}
+    measurements:
+      us3d: {sigma: 0.3, growth: {transducer: [0.0, 0.0, 90.0], a: 1.0, d_max: 80.0}}
+      robot: {sigma: 0.0035}
+      swe: {sigma: 0.001}
+    init:
+      std: {alpha: 0.0873, beta: 0.0873}
+      first_measurement: {x: us3d.x, y: us3d.y, z: us3d.z, gamma: robot.roll, kappa: swe.kappa}
+    kappa_max: 0.05
+    predict_at_depths: [5, 10]
+  - {name: open_loop, type: open_loop, init: {from: truth, std: {alpha: 0.0873, beta: 0.0873}}}
+runs: {count: 4, seed: 5}
+stop: {depth: 12}
+output: {store_every: 5}
+"""
+
+
+def invoke(*args):
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory) -> Path:
+    d = tmp_path_factory.mktemp("reports")
+    cfg, text = load_config(text=SIM)
+    return run_experiment(cfg, text, out=d / "sim.h5").path
+
+
+@pytest.fixture(scope="module")
+def replayed(sim, tmp_path_factory) -> Path:
+    """The simulated runs as recorded trials with a tracker-like truth every 7th step (0.07 s: not the
+    covariance's stride), replayed: truth exists only at those frames."""
+    d = tmp_path_factory.mktemp("replay")
+    write_log(d / "log.h5", log_from_results(read_results(sim), truth_every=7))
+    data = yaml.safe_load(SIM)
+    for k in ("inputs", "sensors", "stop", "process_noise"):
+        data.pop(k)
+    data["name"] = "reports_replay"
+    data["source"] = {"logs": [str(d / "log.h5")]}
+    cfg, text = load_config(text=yaml.safe_dump(data, sort_keys=False))
+    return run_experiment(cfg, text, out=d / "replay.h5", base_dir=d).path
+
+
+def title(fig) -> str:
+    return fig._suptitle.get_text() if fig._suptitle is not None else fig.axes[0].get_title()
+
+
+def _draw_all(path: Path, out: Path):
+    with pytest.MonkeyPatch.context() as mp:
+        figs = capture_figures(mp, render=False)
+        res = read_results(path)
+        written = draw_plots(res, compute_errors(res), out / "p")
+    return res, figs, written
+
+
+@pytest.fixture(scope="module")
+def drawn(sim, replayed, tmp_path_factory):
+    """Every registered plot of each file, drawn once: ``{name: (results, figures, paths)}``."""
+    return {k: _draw_all(p, tmp_path_factory.mktemp(k)) for k, p in (("sim", sim), ("replayed", replayed))}
+
+
+@pytest.mark.parametrize("which", ["sim", "replayed"])
+def test_every_plot_holds_data_in_one_colour_per_observer(which, drawn):
+    res, figs, written = drawn[which]
+    names = {p.name.split("p_", 1)[1].rsplit(".", 1)[0] for p in written}
+    assert {"error_vs_depth", "trajectories", "curvature", "rotation_error", "prediction", "nees_vs_depth"} <= names, names
+    assert len(figs) == len(written)
+    colours = observer_colours(res)
+    assert colours == {"open_loop": "C0", "ukf": "C1"}  # the results file's observer order
+    problems = [p for fig in figs for p in figure_problems(fig, colours, layout=which == "sim")]  # the same layout
+    assert not problems, "\n".join(problems)
+    # the same observer has the same colour in every figure (and in every panel: figure_problems)
+    seen = {}
+    for fig in figs:
+        for ax in fig.axes:
+            for ln in ax.lines:
+                if (ln.get_gid() or "").startswith("observer:"):
+                    seen.setdefault(ln.get_gid(), set()).add(ln.get_color())
+    assert seen and all(len(c) == 1 for c in seen.values()), seen
+
+
+def test_replayed_error_curves_come_from_the_truth_frames(drawn):
+    """On a replay the mean over runs at grid times without truth is NaN: the curves are drawn at the
+    frames where the truth exists (there every run has a sample)."""
+    res, figs, _ = drawn["replayed"]
+    fig = next(f for f in figs if "error against depth" in title(f))
+    line = next(ln for ln in fig.axes[0].lines if ln.get_gid() == "observer:ukf")
+    x, y = (np.asarray(a) for a in line.get_data())
+    truth_steps = np.isfinite(res.data["truth"].data["state"][0, :, 0]).sum()
+    assert len(x) == truth_steps and np.isfinite(y).all()
+    es = compute_errors(res)["ukf"].quantities["E_xyz"]
+    frames = np.nonzero(np.isfinite(es.values).all(0))[0]
+    np.testing.assert_allclose(y, es.values[:, frames].mean(0))
+
+
+def test_trajectories_draw_the_truth_they_list(drawn):
+    _, figs, _ = drawn["replayed"]
+    fig = next(f for f in figs if "tip paths" in title(f))
+    truth = [ln for ax in fig.axes for ln in ax.lines if ln.get_gid() == "truth"]
+    assert truth and all(np.isfinite(ln.get_xydata()).all() and len(ln.get_xydata()) > 10 for ln in truth)
+    assert [t.get_text() for t in fig.legends[0].get_texts()][0].startswith("reference")
+    assert all(ax.get_xlabel() == "z [mm]" for ax in fig.axes)
+
+
+def test_titles_claim_only_what_is_drawn(drawn):
+    """12 mm of an arc of radius 200 mm: no half turn is reached, none is claimed."""
+    _, figs, _ = drawn["sim"]
+    fig = next(f for f in figs if "rotation error" in title(f))
+    assert "half turn" not in title(fig)
+    assert not any("half turn" in t.get_text() for leg in fig.legends for t in leg.get_texts())
+
+
+def test_a_plot_that_cannot_be_computed_is_not_written_and_the_log_says_why_once(sim, tmp_path, caplog):
+    res = read_results(sim)
+    res.data["truth"].data["state"] = np.full_like(res.data["truth"].data["state"], np.nan)  # no truth at all
+    with caplog.at_level(logging.INFO, logger="needlecli"):
+        written = draw_plots(res, compute_errors(res), tmp_path / "p")
+    names = {p.name for p in written}
+    assert "p_error_vs_depth.png" not in names and "p_rotation_error.png" not in names
+    lines = [r.getMessage() for r in caplog.records if "error_vs_depth" in r.getMessage()]
+    assert len(lines) == 1 and "not written" in lines[0] and "no error quantity" in lines[0]
+    assert "p_trajectories.png" in names  # the estimates still have paths
+
+
+# ---------------------------------------------------------------------------------------------- tables
+def test_one_number_format_per_column():
+    fmt = column_formatter([0.3593, 15.09, 0.0001992, np.nan])
+    assert [fmt(v) for v in (0.3593, 15.09, 0.0001992, np.nan)] == ["0.3593", "15.09", "0.0001992", "n/a"]
+    fmt = column_formatter([2e-14, 0.02, 0.5])  # spans too much for fixed point: all scientific
+    assert [fmt(v) for v in (2e-14, 0.02, 0.5)] == ["2.000e-14", "2.000e-02", "5.000e-01"]
+    fmt = column_formatter([5.0, 10.0, 40.0])
+    assert [fmt(v) for v in (5.0, 10.0, 40.0)] == ["5", "10", "40"]
+    md = to_markdown(pd.DataFrame({"a": [1e-5, 0.3]}))
+    assert "1.000e-05" in md and "3.000e-01" in md
+
+
+def test_latex_escapes_names_headers_and_captions():
+    df = pd.DataFrame({"E_x,y,z (mm)": [0.5], "Gated [% of valid]": [1.0], "Observer": ["open_loop"]})
+    tex = to_latex(df, caption="E_xyz of open_loop: 5 % & more, ± 1 #", label="tab:a_b")
+    assert r"E\_x,y,z" in tex and r"open\_loop" in tex and r"\% of valid" in tex and r"$\pm$" in tex
+    assert tex.splitlines()[0] == r"% needlecli table; needs \usepackage{booktabs}"
+    assert latex_escape("a_b^c~{d}") == r"a\_b\textasciicircum{}c\textasciitilde{}\{d\}"
+
+
+def _results_tables():
+    return [n for n in TABLES.names() if n not in ALL_FIT_TABLES]
+
+
+@needs_pdflatex
+def test_every_latex_table_of_a_run_compiles(sim, replayed, tmp_path):
+    tex = []
+    for path in (sim, replayed):
+        evaluate_results(path, tables=_results_tables(), out_dir=tmp_path / path.stem, formats=["tex", "md"])
+        tex += sorted((tmp_path / path.stem).glob("*.tex"))
+    assert len(tex) == 2 * len(_results_tables())
+    compile_tables(tex, tmp_path)
+
+
+def test_markdown_and_latex_say_the_same(sim, tmp_path):
+    evaluate_results(sim, tables=["seed003_table1"], out_dir=tmp_path, formats=["md", "tex"])
+    md = (tmp_path / "reports_sim_seed003_table1.md").read_text()
+    tex = (tmp_path / "reports_sim_seed003_table1.tex").read_text()
+    caption = md.split("\n\n")[0]
+    assert "after initialisation" in caption
+    assert latex_escape(caption) in tex
+    cells = [c.strip() for c in md.splitlines()[4].split("|")[1:-1]]
+    assert " & ".join(latex_escape(c) for c in cells) + r" \\" in tex
+    # the summary counts the initial step too, and says so
+    assert "the initial one included" in evaluate_results(sim, tables=["summary"])["summary"].attrs["caption"]
+
+
+def test_run_counts_have_one_form(sim, replayed):
+    for path in (sim, replayed):
+        tables = evaluate_results(path, tables=_results_tables())
+        for name, df in tables.items():
+            for col in ("Runs", "Trials"):
+                if col in df.columns and len(df):
+                    assert df[col].astype(str).str.fullmatch(r"\d+/\d+").all(), (name, col, df[col].tolist())
+
+
+def test_accuracy_is_named_for_what_it_is(sim):
+    doc = TABLES.get("accuracy").__doc__
+    assert "seed000_table1" in doc and "form of seed 000" not in doc
+    assert "Seed 000 Table I" in TABLES.get("seed000_table1").__doc__
+
+
+def test_measurement_use_has_one_row_per_distinct_run(replayed, tmp_path):
+    data = yaml.safe_load(read_results(replayed).attrs["config"])
+    data["source"]["trials"] = ["run0000"] * 4  # one recorded trial, four times
+    data["observers"] = [o for o in data["observers"] if o["name"] == "ukf"]
+    cfg, text = load_config(text=yaml.safe_dump(data, sort_keys=False))
+    out = run_experiment(cfg, text, out=tmp_path / "r.h5", base_dir=tmp_path).path
+    df = evaluate_results(out, tables=["measurement_use"])["measurement_use"]
+    assert len(df) == 3 and set(df["Channel"]) == {"us3d", "robot", "swe"}  # not 12 identical rows
+    assert (df["Runs"] == "4/4").all() and (df["Trial"] == "run0000").all()
+
+
+def test_fit_tables_are_refused_on_results_files(sim):
+    r = invoke("evaluate", sim, "--tables", "em_per_trial", "--no-plots")
+    assert r.exit_code == 2 and "needs a fit file" in r.output
+
+
+def test_every_plot_is_registered_once():
+    assert len(PLOTS.names()) == len(set(PLOTS.names()))

@@ -112,10 +112,10 @@ def fit_quantities(dm: DiscreteModel, meas: Sequence[MeasurementModel], Q: np.nd
     for b, idx in state_blocks(dm.names, skip=dm.augment).items():
         if np.any(Q[:, idx][:, :, idx]):
             unit = dm.units[idx[0]]
-            out.append(Quantity(f"tr(Q_{b})", "Q", idx, f"{unit}^2/s" if unit else "1/s"))
+            out.append(Quantity(f"tr(Q_{b})", "Q", idx, f"{unit}^2/s" if unit not in ("", "1") else "1/s"))
     for j, mm in enumerate(meas):
         unit = mm.units[0] if getattr(mm, "units", None) else ""
-        out.append(Quantity(f"tr(R_{mm.name})", "R", j, f"{unit}^2" if unit else ""))
+        out.append(Quantity(f"tr(R_{mm.name})", "R", j, f"{unit}^2" if unit not in ("", "1") else "1"))
     return out
 
 

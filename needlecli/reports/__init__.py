@@ -16,6 +16,7 @@ _TABLE_MODULES = {
     "needlecli.reports.imaging": ("measurements",),
     "needlecli.reports.control": ("planar_control",),
     "needlecli.reports.consistency": ("consistency",),
+    "needlecli.reports.identify": ("identifiability",),
     "needlecli.reports.real": ("real_tip_error", "measurement_use", "real_error_vs_depth", "per_trial",
                                "em_per_trial", "em_per_speed", "em_loglik"),
 }

@@ -27,13 +27,14 @@ import pandas as pd
 from needlecli.errors import DataError
 from needlecli.io.results import Group
 from needlecli.models import MODELS
+from needlecli.reports.identify import MARK, mark_label, weak_note, weak_quantities
 from needlecli.reports.plots import PLOTS, draw_plots, observer_colours, observer_style, save_figure, subplots
 from needlecli.reports.real import FIT_TABLES_HERE
 from needlecli.reports.tables import TABLES, count_cell, table_caption, write_table
 
 log = logging.getLogger("needlecli")
 
-FIT_TABLES = ("seed004_table1", "seed004_table2", "seed004_table3", "seed004_recovery", "fit_status")
+FIT_TABLES = ("seed004_table1", "seed004_table2", "seed004_table3", "seed004_recovery", "fit_status", "identifiability")
 #: every table of a fit file: :data:`FIT_TABLES` (written by default) and those asked for by name
 ALL_FIT_TABLES = FIT_TABLES + FIT_TABLES_HERE
 FIT_PLOTS = ("seed004_fig5", "seed004_fig10")
@@ -139,9 +140,14 @@ def parameter_table(res: Group, model: str) -> pd.DataFrame:
         sd.append(s)
         moves.append(("R", ch, None, m, s))
     err = trajectory_errors(res, model, st, moves, case)
-    df = pd.DataFrame([mean, sd, err], columns=cols)
+    weak = weak_quantities(res, model)
+    quantity = [mv[1] if mv[0] == "const" else f"tr({mv[0]}_{mv[1]})" for mv in moves]
+    df = pd.DataFrame([mean, sd, err], columns=[mark_label(c, q, weak) for c, q in zip(cols, quantity)])
     df.insert(0, "", ["Mean", "SD", "SD as Traj. Err. (mm)"])
     df.attrs["kept"] = int(keep.sum())
+    note = weak_note({model: {q: w for q, w in weak.items() if q in quantity}})
+    if note:
+        df.attrs["note"] = note
     return df
 
 
@@ -288,8 +294,17 @@ def table3(res: Group, errors=None) -> pd.DataFrame:
             trace.append(pct(np.mean(np.trace(a["R"][ch], axis1=-2, axis2=-1)),
                              np.mean(np.trace(b["R"][ch], axis1=-2, axis2=-1))))
             block.append(_blockwise(a["R"][ch], b["R"][ch]))
-    df = pd.DataFrame([trace, block], columns=cols)
+    weak = {m: weak_quantities(res, m) for m in ("mnm", "binm")}
+    quantity = [f"tr({c})" if c != "Q overall" else c for c in cols]
+    either = {q for w in weak.values() for q in w}
+    df = pd.DataFrame([trace, block], columns=[mark_label(c, q, either) for c, q in zip(cols, quantity)])
     df.insert(0, "% difference", ["Trace", "Blockwise"])
+    marked = [c for c, q in zip(cols, quantity) if q in either]
+    if marked:
+        df.attrs["note"] = (f"{MARK} {', '.join(marked)}: weakly identified in at least one of the fits "
+                            f"({'; '.join(f'{m}: ' + ', '.join(w) for m, w in weak.items() if w)}), so their % "
+                            "difference compares values the data do not determine (EM stopped in a flat direction, "
+                            "near its starting guess), not two measurements; see table identifiability.")
     return df
 
 

@@ -151,23 +151,6 @@ def test_failed_trials_are_left_out():
     assert (res.verdict[1] == "").all()
 
 
-@pytest.fixture(scope="module")
-def seed004_fit(tmp_path_factory):
-    """Seed 004's study, reduced to 6 trials (both models), fitted by needle fit-em."""
-    from pathlib import Path
-
-    from typer.testing import CliRunner
-
-    from needlecli.cli.app import app
-
-    d = tmp_path_factory.mktemp("ident")
-    cfg = Path(__file__).resolve().parents[1] / "configs" / "seed004" / "study.yaml"
-    r = CliRunner().invoke(app, ["fit-em", str(cfg), "--model", "both", "--set", "runs.count=6",
-                                 "--out", str(d / "fit.h5"), "--quiet"])
-    assert r.exit_code == 0, r.output
-    return d / "fit.h5"
-
-
 def test_seed004_study_flags_q_h_and_not_c(seed004_fit):
     """On seed 004's design the data identify c and not Q_h (issue: refits from three starting guesses of
     Q_h end 0.06x to 5.6x the truth within 0.7 nats)."""

@@ -17,6 +17,7 @@ from pydantic import ValidationError
 
 from needlecli.control import CONTROLLERS
 from needlecli.errors import ConfigError
+from needlecli.experiments.from_fit import expand_from_fit
 from needlecli.experiments.overrides import apply_overrides
 from needlecli.experiments.schedule import signal_size
 from needlecli.experiments.schema import all_tags, experiment_schema, used_types
@@ -53,6 +54,7 @@ def load_config(
             raise ConfigError(source, (), f"cannot read the file: {e}") from None
     data = copy.deepcopy(parse_yaml(text, source))
     changed = apply_overrides(data, overrides, source, runs=runs, seed=seed)
+    fitted = expand_from_fit(data, source, Path(source).parent if path is not None else Path("."))
     types = used_types(data)
     try:
         schema = experiment_schema(types)
@@ -63,8 +65,8 @@ def load_config(
     except ValidationError as e:
         raise validation_error(e, data, source, tags=all_tags()) from None
     check_consistency(cfg, source)
-    if changed:
-        text = yaml.safe_dump(data, sort_keys=False)
+    if changed or fitted:  # the config as it ran: from_fit's values written out, where they came from above
+        text = "".join(f"# {line}\n" for line in fitted) + yaml.safe_dump(data, sort_keys=False)
     return cfg, text
 
 

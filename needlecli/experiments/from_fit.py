@@ -1,0 +1,182 @@
+"""Fitted parameters in an observer: ``from_fit`` takes an observer's process noise, each channel's
+measurement noise and the model's constants from a fit file of ``needle fit-em``.
+
+.. code-block:: yaml
+
+    observers:
+      - name: ukf_em
+        type: ukf                       # ukf, ekf, eks or open_loop
+        from_fit: {file: ../results/study_fit.h5, model: mnm, pick: median}   # pick: median | mean | trial
+        p0: {...}                        # everything else as usual
+
+What it sets, from the trials whose fit is ``ok`` (``pick: median`` / ``mean`` element-wise over them, or
+``pick: trial`` with ``trial:`` an index or a trial id):
+
+* ``q``: the standard deviation of each state's process noise, ``sqrt(Q_ii)`` per square-root second
+  (``ekf``, ``eks``, ``open_loop``) or per filter tick, ``sqrt(Q_ii dt_tick)`` (``ukf``); the fit's
+  correlations are dropped (these observers take a diagonal ``Q``);
+* ``measurements.<channel>.sigma``: ``sqrt(diag R_j)`` of each fitted channel the observer has a sensor
+  for (not ``open_loop``); a measured direction's R is in its tangent plane and is not taken;
+* ``params``: each fitted constant (``c`` of the MNM, a curvature, ...).
+
+Checked before any work, with the key path: the file is a fit file, it fitted ``model``, that model is
+the observer's (its ``model`` key, else the experiment's), the picked trial exists and is ``ok``, every
+channel has a sensor, and the observer does not also set what ``from_fit`` sets. A weakly identified
+quantity (the fit's identifiability) is taken but named in the log.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import Field, ValidationError
+
+from needlecli.errors import ConfigError, DataError
+from needlecli.schema import Strict, validation_error
+
+log = logging.getLogger("needlecli")
+
+TAKES = {"ukf": ("q_tick", True), "ekf": ("q_root_s", True), "eks": ("q_root_s", True), "open_loop": ("q_root_s", False)}
+
+
+class FromFit(Strict):
+    """Where an observer's fitted parameters come from (``from_fit:``)."""
+
+    file: str = Field(description="fit file of needle fit-em (relative to the config)")
+    model: str = Field(description="the fitted model to take (a model the fit file fitted)")
+    pick: Literal["median", "mean", "trial"] = Field("median", description="over the trials whose fit is ok, or one trial")
+    trial: int | str | None = Field(None, description="with pick: trial, its index or its trial id")
+
+
+def _strs(v) -> list[str]:
+    return [x.decode() if isinstance(x, bytes) else str(x) for x in np.atleast_1d(v)]
+
+
+def expand_from_fit(data: dict, source: str, base_dir: Path) -> list[str]:
+    """Replace every observer's ``from_fit`` in a parsed config by the values it takes (in place).
+    Returns one line per observer saying what came from where (the results file keeps them as comments
+    above the expanded config)."""
+    observers = data.get("observers") if isinstance(data, dict) else None
+    if not isinstance(observers, list):
+        return []
+    changed = []
+    for i, obs in enumerate(observers):
+        if not isinstance(obs, dict) or "from_fit" not in obs:
+            continue
+        loc = ("observers", i, "from_fit")
+        kind = obs.get("type")
+        if kind not in TAKES:
+            raise ConfigError(source, ("observers", i, "type"),
+                              f"from_fit works for {', '.join(TAKES)} observers, not {kind!r}")
+        try:
+            spec = FromFit.model_validate(obs["from_fit"])
+        except ValidationError as e:
+            raise validation_error(e, obs["from_fit"], source, prefix=loc) from None
+        values = fitted_values(spec, base_dir, source, loc)
+        changed.append(_apply(obs, values, data, source, ("observers", i)))
+        del obs["from_fit"]
+    return changed
+
+
+def fitted_values(spec: FromFit, base_dir: Path, source: str, loc: tuple) -> dict[str, Any]:
+    """What the fit file gives: ``{"model", "names", "q_var" (state -> Q_ii per second), "r_var" (channel ->
+    (m,) variances or None for a direction), "params" (constant -> value), "trials", "weak"}``."""
+    from needlecli.io.fit import read_fit
+
+    path = Path(spec.file)
+    path = path if path.is_absolute() else base_dir / path
+    try:
+        res = read_fit(path)
+    except DataError as e:
+        raise ConfigError(source, loc + ("file",), str(e)) from None
+    fits = res.data["fit"].data
+    if spec.model not in fits:
+        raise ConfigError(source, loc + ("model",), f"{path} fitted {', '.join(fits) or 'no model'}, not {spec.model!r}")
+    g = fits[spec.model]
+    status = np.asarray(_strs(g.data["status"]))
+    N = len(status)
+    if spec.pick == "trial":
+        if spec.trial is None:
+            raise ConfigError(source, loc + ("trial",), "required key is missing (pick: trial)")
+        ids = _strs(res.data["truth"].data.get("trial_id", np.arange(N)))
+        k = spec.trial if isinstance(spec.trial, int) else (ids.index(spec.trial) if spec.trial in ids else -1)
+        if not 0 <= k < N:
+            raise ConfigError(source, loc + ("trial",), f"no trial {spec.trial!r}; the fit has {N} (ids {', '.join(ids[:5])}"
+                              + (", ..." if N > 5 else "") + ")")
+        if status[k] != "ok":
+            raise ConfigError(source, loc + ("trial",), f"the fit of trial {spec.trial!r} is {status[k]!r}, not ok")
+        sel = np.zeros(N, dtype=bool)
+        sel[k] = True
+    else:
+        sel = status == "ok"
+        if not sel.any():
+            raise ConfigError(source, loc + ("file",), f"no trial of {spec.model!r} in {path} was fitted ok")
+    reduce = np.median if spec.pick == "median" else np.mean
+    names = _strs(g.attrs["names"])
+    consts = _strs(g.attrs.get("constants", []))
+    Q = reduce(np.asarray(g.data["Q"], dtype=float)[sel], axis=0)
+    q_states = set(_strs(g.attrs.get("q_states", names)))
+    q_var = {s: float(Q[j, j]) for j, s in enumerate(names) if s in q_states and s not in consts}
+    r_var = {}
+    for ch, R in g.data["R"].data.items():
+        if ch.endswith("_guess"):
+            continue
+        Rm = reduce(np.asarray(R, dtype=float)[sel], axis=0)
+        meas = res.data["measurements"].data.get(ch)
+        m_raw = np.asarray(meas.data["value"]).shape[-1] if meas is not None else Rm.shape[-1]
+        r_var[ch] = None if m_raw != Rm.shape[-1] else np.diag(Rm).copy()  # a direction: R in its tangent plane
+    params = {c: float(reduce(np.asarray(g.data["constant"].data[c], dtype=float)[sel])) for c in consts}
+    from needlecli.reports.identify import weak_quantities
+
+    weak = weak_quantities(res, spec.model)
+    return {"model": spec.model, "names": names, "q_var": q_var, "r_var": r_var, "params": params,
+            "trials": int(sel.sum()), "weak": weak, "path": str(path), "pick": spec.pick}
+
+
+def _apply(obs: dict, v: dict, data: dict, source: str, loc: tuple) -> str:
+    kind = obs["type"]
+    qmode, takes_r = TAKES[kind]
+    own = obs.get("model") or (data.get("model") or {}).get("type")
+    if own != v["model"]:
+        raise ConfigError(source, loc + ("from_fit", "model"),
+                          f"the observer's model is {own!r}; the fit of {v['model']!r} does not apply to it")
+    for key in ("q", "params"):
+        if key in obs:
+            raise ConfigError(source, loc + (key,), "from_fit sets it: give one of them")
+    if qmode == "q_tick":
+        dt = float((data.get("simulation") or {}).get("dt", 0.01))
+        rate = obs.get("rate")
+        stride = 1 if rate is None else max(1, int(round(1.0 / (float(rate) * dt))))
+        obs["q"] = {s: float(np.sqrt(max(q, 0.0) * stride * dt)) for s, q in v["q_var"].items()}
+    else:
+        obs["q"] = {s: float(np.sqrt(max(q, 0.0))) for s, q in v["q_var"].items()}
+    obs["params"] = dict(v["params"])
+    taken = ["q", "params"]
+    if takes_r:
+        sensors = {s.get("name") or s.get("type") for s in data.get("sensors") or [] if isinstance(s, dict)}
+        meas = obs.setdefault("measurements", {})
+        if not isinstance(meas, dict):
+            raise ConfigError(source, loc + ("measurements",), "should be a mapping")
+        for ch, var in v["r_var"].items():
+            if var is None:
+                log.info("from_fit: channel %s of %s is a measured direction (R in its tangent plane): not taken",
+                         ch, v["path"])
+                continue
+            if sensors and ch not in sensors and not data.get("source"):
+                raise ConfigError(source, loc + ("from_fit",),
+                                  f"the fit has channel {ch!r}, which is not a sensor of this config")
+            spec = meas.setdefault(ch, {})
+            if "sigma" in spec:
+                raise ConfigError(source, loc + ("measurements", ch, "sigma"), "from_fit sets it: give one of them")
+            spec["sigma"] = [float(np.sqrt(max(x, 0.0))) for x in var]
+        taken.append("R of " + ", ".join(ch for ch, var in v["r_var"].items() if var is not None))
+    what = (f"observer {obs.get('name') or kind}: {'; '.join(taken)} from_fit {v['path']} (model {v['model']}, "
+            f"{v['pick']} of {v['trials']} trial(s))")
+    log.info(what)
+    if v["weak"]:
+        log.warning("observer %s: from_fit takes quantities the fit did not identify: %s", obs.get("name") or kind,
+                    "; ".join(f"{q} ({w})" for q, w in v["weak"].items()))
+    return what

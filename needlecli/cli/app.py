@@ -17,7 +17,8 @@ app = typer.Typer(
     help="Batch experiments with steerable-needle models, emulated sensors and observers.",
     no_args_is_help=True,
     pretty_exceptions_enable=False,
-    add_completion=False,
+    add_completion=True,  # --install-completion / --show-completion for the user's shell
+    context_settings={"help_option_names": ["-h", "--help"]},
 )
 
 

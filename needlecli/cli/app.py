@@ -10,7 +10,20 @@ from __future__ import annotations
 
 import typer
 
-from needlecli.cli import characterize, compare, crossval, evaluate, fit_em, imports, listing, log, simulate, sweep, validate
+from needlecli.cli import (
+    characterize,
+    compare,
+    crossval,
+    evaluate,
+    explain,
+    fit_em,
+    imports,
+    listing,
+    log,
+    simulate,
+    sweep,
+    validate,
+)
 
 app = typer.Typer(
     name="needle",
@@ -41,6 +54,7 @@ app.command()(simulate.simulate)
 app.command()(evaluate.evaluate)
 app.command()(validate.validate)
 app.command("list")(listing.list_components)
+app.command()(explain.explain)
 app.command("fit-em")(fit_em.fit_em_cmd)
 app.command()(crossval.crossval)
 app.command()(compare.compare)

@@ -273,3 +273,192 @@ def test_command_files_in_every_common_form(tmp_path):
         meta = read_meta_file(tmp_path / name)
         assert meta["step_mm"] == 0.5 and meta["speed"] == 2, (name, meta)
     assert read_meta_file(tmp_path / "b.csv")["operator"] == "jo"
+
+
+# ---------------------------------------------------------------------------------------------- end to end
+KAPPA0, SLOPE = 0.012, -0.012  # the study's law: kappa = 0.012 (1 - duty_cycle) 1/mm
+
+
+def _fit_config(tmp: Path, log: Path, *, speed_scale: bool) -> Path:
+    """The shipped fit config (with the speed scale, or the same fit without it) on ``log``."""
+    name = "fit.yaml" if speed_scale else "fit_no_scale.yaml"
+    cfg = yaml.safe_load((ROOT / "configs/owndata" / name).read_text())
+    cfg["source"]["logs"] = [str(log)]
+    p = tmp / name
+    p.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    return p
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory):
+    """configs/owndata/study.yaml simulated, made a log, exported as a lab would (step-indexed, zero rows,
+    quaternions, rms; the tracker placed elsewhere and its coil rolled 35 deg), imported by the mapping
+    the export wrote, and fitted by EM with and without the speed scale: what ``make owndata`` does."""
+    d = tmp_path_factory.mktemp("owndata")
+    steps = [
+        ("simulate", ROOT / "configs/owndata/study.yaml", "--out", d / "study.h5", "--quiet"),
+        ("log", "from-results", d / "study.h5", "--out", d / "study_log.h5"),
+        ("log", "export-csv", d / "study_log.h5", "--out", d / "exports", "--tracker-pose", "10,80,25,120,-40,15",
+         "--sensor-roll", "35"),
+        ("log", "import-csv", d / "exports" / "mapping.yaml", "--out", d / "lab.h5"),
+        ("fit-em", _fit_config(d, d / "lab.h5", speed_scale=True), "--out", d / "fit.h5", "--quiet"),
+        ("fit-em", _fit_config(d, d / "lab.h5", speed_scale=False), "--out", d / "fit_no_scale.h5", "--quiet"),
+    ]
+    for args in steps:
+        res = run(*args)
+        assert res.exit_code == 0, (args, res.output)
+    return d
+
+
+def test_exports_have_the_lab_shape_and_import_back(study):
+    """The exports are what the issue describes (no time column, zero rows, quaternions, a command file),
+    and the import gives back the simulation: the same samples lost, the orientation exactly, the
+    positions up to the tracker's noise at the first valid sample (the trial's origin), the design factor."""
+    from needlecli.io.results import read_results
+
+    head = (study / "exports" / "run0005_pose.csv").read_text().splitlines()
+    assert head[0] == "step,px,py,pz,qw,qx,qy,qz,rms" and head[1] == "0,0,0,0,0,0,0,0,0"  # run 5: lost at first
+    assert "duty_cycle,0.2" in (study / "exports" / "run0005_cmd.csv").read_text()
+    sim = read_results(study / "study.h5")
+    meas = sim.data["measurements"].data["tracker"]
+    truth = sim.data["truth"].data["state"]
+    log = read_log(study / "lab.h5")
+    for r, tr in enumerate(log.trials):
+        em = tr.sensors["tracker"]
+        valid = meas.data["valid"][r]
+        first = int(np.argmax(valid))  # the trial starts at its first valid sample
+        assert tr.meta["duty_cycle"] == pytest.approx([0.0, 0.2, 0.4, 0.6][r // 3])
+        np.testing.assert_array_equal(em.valid, valid[first:])
+        np.testing.assert_allclose(em.t, meas.data["t"][first:] - meas.data["t"][first], atol=1e-9)
+        x0 = truth[r, meas.data["index"][first]]
+        R0 = euler_xyz_to_matrix(*x0[3:6])  # the frame: that pose's axes, its measured position the origin
+        v = meas.data["value"][r][first:]
+        np.testing.assert_allclose(em.value[em.valid], ((v - v[0]) @ R0)[em.valid], atol=1e-5)  # 9 digits written
+        k = meas.data["index"][first:][em.valid]
+        tn = list(tr.truth.names)
+        Rt = tr.truth.state[:, [tn.index(f"R{i}{j}") for i in range(1, 4) for j in range(1, 4)]].reshape(-1, 3, 3)
+        np.testing.assert_allclose(Rt, R0.T @ euler_xyz_to_matrix(*truth[r, k, 3:6].T), atol=1e-7)  # rolled back
+        np.testing.assert_allclose(em.sigma[em.valid], sim.data["measurements"].data["tracker"].data["sigma"][r][first:][em.valid],
+                                   rtol=1e-8)
+    rep = json.loads(log.trials[5].meta["import_report"])
+    assert rep["start"]["first_valid_row"] == 2 and rep["frame"]["roll_psi_deg"] == pytest.approx(-35.0, abs=1e-6)
+
+
+def test_fit_recovers_the_curvature_law_and_the_slip(study, monkeypatch):
+    """EM with the speed scale: the regression of the fitted kappa on the duty cycle has the true slope and
+    intercept within two standard errors (from the spread across trials), the same numbers as numpy's
+    least squares; every trial's slip within 0.01 of the truth; needle evaluate writes the tables and
+    plots (seed 004's Fig. 5 on a unicycle fit, the regression with its data)."""
+    from needlecli.io.fit import read_fit
+    from needlecli.io.results import read_results
+    from needlecli.reports import design
+
+    fit = read_fit(study / "fit.h5")
+    sim = read_results(study / "study.h5")
+    g = fit.data["fit"].data["unicycle"]
+    k, s = (np.asarray(g.data["constant"].data[c]) for c in ("kappa", "speed_scale"))
+    true_s = sim.data["truth"].data["params"].data["speed_scale"][:, 0]
+    assert np.abs(s - true_s).max() < 0.01
+    dc = fit.data["truth"].data["meta"].data["duty_cycle"]
+    assert list(fit.data["truth"].data["meta"].attrs["design_factors"]) == ["duty_cycle"]
+    table = design.fit_regression(fit)
+    row = table[table["Constant"].str.startswith("kappa")].iloc[0]
+    keep = ~np.isin(np.asarray(g.data["status"]).astype(str), ("singular", "diverged"))
+    slope, intercept = np.polyfit(dc[keep], k[keep], 1)
+    assert row["Slope"] == pytest.approx(slope, rel=1e-9) and row["Intercept"] == pytest.approx(intercept, rel=1e-9)
+    assert abs(row["Slope"] - SLOPE) < 2 * row["Slope SE"] and abs(row["Intercept"] - KAPPA0) < 2 * row["Intercept SE"]
+    assert row["R^2"] > 0.9 and "spread of the per-trial estimates" in row["SE from"]
+    by = design.fit_by_design(fit)
+    assert sorted(by["Level"].unique()) == pytest.approx([0.0, 0.2, 0.4, 0.6])
+    # needle evaluate on the fit: every fit table, Fig. 5 of a unicycle fit, the regression plot with its data
+    drawn = {}
+
+    def keep_figure(fig, path):
+        drawn[Path(path).name] = [ln.get_xydata() for ax in fig.axes for ln in ax.get_lines()]
+        return path
+
+    monkeypatch.setattr(design, "save_figure", keep_figure)
+    res = run("evaluate", study / "fit.h5", "--out", study / "tables", "--regress", "kappa:duty_cycle",
+              "--group-by", "duty_cycle")
+    assert res.exit_code == 0, res.output
+    assert (study / "tables" / "owndata_fit_seed004_fig5.png").stat().st_size > 1000
+    pts = drawn["owndata_fit_fit_regression.png"]
+    assert any(np.allclose(np.sort(p[:, 0]), np.sort(dc[keep & (np.asarray(g.data["status"]) == "ok")])) for p in pts)
+    for t in ("fit_by_design", "fit_regression", "fit_warnings", "fit_status"):
+        assert (study / "tables" / f"owndata_fit_{t}.tex").exists()
+
+
+def test_without_the_speed_scale_the_bias_shows(study):
+    """The same fit taking the commanded speed as the actual one: every curvature comes out low (the slip
+    pushed into the position process noise along the needle), and the law's intercept is off by more than
+    two standard errors."""
+    from needlecli.io.fit import read_fit
+    from needlecli.io.results import read_results
+    from needlecli.reports.design import fit_regression
+
+    sim = read_results(study / "study.h5")
+    true_k = sim.data["truth"].data["params"].data["kappa"][:, 0]
+    fits = {n: read_fit(study / f"{n}.h5") for n in ("fit", "fit_no_scale")}
+    ratio = {n: np.asarray(f.data["fit"].data["unicycle"].data["constant"].data["kappa"]) / true_k
+             for n, f in fits.items()}
+    assert 0.95 < np.median(ratio["fit"]) < 1.05
+    assert np.median(ratio["fit_no_scale"]) < 0.95 and np.mean(ratio["fit_no_scale"]) < 0.9
+    qz = {n: np.median(np.sqrt(np.asarray(f.data["fit"].data["unicycle"].data["Q"])[:, 2, 2])) for n, f in fits.items()}
+    assert qz["fit_no_scale"] > 3 * qz["fit"]
+    row = fit_regression(fits["fit_no_scale"]).iloc[0]
+    assert KAPPA0 - row["Intercept"] > 2 * row["Intercept SE"]
+
+
+def test_a_negative_curvature_is_reported_as_the_roll_plus_pi(study, tmp_path):
+    """Started with the roll off by pi (and held there by its prior), EM bends the path the right way with
+    a negative kappa; the fit file reports |kappa| with gamma + pi, flags the trials, says so in the
+    reason and in fit_warnings: the same kappa as the fit started right."""
+    from needlecli.io.fit import read_fit
+    from needlecli.reports.design import fit_warnings
+
+    cfg = yaml.safe_load((study / "fit.yaml").read_text())
+    cfg["source"]["trials"] = ["run0000", "run0006"]
+    cfg["fit"]["init"]["values"]["gamma"] = float(np.pi)
+    cfg["fit"]["p0"]["gamma"] = 1e-4
+    cfg["fit"]["em"]["max_iter"] = 60
+    (tmp_path / "flip.yaml").write_text(yaml.safe_dump(cfg))
+    res = run("fit-em", tmp_path / "flip.yaml", "--out", tmp_path / "flip.h5")
+    assert res.exit_code == 0, res.output
+    g = read_fit(tmp_path / "flip.h5").data["fit"].data["unicycle"]
+    assert np.asarray(g.data["roll_flipped"]).all()
+    k = np.asarray(g.data["constant"].data["kappa"])
+    ref = np.asarray(read_fit(study / "fit.h5").data["fit"].data["unicycle"].data["constant"].data["kappa"])[[0, 6]]
+    np.testing.assert_allclose(k, ref, rtol=0.05)
+    names = list(g.attrs["names"])
+    assert np.abs(np.asarray(g.data["x0"])[:, names.index("gamma")]).max() < 0.1  # pi + pi, wrapped
+    assert all("kappa < 0 fitted: reported as -kappa with gamma + pi" in r for r in np.asarray(g.data["reason"]).astype(str))
+    w = fit_warnings(read_fit(tmp_path / "flip.h5"))
+    assert (w["Warning"].str.contains("negative kappa fitted")).sum() == 2
+    assert "negative curvature in 2 of 2 trial(s): run0000, run0006" in res.output
+
+
+def test_per_sample_sigmas_weigh_each_sample():
+    """A tip at rest measured with a recorded sigma per sample: the smoother's estimate is the weighted
+    mean sum(y_i / s_i^2) / sum(1 / s_i^2) with its variance 1 / sum(1 / s_i^2) (a closed form), where the
+    same samples with the nominal sigma give the plain mean."""
+    from needlecli.fitting.smoother import eks
+    from needlecli.fitting.statespace import DiscreteModel, MeasurementModel
+
+    model = MODELS.get("unicycle")()
+    M = 40
+    rng = np.random.default_rng(5)
+    s = rng.uniform(0.1, 1.0, size=(1, M, 3))
+    y = rng.normal(size=(1, M, 3)) * s + np.array([1.0, -2.0, 3.0])
+    ticks = np.arange(M)
+    dm = DiscreteModel(model, model.param_arrays(), (), 0.1, ticks, np.zeros((1, M, 2)))
+    h = model.tip_position
+    ref = 0.5
+    for scale, w in ((s / ref, 1.0 / s**2), (None, np.ones_like(s))):
+        mm = MeasurementModel("p", h, 6, ticks, y, np.ones((1, M), dtype=bool), np.zeros(3, dtype=bool),
+                              ("x", "y", "z"), ("mm",) * 3, False, scale)
+        P0 = np.diag([1e6] * 3 + [1e-12] * 3)
+        res = eks(dm, [mm], np.zeros((1, 6)), P0, np.zeros((6, 6)), [np.eye(3) * ref**2])
+        mean = (w * y).sum(1) / w.sum(1)
+        var = (ref**2 if scale is None else 1.0) / w.sum(1)
+        np.testing.assert_allclose(res.sm.m[0, 0, :3], mean[0], rtol=1e-6)
+        np.testing.assert_allclose(np.diagonal(res.sm.P[0, 0])[:3], var[0], rtol=1e-5)

@@ -72,6 +72,21 @@ class EMSettings(Strict):
                              "fall-back to the plain EM step when it lowers the likelihood")
 
 
+class Regression(Strict):
+    """A regression of a fitted constant on a design factor (the fit file's ``fit_regression`` table)."""
+
+    constant: str = Field(description="a fitted constant (kappa, speed_scale, c, ...)")
+    factor: str = Field(description="a trial metadata key with numbers (duty_cycle, speed_mm_s, ...)")
+
+
+class FitDesign(Strict):
+    """How ``needle evaluate`` groups and regresses the fitted constants by the trials' metadata (from the
+    logs: design factors of a CSV mapping, a data set's speed, ...). Default: every design factor."""
+
+    group_by: list[str] = Field(default_factory=list, description="metadata keys of the fit_by_design table")
+    regress: list[Regression] = Field(default_factory=list, description="regressions of fit_regression")
+
+
 class FitSettings(KalmanSetup):
     """The ``fit:`` section of a config: how ``needle fit-em`` fits every trial.
 
@@ -84,6 +99,10 @@ class FitSettings(KalmanSetup):
 
     models: list[str] = Field(default_factory=lambda: ["mnm", "binm"], min_length=1,
                               description="models fitted by default (needle fit-em --model)")
+    constants: list[str] | None = Field(
+        None, description="model parameters EM estimates as constant states (default: the curvature parameter; "
+        "e.g. [kappa, speed_scale] for a needle that slips)")
+    design: FitDesign = Field(default_factory=FitDesign, description="tables by the trials' design factors")
     ticks: Ticks = "measurements"
     substeps: int | None = Field(1, ge=1, le=1000)
     em: EMSettings = Field(default_factory=EMSettings)

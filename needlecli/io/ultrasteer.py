@@ -506,6 +506,7 @@ def to_trial(raw: RawTrial, al: Alignment, *, frame: str = "trial") -> Trial:
         "tracker_roll_about_tangent_deg": round(roll, 3), "tracker_bend_deg": round(bend, 3),
         "shaft_rotation": "Thetas.dat differences over dts" if raw.u is not None else
                           "not recorded (u absent: held at zero in replay)",
+        "design_factors": ["session", "speed_mm_s"],  # what fit tables group by (reports/design.py)
     }
     if raw.rho is not None:
         meta["rho_setting_mm"] = raw.rho

@@ -184,7 +184,41 @@ def fit_trials(
     with single_blas_thread() if workers > 1 and len(names) > 1 else contextlib.nullcontext():
         _run_models(names, workers, run, systems, out, progress)
     out.fits = {name: out.fits[name] for name in names}
+    for mf in out.fits.values():
+        add_data_hints(mf.result, problem)
     return out
+
+
+def add_data_hints(result: EMResult, problem) -> None:
+    """Where a trial fails at the singularity in the first EM iterations, say what in the data is the likely
+    cause (in place, on its reason): position samples marked valid that are exactly zero (a tracker's rows
+    of zeros for a lost tip), or a path that runs far from the model's +z (an insertion along another
+    axis: the bevel-tip models are singular at beta = +-90 deg)."""
+    early = np.array([s == "singular" and (" (EM iteration 1)" in r or " (EM iteration 2)" in r)
+                      for s, r in zip(result.status, result.reason)])
+    if not early.any():
+        return
+    reasons = result.reason.tolist()
+    for ch in problem.channels.values():
+        if ch.sensor_type != "position" or not {"x", "y", "z"} <= set(ch.names):
+            continue
+        xyz = ch.value[..., [list(ch.names).index(a) for a in "xyz"]]
+        zero = (ch.valid & (xyz == 0).all(-1)).sum(1)
+        for i in np.nonzero(early)[0]:
+            ok = np.nonzero(ch.valid[i] & ~(xyz[i] == 0).all(-1))[0]
+            hints = []
+            if zero[i] > 1:
+                hints.append(f"{int(zero[i])} samples of {ch.name} are exactly zero and marked valid: lost samples? "
+                             "(a CSV mapping's missing: {zero_rows: true})")
+            if ok.size > 1:
+                d = xyz[i, ok[-1]] - xyz[i, ok[0]]
+                ang = float(np.degrees(np.arccos(np.clip(d[2] / max(np.linalg.norm(d), 1e-300), -1, 1))))
+                if ang > 60.0:
+                    hints.append(f"the {ch.name} path runs {ang:.0f} deg from the model's +z: express the trial in "
+                                 "its own frame (a CSV mapping's frame: {reference: ...})")
+            if hints:
+                reasons[i] = f"{reasons[i]}; in the data: {'; '.join(hints)}"
+    result.reason = np.array(reasons)
 
 
 def _run_models(names, workers, run, systems, out, progress) -> None:

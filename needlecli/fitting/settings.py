@@ -90,7 +90,8 @@ class FitDesign(Strict):
 class FitSettings(KalmanSetup):
     """The ``fit:`` section of a config: how ``needle fit-em`` fits every trial.
 
-    The model's curvature constant (``c`` of the MNM, ``l_inv`` of the BiNM) is an augmented state;
+    The model's constants in ``constants`` (default: its curvature, ``c`` of the MNM, ``l_inv`` of the BiNM,
+    ``kappa`` of the unicycle; e.g. ``[kappa, speed_scale]``) are augmented states;
     ``q`` holds the initial guess of the process noise and names the states that have process noise
     (the others' rows and columns of Q stay zero; default: every model state); ``measurements`` the
     initial guesses of each R_j and their floors; ``init.values`` and ``p0`` may name any fitted model's

@@ -3,7 +3,7 @@ PY ?= python
 
 STUDIES := results/studies
 
-.PHONY: help install demo test bench lint clean seed000 seed001 seed003 seed004 datasets regress real
+.PHONY: help install demo test bench lint clean seed000 seed001 seed003 seed004 datasets regress real owndata
 
 help:
 	@echo "make install  - install needlecli with test extras (editable)"
@@ -18,6 +18,7 @@ help:
 	@echo "make regress  - replay every bundled data set and check its tables against datasets/baselines/"
 	@echo "make real     - import the recorded ultrasteer insertions (../shared/real-data) and make their tables in $(REAL)"
 	@echo "make seed004  - seed 004's synthetic study and T2prelim: EM fits, Tables 1-3, Figs. 5, 10 (in $(STUDIES))"
+	@echo "make owndata  - a lab's exports made by needlecli, imported by a mapping, fitted with and without the slip (in $(OWN))"
 	@echo "make clean    - remove results/ and caches"
 
 install:
@@ -111,3 +112,24 @@ real:
 	  echo "needle fit-em is not available: table (c), EM on the 18 tracker trials, is skipped"; \
 	fi
 	@echo "tables: $(REAL)/tables"
+
+# Bringing your own recorded data (issue 18, README "Bringing your own recorded data"): a synthetic study in
+# the shape of a lab's exports (step-indexed tracker poses with quaternions, zero rows, per-sample rms, a
+# command file per trial; kappa = 0.012 (1 - duty_cycle), 86-94 % slip), imported by the mapping the export
+# writes, fitted by EM with the speed scale and without it; tables and plots in $(OWN)/tables. OWN_RUNS
+# trials (the 12 combinations of duty cycle and slip, repeated; the test suite runs 12).
+OWN := results/owndata
+OWN_RUNS ?= 48
+
+owndata:
+	@mkdir -p $(OWN)
+	needle simulate configs/owndata/study.yaml --runs $(OWN_RUNS) --out $(OWN)/study.h5 --quiet > /dev/null
+	needle log from-results $(OWN)/study.h5 --out $(OWN)/study_log.h5
+	needle log export-csv $(OWN)/study_log.h5 --out $(OWN)/exports --tracker-pose 10,80,25,120,-40,15 --sensor-roll 35
+	needle log import-csv $(OWN)/exports/mapping.yaml --out $(OWN)/lab.h5
+	needle log info $(OWN)/lab.h5 > $(OWN)/lab_info.txt
+	needle fit-em configs/owndata/fit.yaml --out $(OWN)/fit.h5 --quiet
+	needle fit-em configs/owndata/fit_no_scale.yaml --out $(OWN)/fit_no_scale.h5 --quiet
+	needle evaluate $(OWN)/fit.h5 --out $(OWN)/tables --quiet
+	needle evaluate $(OWN)/fit_no_scale.h5 --out $(OWN)/tables --quiet
+	@echo "tables: $(OWN)/tables; what the import read and dropped: $(OWN)/lab_info.txt"

@@ -20,6 +20,8 @@ def evaluate(
     write_baseline: Path = typer.Option(None, "--write-baseline", help="Store the tables as expectations (YAML)."),
     rel_tol: float = typer.Option(0.1, "--rel-tol", min=0.0, help="Relative tolerance for --write-baseline."),
     abs_tol: float = typer.Option(1e-9, "--abs-tol", min=0.0, help="Absolute tolerance floor for --write-baseline."),
+    group_by: str = typer.Option(None, "--group-by", help="Fit files: metadata keys of table fit_by_design (a,b)."),
+    regress: str = typer.Option(None, "--regress", help="Fit files: regressions CONSTANT:FACTOR[,...] of fit_regression."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="Print nothing but errors."),
 ) -> None:
     """Compute error statistics per observer and write them as Markdown, CSV and LaTeX tables."""
@@ -42,7 +44,14 @@ def evaluate(
     expected = load_baseline(baseline) if baseline is not None else None
     if expected is not None and names is None:  # compute every table the baseline names
         names = sorted({c.table for c in expected.cells} | set(configured_tables_of(results)))
-    written = evaluate_results(results, tables=names, out_dir=out_dir, formats=formats, plots=plots)
+    design = {"group_by": [k.strip() for k in group_by.split(",") if k.strip()] if group_by else [],
+              "regress": []}
+    for item in (regress.split(",") if regress else []):
+        c, sep, f = item.strip().partition(":")
+        if not sep or not c or not f:
+            fail(f"--regress: {item.strip()!r} is not CONSTANT:FACTOR (e.g. kappa:duty_cycle)")
+        design["regress"].append((c.strip(), f.strip()))
+    written = evaluate_results(results, tables=names, out_dir=out_dir, formats=formats, plots=plots, design=design)
     name = experiment_name(results)
     if write_baseline is not None:
         store(write_baseline, make_baseline(written, name, rel_tol, abs_tol))

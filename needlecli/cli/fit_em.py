@@ -43,7 +43,9 @@ def fit_em_cmd(
         log.info("fitting %d trial(s) of %s (%s)", n, cfg.name, "simulated" if trials.simulated else "recorded")
         with progress_bar(not quiet) as bar:
             result = fit_trials(trials, models=models, progress=bar)
-        write_atomic(target, fit_tree(result))
+        tree = fit_tree(result)
+        write_atomic(target, tree)
+        ids = trials.truth.trial_ids or [f"run {i}" for i in range(n)]
         if not quiet:
             for name, mf in result.fits.items():
                 r = mf.result
@@ -55,9 +57,13 @@ def fit_em_cmd(
                            f"max {int(r.iterations.max())}; {consts}; {mf.seconds:.1f} s")
                 for s in ("singular", "diverged"):
                     for i in np.nonzero(r.status == s)[0][:5]:
-                        typer.echo(f"  trial {i}: {s}: {r.reason[i]}")
+                        typer.echo(f"  trial {ids[i]}: {s}: {r.reason[i]}")
                 dec = np.nonzero(r.ll_decreases > 0)[0]
                 if dec.size:
                     typer.echo(f"  the log-likelihood decreased beyond numerical noise in {int(r.ll_decreases.sum())} "
                                f"iteration(s) of {dec.size} trial(s) (largest drop {r.ll_worst_drop.max():.3g})")
+            from needlecli.reports.design import warning_summary
+
+            for line in warning_summary(tree, statuses=False):  # R on its floor, Q nearly singular, kappa < 0
+                typer.echo(f"  warning: {line}")
         typer.echo(f"fit: {target}")

@@ -44,10 +44,33 @@ def from_results_cmd(
     typer.echo(f"log: {out} ({len(log.trials)} trial(s), synthetic)")
 
 
+@log_app.command("export-csv")
+@user_errors
+def export_csv_cmd(
+    log_file: Path = typer.Argument(..., help="Log file (e.g. a simulation made a log by needle log from-results)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Folder for the exports and their mapping.yaml."),
+    sensor: str = typer.Option("tracker", "--sensor", help="The position sensor written as the tracker's poses."),
+    tracker_pose: str = typer.Option(None, "--tracker-pose",
+                                     help="Where the tracker sees the model frame: rx,ry,rz,tx,ty,tz (deg, mm)."),
+    sensor_roll: float = typer.Option(0.0, "--sensor-roll", help="The tracker coil's roll in the needle, deg."),
+) -> None:
+    """Write a log as a lab's tracker exports: step-indexed pose files (quaternions, zero rows where a
+    sample was lost, each sample's rms), a command file per trial, and the mapping that imports them."""
+    from needlecli.io.csv_export import export_lab_csv
+    from needlecli.io.logs import read_log
+
+    files = export_lab_csv(read_log(log_file), out, sensor=sensor, pose=tracker_pose, roll_deg=sensor_roll)
+    typer.echo(f"exports: {out} ({len(files) - 1} files and mapping.yaml)")
+
+
 @log_app.command("info")
 @user_errors
-def info_cmd(log_file: Path = typer.Argument(..., help="Log file.")) -> None:
-    """Check a log and describe its trials, streams and truth."""
+def info_cmd(
+    log_file: Path = typer.Argument(..., help="Log file."),
+    meta: bool = typer.Option(False, "--meta", help="Print every trial's metadata too."),
+) -> None:
+    """Check a log and describe its trials, streams and truth; for imported trials what was read, dropped
+    and why, where each trial starts and its frame."""
     from needlecli.io.logs import read_log
 
     log = read_log(log_file)
@@ -55,11 +78,67 @@ def info_cmd(log_file: Path = typer.Argument(..., help="Log file.")) -> None:
     if log.attrs.get("synthetic"):
         typer.echo(f"  synthetic: {log.attrs.get('source', '')}")
     for tr in log.trials:
-        parts = [f"{n} ({len(s.t)} samples, {int((~s.valid).sum())} invalid, {s.settings.get('type')})"
+        parts = [f"{n} ({len(s.t)} samples, {int((~s.valid).sum())} invalid, {s.settings.get('type')}"
+                 + (", per-sample sigma" if s.sigma is not None else "") + ")"
                  for n, s in tr.sensors.items()]
         truth = f"truth: {tr.truth.kind}, {len(tr.truth.t)} samples" if tr.truth is not None else "no truth"
         typer.echo(f"  {tr.id}: {tr.end_time:.2f} s; inputs {', '.join(tr.inputs) or 'none'}; "
                    f"sensors {'; '.join(parts)}; {truth}")
+        for line in trial_report_lines(tr, meta):
+            typer.echo(f"    {line}")
+
+
+def trial_report_lines(tr, all_meta: bool = False) -> list[str]:
+    """What ``needle log info`` says about one trial beyond its streams: its design factors, and for an
+    imported trial (``import_report``) each stream's rows read, valid, lost and why, the rate, where the
+    trial starts, its frame, warnings."""
+    import json
+
+    from needlecli.io.logs import design_factors
+
+    out = []
+    factors = design_factors(tr)
+    if factors:
+        out.append("design factors: " + ", ".join(f"{f} = {tr.meta.get(f)}" for f in factors))
+    if all_meta:
+        out.append("metadata: " + "; ".join(f"{k} = {v}" for k, v in tr.meta.items() if k != "import_report"))
+    raw = tr.meta.get("import_report")
+    if not raw:
+        return out
+    try:
+        rep = json.loads(raw)
+    except (json.JSONDecodeError, TypeError):
+        return out + ["import report: not readable"]
+    for name, st in rep.get("streams", {}).items():
+        if "constant" in st:
+            out.append(f"{name}: constant {st['value']} = {st['constant']}")
+            continue
+        bits = [f"{st.get('file', '?')}: {st.get('rows', '?')} rows", f"time from {st.get('time', '?')}"]
+        if "valid" in st:
+            bits.append(f"{st['valid']} valid")
+        inv = st.get("invalid") or {}
+        if inv:
+            bits.append("lost: " + ", ".join(f"{v} {k}" for k, v in inv.items()))
+        for k, v in st.items():
+            if k.startswith("dropped") or k.startswith("left out"):
+                bits.append(f"{v} {k}")
+        if st.get("rate_hz"):
+            bits.append(f"{float(st['rate_hz']):.4g} Hz")
+        out.append(f"read {name}: " + "; ".join(bits))
+    start = rep.get("start")
+    if start:
+        out.append(f"start ({start.get('mode')}): {start.get('what')}")
+    fr = rep.get("frame")
+    if fr:
+        bits = [f"origin {fr.get('origin')} {fr.get('origin_unit', '')}", f"z from {fr.get('z_from')}"]
+        if "roll_psi_deg" in fr:
+            bits.append(f"rolled {fr['roll_psi_deg']} deg (bending onto -y)")
+        elif "bend_from" in fr:
+            bits.append(f"-y from {fr['bend_from']}")
+        out.append("frame: " + "; ".join(bits))
+    for w in rep.get("warnings", []):
+        out.append(f"warning: {w}")
+    return out
 
 
 @log_app.command("merge")

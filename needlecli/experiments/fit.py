@@ -22,6 +22,7 @@ from needlecli.errors import DataError
 from needlecli.experiments.config import load_config
 from needlecli.experiments.runner import build_problem, simulate_and_measure
 from needlecli.experiments.truth import Truth
+from needlecli.fitting.canonical import flip_negative_curvature
 from needlecli.fitting.em import EMOptions, EMResult, fit_em
 from needlecli.fitting.identify import Identifiability, IdentifyOptions, identify
 from needlecli.fitting.problem import System, build_system, fit_augment, own_model
@@ -169,7 +170,7 @@ def fit_trials(
             raise DataError(f"unknown model {name!r}; known: {', '.join(MODELS.names())}")
         model = own_model(fit, trials.truth.model, name)
         try:
-            systems[name] = build_system(problem, fit, model, fit_augment(type(model)))
+            systems[name] = build_system(problem, fit, model, fit_augment(type(model), fit.constants))
         except ValueError as e:
             raise DataError(f"{trials.source}: [fit] {e}") from None
 
@@ -177,6 +178,7 @@ def fit_trials(
         S = systems[name]
         t0 = time.perf_counter()
         res = fit_em(S.dm, S.meas, S.m0, S.P0, S.Qc, S.R, em_options(fit, S), progress=cb)
+        res.roll_flipped = flip_negative_curvature(S.dm.names, type(S.dm.model), res)  # kappa < 0 = roll + pi
         return res, assess(S, res, fit), time.perf_counter() - t0
 
     # models are independent: all but the first go to child processes (forked, so nothing is pickled
@@ -184,6 +186,8 @@ def fit_trials(
     with single_blas_thread() if workers > 1 and len(names) > 1 else contextlib.nullcontext():
         _run_models(names, workers, run, systems, out, progress)
     out.fits = {name: out.fits[name] for name in names}
+    for mf in out.fits.values():
+        add_data_hints(mf.result, problem)
     return out
 
 
@@ -195,6 +199,38 @@ def assess(S: System, res: EMResult, fit: FitSettings) -> Identifiability | None
     sd = np.sqrt(np.maximum(np.diagonal(res.P[:, 0], axis1=-2, axis2=-1), 0.0))[:, S.dm.nx:]
     return identify(S.dm, S.meas, res.x0, S.P0, res.Qc, res.R, res.status == "ok", const_sd=sd,
                     options=IdentifyOptions(rse_max=s.rse_max, nats=s.nats))
+
+
+def add_data_hints(result: EMResult, problem) -> None:
+    """Where a trial fails at the singularity in the first EM iterations, say what in the data is the likely
+    cause (in place, on its reason): position samples marked valid that are exactly zero (a tracker's rows
+    of zeros for a lost tip), or a path that runs far from the model's +z (an insertion along another
+    axis: the bevel-tip models are singular at beta = +-90 deg)."""
+    early = np.array([s == "singular" and (" (EM iteration 1)" in r or " (EM iteration 2)" in r)
+                      for s, r in zip(result.status, result.reason)])
+    if not early.any():
+        return
+    reasons = result.reason.tolist()
+    for ch in problem.channels.values():
+        if ch.sensor_type != "position" or not {"x", "y", "z"} <= set(ch.names):
+            continue
+        xyz = ch.value[..., [list(ch.names).index(a) for a in "xyz"]]
+        zero = (ch.valid & (xyz == 0).all(-1)).sum(1)
+        for i in np.nonzero(early)[0]:
+            ok = np.nonzero(ch.valid[i] & ~(xyz[i] == 0).all(-1))[0]
+            hints = []
+            if zero[i] > 1:
+                hints.append(f"{int(zero[i])} samples of {ch.name} are exactly zero and marked valid: lost samples? "
+                             "(a CSV mapping's missing: {zero_rows: true})")
+            if ok.size > 1:
+                d = xyz[i, ok[-1]] - xyz[i, ok[0]]
+                ang = float(np.degrees(np.arccos(np.clip(d[2] / max(np.linalg.norm(d), 1e-300), -1, 1))))
+                if ang > 60.0:
+                    hints.append(f"the {ch.name} path runs {ang:.0f} deg from the model's +z: express the trial in "
+                                 "its own frame (a CSV mapping's frame: {reference: ...})")
+            if hints:
+                reasons[i] = f"{reasons[i]}; in the data: {'; '.join(hints)}"
+    result.reason = np.array(reasons)
 
 
 def _run_models(names, workers, run, systems, out, progress) -> None:
@@ -299,6 +335,9 @@ def fit_tree(out: FitOutput) -> Group:
         tg.attrs["param_case_labels"] = truth.param_case_labels
     if truth.trial_ids is not None:
         tg.data["trial_id"] = np.array(truth.trial_ids)
+    meta = design_columns(truth, cfg)
+    if meta is not None:  # an addition older readers ignore (no version bump)
+        tg.data["meta"] = Group(data=meta["columns"], attrs={"design_factors": meta["design_factors"]})
     root.data["truth"] = tg
     meas = Group()
     for name, st in tr.streams.items():
@@ -334,6 +373,12 @@ def _model_group(mf: ModelFit, fit: FitSettings) -> Group:
         Rg.data[f"{mm.name}_guess"] = R0
         Rg.dataset_attrs[mm.name] = {"coordinates": "tangent plane (2 components across the direction)"
                                      if mm.tangent else "components " + ", ".join(mm.names)}
+        floor = S.floors[S.meas.index(mm)]
+        if floor is not None:  # additions older readers ignore (no version bump)
+            Rg.attrs[f"{mm.name}_floor"] = float(floor)
+        if mm.scale is not None:
+            Rg.attrs[f"{mm.name}_per_sample"] = ("sample i has diag(s_i) R diag(s_i), s_i its recorded sigma over "
+                                                 "the channel's nominal sigma")
     g.data["R"] = Rg
     g.data["state"] = r.m
     g.data["var" if fit.store == "diag" else "cov"] = (np.diagonal(r.P, axis1=-2, axis2=-1).copy()
@@ -346,6 +391,10 @@ def _model_group(mf: ModelFit, fit: FitSettings) -> Group:
         if v is not None:
             g.data[k] = v
     g.data["history"] = Group(data={k.replace("/", "_"): v for k, v in r.history.items()})
+    flipped = getattr(r, "roll_flipped", None)
+    if flipped is not None and dm.model.curvature_roll_state is not None and dm.model.curvature_param in consts:
+        g.data["roll_flipped"] = np.asarray(flipped, dtype=bool)
+        g.attrs["roll_state"] = dm.model.curvature_roll_state
     if mf.identifiability is not None:
         g.data["identifiability"] = identifiability_group(mf.identifiability, fit)
     return g
@@ -364,6 +413,28 @@ def identifiability_group(idf: Identifiability, fit: FitSettings) -> Group:
                "kinds": [q.kind for q in idf.quantities], "rse_max": fit.identify.rse_max, "nats": fit.identify.nats,
                "parameters": "constants as they are; Q blocks and R_j by a log scale (tr scales by exp)"},
     )
+
+
+def design_columns(truth: Truth, cfg) -> dict | None:
+    """The trials' metadata for the fit file's ``/truth/meta``: from the logs (replay), or for simulated
+    trials from parameter-case labels written ``name=value, ...`` (``duty_cycle=0.25``); None without."""
+    if truth.trial_meta is not None and truth.trial_meta.get("columns"):
+        return truth.trial_meta
+    pc = getattr(cfg.model, "param_cases", None)
+    if pc is None or pc.labels is None or truth.param_case is None:
+        return None
+    from needlecli.io.csv_layout import factors_from_label
+
+    per_case = [factors_from_label(lbl) for lbl in pc.labels]
+    keys = [k for k in per_case[0] if all(k in c for c in per_case)] if per_case else []
+    if not keys:
+        return None
+    cols = {}
+    for k in keys:
+        vals = [per_case[int(i)][k] for i in truth.param_case]
+        cols[k] = (np.array(vals, dtype=float) if all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in vals)
+                   else np.array([str(v) for v in vals]))
+    return {"columns": cols, "design_factors": keys}
 
 
 def default_fit_output(cfg) -> Path:

@@ -58,11 +58,15 @@ def build_problem(cfg, truth: Truth, sensors, streams: dict[str, MeasurementStre
         st = streams[sensor.name]
         h = measurement_function(sensor, truth.model)
         nominal = np.atleast_1d(np.asarray(st.sigma[0, 0] if st.sigma.size else np.zeros(len(st.names))))
+        per_sample = bool(st.attrs.get("sigma_per_sample", False))  # recorded per-sample sigmas (replay)
+        if per_sample:
+            nominal = np.broadcast_to(np.asarray(st.attrs["nominal_sigma"], dtype=float), (len(st.names),)).copy()
         channels[sensor.name] = Channel(
             name=sensor.name, sensor_type=sensor.registered_name, t=st.t, t_available=st.t_available,
             index=st.index, value=st.value, valid=st.valid, names=st.names, units=st.units,
             sigma=nominal, angle=sensor.angle_channels, h=h, attrs=st.attrs,
             h_for=lambda model, _s=sensor: measurement_function(_s, model), unit_vector=sensor.unit_vector,
+            sample_sigma=st.sigma if per_sample else None,
         )
     n_runs = truth.states.shape[0]
     return EstimationProblem(

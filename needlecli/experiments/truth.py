@@ -50,6 +50,7 @@ class Truth:
     param_case_labels: list[str] | None = None
     end_time: np.ndarray | None = None  # (N,) end of each run (replayed trials differ)
     trial_ids: list[str] | None = None  # replayed trials' ids
+    trial_meta: dict | None = None  # replayed trials' metadata: {"columns": name -> (N,), "design_factors": [...]}
     truth_kind: str = "simulation"  # or what the logs recorded: ground truth, manual segmentation, none
 
     @property

@@ -94,7 +94,7 @@ def build_system(
             raise ValueError(f"channel {name!r}: samples off the filter's ticks")
         m = len(ch.names)
         mm = MeasurementModel(name, h, model.n, tick, ch.value, ch.valid, np.asarray(ch.angle, dtype=bool),
-                              tuple(ch.names), tuple(ch.units), bool(ch.unit_vector))
+                              tuple(ch.names), tuple(ch.units), bool(ch.unit_vector), sample_scale(ch))
         meas.append(mm)
         spec = setup.measurements.get(name)
         sigma = spec.sigma if spec is not None and spec.sigma is not None else ch.sigma
@@ -116,6 +116,23 @@ def build_system(
     m0 = initial_mean(setup.init, problem, model, model.param_arrays(), rng, augment=dm.augment)
     P0 = initial_covariance(setup.init, dm.names, setup.p0, 1e-18, start=problem.start)
     return System(dm, meas, m0, P0, Qc, R, floors, q_index)
+
+
+def sample_scale(ch) -> np.ndarray | None:
+    """Each sample's noise std over the channel's nominal one, ``(N, M, m_used)`` (1 where not valid), from
+    a channel's recorded per-sample sigmas; None without them. A measured direction is used in its tangent
+    plane (2 components): one scale per sample, the rms over its components."""
+    if getattr(ch, "sample_sigma", None) is None:
+        return None
+    s = np.asarray(ch.sample_sigma, dtype=float)
+    ref = np.broadcast_to(np.asarray(ch.sigma, dtype=float), (s.shape[-1],))
+    ok = ch.valid[..., None] & np.isfinite(s) & (s > 0)
+    if not (ref > 0).all():
+        ref = np.array([np.median(s[..., j][ok[..., j]]) if ok[..., j].any() else 1.0 for j in range(s.shape[-1])])
+    w = np.where(ok, s / ref, 1.0)
+    if ch.unit_vector and s.shape[-1] == 3:
+        w = np.repeat(np.sqrt(np.mean(w**2, axis=-1, keepdims=True)), 2, axis=-1)
+    return w
 
 
 def check_setup(setup: KalmanSetup, model_cls: type[Model], sensors: dict, augment: Sequence[str] = ()) -> list:
@@ -163,11 +180,14 @@ def check_channels(setup: KalmanSetup, model_cls: type[Model], sensors: dict) ->
     return out
 
 
-def fit_augment(model_cls: type[Model]) -> tuple[str, ...]:
-    """The constants EM estimates as augmented states: the model's curvature parameter (seed 004: ``c``
-    of the MNM, ``l_inv`` of the BiNM), unless the model already carries it as a state."""
-    c = model_cls.curvature_param
-    return (c,) if c is not None and c not in model_cls.state_names else ()
+def fit_augment(model_cls: type[Model], constants: Sequence[str] | None = None) -> tuple[str, ...]:
+    """The constants EM estimates as augmented states: ``constants`` (the fit's ``constants:``, e.g.
+    ``[kappa, speed_scale]``: those that are parameters of this model), by default the model's curvature
+    parameter (seed 004: ``c`` of the MNM, ``l_inv`` of the BiNM); never one the model carries as a state."""
+    if constants is None:
+        c = model_cls.curvature_param
+        return (c,) if c is not None and c not in model_cls.state_names else ()
+    return tuple(c for c in constants if c in model_cls.Params.model_fields and c not in model_cls.state_names)
 
 
 def check_fit(fit, sensors: dict) -> list:
@@ -187,9 +207,12 @@ def check_fit(fit, sensors: dict) -> list:
                     "unit/sqrt(s)); the states it lists have process noise"))
     if out:
         return out
+    for i, c in enumerate(fit.constants or []):
+        if not any(c in cls.Params.model_fields for cls in classes):
+            out.append((("constants", i), f"no fitted model ({', '.join(fit.models)}) has a parameter {c!r}"))
     known = set()
     for cls in classes:
-        known |= set(cls.state_names) | set(fit_augment(cls))
+        known |= set(cls.state_names) | set(fit_augment(cls, fit.constants))
     for where, keys in (("q", fit.q), ("p0", fit.p0), (("init", "std"), fit.init.std),
                         (("init", "values"), fit.init.values), (("init", "first_measurement"), fit.init.first_measurement)):
         for k in keys:

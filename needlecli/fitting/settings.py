@@ -81,10 +81,26 @@ class IdentifySettings(Strict):
     nats: Positive = Field(2.0, description="log-likelihood a decade of a noise level must cost to be identified")
 
 
+class Regression(Strict):
+    """A regression of a fitted constant on a design factor (the fit file's ``fit_regression`` table)."""
+
+    constant: str = Field(description="a fitted constant (kappa, speed_scale, c, ...)")
+    factor: str = Field(description="a trial metadata key with numbers (duty_cycle, speed_mm_s, ...)")
+
+
+class FitDesign(Strict):
+    """How ``needle evaluate`` groups and regresses the fitted constants by the trials' metadata (from the
+    logs: design factors of a CSV mapping, a data set's speed, ...). Default: every design factor."""
+
+    group_by: list[str] = Field(default_factory=list, description="metadata keys of the fit_by_design table")
+    regress: list[Regression] = Field(default_factory=list, description="regressions of fit_regression")
+
+
 class FitSettings(KalmanSetup):
     """The ``fit:`` section of a config: how ``needle fit-em`` fits every trial.
 
-    The model's curvature constant (``c`` of the MNM, ``l_inv`` of the BiNM) is an augmented state;
+    The model's constants in ``constants`` (default: its curvature, ``c`` of the MNM, ``l_inv`` of the BiNM,
+    ``kappa`` of the unicycle; e.g. ``[kappa, speed_scale]``) are augmented states;
     ``q`` holds the initial guess of the process noise and names the states that have process noise
     (the others' rows and columns of Q stay zero; default: every model state); ``measurements`` the
     initial guesses of each R_j and their floors; ``init.values`` and ``p0`` may name any fitted model's
@@ -93,6 +109,10 @@ class FitSettings(KalmanSetup):
 
     models: list[str] = Field(default_factory=lambda: ["mnm", "binm"], min_length=1,
                               description="models fitted by default (needle fit-em --model)")
+    constants: list[str] | None = Field(
+        None, description="model parameters EM estimates as constant states (default: the curvature parameter; "
+        "e.g. [kappa, speed_scale] for a needle that slips)")
+    design: FitDesign = Field(default_factory=FitDesign, description="tables by the trials' design factors")
     ticks: Ticks = "measurements"
     substeps: int | None = Field(1, ge=1, le=1000)
     em: EMSettings = Field(default_factory=EMSettings)

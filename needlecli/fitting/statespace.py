@@ -250,6 +250,12 @@ class MeasurementModel:
     :func:`tangent_basis` at the linearisation point. Along the direction itself a unit vector has no
     noise and no information (its Jacobian has no row there); kept, that component's variance would
     shrink without end in EM. ``R`` of such a channel is 2 x 2.
+
+    ``scale`` (N, M, m) (optional): each sample's noise std relative to the channel's reference (an export's
+    per-sample sigma over the nominal one). Sample ``i`` then has noise ``diag(scale_i) R diag(scale_i)``:
+    the channel is whitened, ``y``, ``h`` and the linearisation divided by ``scale_i``, so that the filters
+    and EM see one ``R`` (the noise of a sample at the reference sigma; EM fits it). The log-likelihood is
+    that of the whitened samples (it differs by the constant ``sum log scale``).
     """
 
     name: str
@@ -262,6 +268,7 @@ class MeasurementModel:
     names: tuple[str, ...] = ()
     units: tuple[str, ...] = ()
     unit_vector: bool = False  # the components form a measured direction (renormalised)
+    scale: np.ndarray | None = None  # (N, M, m) per-sample noise std over the reference (None: all 1)
 
     @property
     def m(self) -> int:
@@ -282,7 +289,8 @@ class MeasurementModel:
 
     def take(self, idx: np.ndarray) -> MeasurementModel:
         out = MeasurementModel(self.name, self.h, self.nx, self.tick, self.y[idx], self.valid[idx], self.angle,
-                               self.names, self.units, self.unit_vector)
+                               self.names, self.units, self.unit_vector,
+                               None if self.scale is None else self.scale[idx])
         if self.tangent:
             out._axis_cache = self._axis()
         return out
@@ -290,9 +298,10 @@ class MeasurementModel:
     def h_aug(self, z: np.ndarray) -> np.ndarray:
         return self.h(z[..., : self.nx])
 
-    def linearise(self, z: np.ndarray, y: np.ndarray | None = None):
+    def linearise(self, z: np.ndarray, y: np.ndarray | None = None, sample: int | None = None):
         """At states ``z (..., n)``: ``(h(z), H (..., m, n), d = h(z) - H z, y)`` with the measurements
-        ``y (..., m_raw)`` (default: every sample, ``z`` then ``(N, M, n)``) in the same coordinates."""
+        ``y (..., m_raw)`` (default: every sample, ``z`` then ``(N, M, n)``) in the same coordinates
+        (whitened by ``scale``: of every sample, or of sample ``sample`` when ``z`` is ``(N, n)``)."""
         yh, H = finite_difference_h(self.h_aug, z)
         if y is None:
             y = np.where(self.valid[..., None], self.y, 0.0)
@@ -302,6 +311,9 @@ class MeasurementModel:
             yh = (Et @ yh[..., None])[..., 0]
             H = Et @ H
             y = np.where(self.valid[..., None] if y.ndim == 3 else True, (Et @ y[..., None])[..., 0], 0.0)
+        if self.scale is not None:
+            w = self.scale if sample is None else self.scale[:, sample]
+            yh, H, y = yh / w, H / w[..., None], y / w
         d = yh - (H @ z[..., None])[..., 0]
         return yh, H, d, y
 

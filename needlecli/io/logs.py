@@ -11,6 +11,7 @@ One HDF5 file holds one or more trials::
     /trials/<id>/sensors/<name>/t       (M,)   acquisition times, s, strictly increasing
     /trials/<id>/sensors/<name>/value   (M, m) attrs names, units
     /trials/<id>/sensors/<name>/valid   (M,) bool (optional: all valid)
+    /trials/<id>/sensors/<name>/sigma   (M, m) optional: each sample's noise std (NaN where not valid)
     /trials/<id>/sensors/<name>         attrs sensor: JSON of the sensor's settings (type, axes, ...)
     /trials/<id>/truth/t                (L,)   optional ground truth (or manual segmentation)
     /trials/<id>/truth/state            (L, n) attrs names, units, kind (ground truth | manual segmentation)
@@ -33,6 +34,7 @@ import numpy as np
 
 from needlecli import __version__
 from needlecli.errors import DataError
+from needlecli.io.csv_layout import factors_from_label
 from needlecli.io.results import Group, _decode, write_atomic
 
 LOG_FORMAT = "needlecli-log"
@@ -49,6 +51,7 @@ class SensorStream:
     names: tuple[str, ...]
     units: tuple[str, ...]
     settings: dict[str, Any]
+    sigma: np.ndarray | None = None  # (M, m) per-sample noise std where the export gives one (else nominal)
 
 
 @dataclass
@@ -85,6 +88,18 @@ class Trial:
         return max(ends) if ends else 0.0
 
 
+def design_factors(trial: Trial) -> list[str]:
+    """The metadata keys a trial lists as its design factors (``design_factors``: a list, or its JSON as
+    a log stores it), in order; empty without."""
+    f = trial.meta.get("design_factors")
+    if isinstance(f, str):
+        try:
+            f = json.loads(f)
+        except json.JSONDecodeError:
+            f = [f]
+    return [str(x) for x in f] if isinstance(f, (list, tuple, np.ndarray)) else []
+
+
 @dataclass
 class Log:
     trials: list[Trial]
@@ -110,8 +125,11 @@ def log_tree(log: Log) -> Group:
         g.data["inputs"] = ins
         sens = Group()
         for name, s in tr.sensors.items():
+            data = {"t": s.t, "value": s.value, "valid": s.valid.astype(bool)}
+            if s.sigma is not None:  # an addition older readers ignore (no version bump)
+                data["sigma"] = np.where(s.valid[:, None], s.sigma, np.nan)
             sens.data[name] = Group(
-                data={"t": s.t, "value": s.value, "valid": s.valid.astype(bool)},
+                data=data,
                 attrs={"names": list(s.names), "units": list(s.units), "sensor": json.dumps(s.settings)},
                 dataset_attrs={"value": {"names": list(s.names), "units": list(s.units)}},
             )
@@ -218,13 +236,22 @@ def _read_trial(path, tid: str, g: h5py.Group) -> Trial:
         bad = np.nonzero(valid & ~np.isfinite(v).all(-1))[0]
         if bad.size:
             raise _fail(path, where, f"sample {bad[0]} is marked valid but is not finite ({v[bad[0]].tolist()})")
+        sigma = None
+        if "sigma" in s:
+            sigma = np.asarray(_dataset(path, s, "sigma", where), dtype=float)
+            if sigma.shape != v.shape:
+                raise _fail(path, where, f"sigma has shape {sigma.shape}, value {v.shape}")
+            bad = np.nonzero(valid & ~(np.isfinite(sigma) & (sigma > 0)).all(-1))[0]
+            if bad.size:
+                raise _fail(path, where, f"sample {bad[0]} is valid but its sigma is not positive ({sigma[bad[0]].tolist()})")
         try:
             settings = json.loads(_decode(s.attrs.get("sensor", "{}")))
         except (json.JSONDecodeError, TypeError):
             raise _fail(path, where, "attribute 'sensor' is not valid JSON") from None
         if not isinstance(settings, dict) or "type" not in settings:
             raise _fail(path, where, "attribute 'sensor' must give the sensor's settings with its 'type'")
-        tr.sensors[name] = SensorStream(t=t, value=v, valid=valid, names=names, units=units, settings=settings)
+        tr.sensors[name] = SensorStream(t=t, value=v, valid=valid, names=names, units=units, settings=settings,
+                                        sigma=sigma)
     if "truth" in g:
         where = f"trial {tid} -> truth"
         s = g["truth"]
@@ -280,10 +307,12 @@ def log_from_results(res: Group, *, description: str = "", truth_every: int = 1,
     cfg = yaml.safe_load(res.attrs.get("config", "")) or {}
     sensor_cfg = {(s.get("name") or s.get("type")): s for s in cfg.get("sensors", [])}
     n_runs = truth.data["state"].shape[0]
+    case_meta = _param_case_meta(truth, n_runs, ((cfg.get("model") or {}).get("param_cases") or {}).get("labels"))
     trials = []
     for r in range(n_runs):  # writing a file: one group per trial is the format, not a computation
         tr = Trial(id=f"{prefix}{r:04d}", meta={"run": r, "seed": int(res.attrs.get("seed", 0)),
-                                                "experiment": str(res.attrs.get("name", "")), "synthetic": True})
+                                                "experiment": str(res.attrs.get("name", "")), "synthetic": True,
+                                                **case_meta[r]})
         for name, v in res.data["inputs"].data.items():
             if name == "case":
                 continue
@@ -294,9 +323,14 @@ def log_from_results(res: Group, *, description: str = "", truth_every: int = 1,
             settings = dict(sensor_cfg.get(name, {"type": g.attrs.get("type", "unknown")}))
             settings["name"] = name
             val = g.data["value"][r]
+            sig = g.data.get("sigma")
+            sig = np.asarray(sig[r], dtype=float) if sig is not None else None
+            valid = g.data["valid"][r]
+            varies = sig is not None and valid.any() and not np.allclose(sig[valid], sig[valid][:1], rtol=0, atol=0)
             tr.sensors[name] = SensorStream(
-                t=g.data["t"], value=np.where(g.data["valid"][r][:, None], val, 0.0), valid=g.data["valid"][r],
+                t=g.data["t"], value=np.where(valid[:, None], val, 0.0), valid=valid,
                 names=tuple(g.attrs["names"]), units=tuple(g.attrs["units"]), settings=settings,
+                sigma=sig if varies else None,  # only a sigma that changes from sample to sample (growth)
             )
         ok = np.isfinite(truth.data["state"][r]).all(-1)
         ok &= (np.arange(len(time)) % truth_every) == 0
@@ -311,6 +345,26 @@ def log_from_results(res: Group, *, description: str = "", truth_every: int = 1,
         "source": f"needlecli {res.attrs.get('needlecli_version', '')} simulate, seed {res.attrs.get('seed', '')}",
         "config": res.attrs.get("config", ""),
     })
+
+
+def _param_case_meta(truth: Group, n_runs: int, labels: list | None) -> list[dict]:
+    """Each run's parameter case as trial metadata: ``param_case`` (its label), and design factors from
+    labels written ``name=value[, name=value ...]`` (``duty_cycle=0.25`` -> ``duty_cycle: 0.25``, listed in
+    ``design_factors``)."""
+    out: list[dict] = [{} for _ in range(n_runs)]
+    idx = truth.data.get("param_case")
+    if idx is None:
+        return out
+    labels = [str(x) for x in (labels or [])]
+    for r, k in enumerate(np.asarray(idx)):
+        label = labels[int(k)] if int(k) < len(labels) else f"case {int(k)}"
+        meta: dict = {"param_case": label}
+        factors = factors_from_label(label)
+        if factors:
+            meta.update(factors)
+            meta["design_factors"] = list(factors)
+        out[r] = meta
+    return out
 
 
 def merge_logs(logs: list[Log], description: str = "") -> Log:

@@ -52,14 +52,19 @@ def evaluate_results(
     out_dir: str | Path | None = None,
     formats: list[str] | None = None,
     plots: bool = False,
+    design: dict | None = None,
 ) -> dict[str, pd.DataFrame]:
-    """Compute the tables of a results file (or of a fit file of ``needle fit-em``: seed 004's tables);
-    write them (and plots) to ``out_dir`` when given."""
+    """Compute the tables of a results file (or of a fit file of ``needle fit-em``: seed 004's tables and
+    those by the trials' design, ``design``: ``group_by``, ``regress``); write them (and plots) to
+    ``out_dir`` when given."""
     path = Path(path)
     if is_fit_file(path):
         from needlecli.reports.seed004 import evaluate_fit
 
-        return evaluate_fit(path, tables=tables, out_dir=out_dir, formats=formats, plots=plots)
+        return evaluate_fit(path, tables=tables, out_dir=out_dir, formats=formats, plots=plots, design=design)
+    if design and any(design.values()):
+        raise DataError(f"{path}: --group-by and --regress group the fitted constants of a fit file (needle fit-em); "
+                        "this is a results file")
     res = read_results(path)
     try:
         errors = compute_errors(res)

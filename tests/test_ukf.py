@@ -331,6 +331,7 @@ def test_translation_states_need_no_propagation(monkeypatch):
     propagating all 2n + 1 points, up to rounding (the square roots differ: any one serves)."""
     from needlecli.models.unicycle import ModifiedUnicycle
 
+    monkeypatch.setenv("NEEDLECLI_KERNELS", "numpy")  # counts the numpy path's model calls (tests/test_kernels.py: the same filter compiled)
     cfg, problem = _many_runs_problem()
     calls = []
     step = ModifiedUnicycle.step

@@ -26,3 +26,8 @@ def list_components() -> None:
             f"model {name}: state ({', '.join(m.state_names)}); inputs ({', '.join(m.input_names)}); "
             f"params ({', '.join(m.Params.model_fields)}); unit {m.length_unit}"
         )
+    from needlecli import kernels  # what has a compiled path (imports no kernel)
+
+    typer.echo("")
+    for line in kernels.describe():
+        typer.echo(line)

@@ -94,6 +94,9 @@ class Source(Strict):
 
 class Simulation(Strict):
     dt: Positive = Field(0.01, le=1.0, description="integration step of the truth, s")
+    kernels: Literal["auto", "numba", "numpy"] = Field(
+        "auto", description="compiled kernels where a component has them (auto, numba) or the numpy reference "
+                            "(numpy); the environment variable NEEDLECLI_KERNELS overrides")
 
 
 class Output(Strict):

@@ -92,6 +92,7 @@ def build_problem(cfg, truth: Truth, sensors, streams: dict[str, MeasurementStre
         initial_truth=truth.states[:, 0].copy(),
         cov_stride=cfg.output.store_every,
         cov_layout=cfg.output.covariance,
+        kernels=cfg.simulation.kernels,
     )
 
 

@@ -84,6 +84,7 @@ class EstimationProblem:
     initial_truth: np.ndarray | None = None  # (N, n) only for observers configured to start from it
     cov_stride: int = 1  # keep covariances every k-th step of the time grid
     cov_layout: str = "full"  # "full" (..., n, n), "diag" (..., n) or "none"
+    kernels: str = "auto"  # compiled kernels or the numpy reference (needlecli.kernels.compiled)
 
     @property
     def n_runs(self) -> int:

@@ -29,7 +29,6 @@ from typing import Literal
 
 import numpy as np
 from pydantic import Field, model_validator
-from scipy.stats import chi2
 
 from needlecli.models import MODELS, Model, StateSelection
 from needlecli.numerics import wrap_angle
@@ -109,6 +108,12 @@ class UKFSettings(ObserverSettings):
         if any(b <= a for a, b in zip(self.predict_at_depths, self.predict_at_depths[1:])):
             raise ValueError("predict_at_depths must increase strictly")
         return self
+
+
+def _chi2_quantile(p: float, m: int) -> float:
+    from scipy.stats import chi2  # here: scipy.stats costs 0.5 s of start-up, and only gates need it
+
+    return float(chi2.ppf(p, m))
 
 
 def _component(spec: str) -> tuple[str, str]:
@@ -222,7 +227,6 @@ class UnscentedKalmanFilter(Observer):
 
         # --- channels used, and the tick at which each sample becomes available
         chans = self._channels(problem, model)
-        schedule = self._schedule(chans, ticks)
 
         # --- initial estimate
         x, P0 = self._initial(problem, model, params, rng, chans)
@@ -230,7 +234,28 @@ class UnscentedKalmanFilter(Observer):
         Q = np.diag(np.array([s.q.get(k, 0.0) for k in model.state_names]) ** 2)
         kappa_i = model.index(model.curvature_param) if model.curvature_param in model.state_names else None
         interfaces = self._interfaces(problem, N)
+        depths = np.asarray(s.predict_at_depths, dtype=float)
 
+        from needlecli import kernels  # the compiled tick loop, where it covers this filter
+
+        if kernels.compiled(problem.kernels) and kernels.has_model(model.registered_name) and all(
+                c["select"] is not None for c in chans):
+            from needlecli.kernels.ukf import filter_runs
+
+            k = filter_runs(model, params, problem, s, chans, ticks, inputs, x, P0, Q, kappa_i, interfaces, depths, w,
+                            order, n_act, progress)
+            status = np.where(k["status"] == 0, STATUS_OK, np.where(k["status"] == 2, STATUS_SINGULAR, STATUS_DIVERGED))
+            at = time[np.maximum(k["event"], 0)]
+            reason = np.array(["" if c == 0 else f"{model.singular_reason} (t = {t:.2f} s)" if c == 2 else
+                               f"non-finite or exploding covariance at t = {t:.2f} s" for c, t in zip(k["status"], at)],
+                              dtype=object)
+            return self._posterior(model, s, chans, time, stride, dt_grid, k["states"], k["cov"], status, reason,
+                                   k["repairs"], k["hits"], k["resets"],
+                                   {c["name"]: k["used"][:, i] for i, c in enumerate(chans)},
+                                   {c["name"]: k["gated"][:, i] for i, c in enumerate(chans)},
+                                   depths, k["pred_tick"], k["roll"])
+
+        schedule = self._schedule(chans, ticks)
         # --- outputs
         states = np.empty((N, T, n))
         keep = set(cov_steps(T, problem.cov_stride).tolist())
@@ -243,7 +268,6 @@ class UnscentedKalmanFilter(Observer):
         resets = np.zeros(N, dtype=np.int64)
         gated = {c["name"]: np.zeros(N, dtype=np.int64) for c in chans}
         used = {c["name"]: np.zeros(N, dtype=np.int64) for c in chans}
-        depths = np.asarray(s.predict_at_depths, dtype=float)
         pred_final = np.full((N, len(depths), n), np.nan)
         pred_tick = np.full(len(depths), -1, dtype=np.int64)
         roll = np.zeros((N, 0, n))  # rollouts to the final depth, advanced with the sigma points
@@ -368,6 +392,12 @@ class UnscentedKalmanFilter(Observer):
         if roll_ids:
             pred_final[:, roll_ids] = roll
         cov = np.stack(covs, 1) if covs is not None else None
+        return self._posterior(model, s, chans, time, stride, dt_grid, states, cov, status, reason, repairs,
+                               constraint_hits, resets, used, gated, depths, pred_tick, pred_final)
+
+    @staticmethod
+    def _posterior(model, s, chans, time, stride, dt_grid, states, cov, status, reason, repairs, constraint_hits,
+                   resets, used, gated, depths, pred_tick, pred_final) -> Posterior:
         extras = {
             "cholesky_repairs": repairs,
             "constraint_hits": constraint_hits,
@@ -434,7 +464,7 @@ class UnscentedKalmanFilter(Observer):
                 "name": name, "h": h, "m": m, "sigma": sigma, "growth": growth,
                 "select": h.index if isinstance(h, StateSelection) else None,
                 "pos_cols": pos_cols, "pos_axes": [("x", "y", "z").index(ch.names[i]) for i in pos_cols],
-                "gate": chi2.ppf(spec.gate, m) if spec and spec.gate else None,
+                "gate": _chi2_quantile(spec.gate, m) if spec and spec.gate else None,
                 "angle": np.asarray(ch.angle, dtype=bool), "value": ch.value, "valid": ch.valid,
                 "avail": avail[order], "order": order, "channel": ch,
             })

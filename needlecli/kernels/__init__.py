@@ -1,0 +1,80 @@
+"""Compiled kernels (numba) for the hot loops, beside the numpy implementation that stays the reference.
+
+This package is light: importing it imports neither numba nor any kernel. The kernel modules
+(``needlecli.kernels.models``, ``.truth``, ``.ukf``, ``.kalman``) are imported only when a run uses them.
+
+Which path runs is chosen per run: ``simulation.kernels`` in a config (``auto``, the default: compiled
+where a component has a compiled path and numba is installed; ``numba``: the same, and an error when numba
+is missing; ``numpy``: the reference everywhere), overridden by the environment variable
+``NEEDLECLI_KERNELS`` (same values) for debugging without editing configs. A component without a
+compiled path (or a configuration its kernel does not cover) runs on the numpy path either way.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+
+MODES = ("auto", "numba", "numpy")
+ENV = "NEEDLECLI_KERNELS"
+
+#: what has a compiled path, for ``needle list`` (kept beside the kernels that implement it)
+COMPILED = {
+    "models": ("unicycle", "modified_unicycle", "so3", "mnm", "binm"),
+    "truth": "the truth simulation (open loop; closed loops step the numpy model)",
+    "observers": {
+        "ukf": "predict, multi-rate update with masks, gating, resets, constraint, predictions; "
+               "channels that select states (position, roll, curvature); others: numpy",
+        "eks": "the smoother passes (affine filter + RTS) of the iterated EKS",
+    },
+    "fitting": "fit-em: EKF, EKS and iterated-EKS passes over all trials at once, the M-step sums; "
+               "linearisation of mnm and binm",
+}
+
+
+class KernelError(RuntimeError):
+    """``kernels: numba`` asked for and numba cannot be imported."""
+
+
+def numba_available() -> bool:
+    return importlib.util.find_spec("numba") is not None
+
+
+def mode(setting: str | None = None) -> str:
+    """The requested mode: ``NEEDLECLI_KERNELS`` if set, else ``setting`` (a config's), else ``auto``."""
+    env = os.environ.get(ENV, "").strip().lower()
+    if env:
+        if env not in MODES:
+            raise KernelError(f"{ENV}={env!r}: expected one of {', '.join(MODES)}")
+        return env
+    return setting or "auto"
+
+
+def compiled(setting: str | None = None) -> bool:
+    """Whether components with a compiled path should use it."""
+    m = mode(setting)
+    if m == "numpy":
+        return False
+    if numba_available():
+        return True
+    if m == "numba":
+        raise KernelError("compiled kernels requested (kernels: numba) but numba is not installed: pip install numba")
+    return False
+
+
+def has_model(name: str) -> bool:
+    """Whether model ``name`` has compiled equations."""
+    return name in COMPILED["models"]
+
+
+def describe() -> list[str]:
+    """Lines for ``needle list``: what has a compiled path and which path a run would take now."""
+    m = mode()
+    state = ("numba " + ("available" if numba_available() else "NOT installed: every run takes the numpy path"))
+    lines = [f"kernels: {m} ({ENV} or simulation.kernels: auto | numba | numpy); {state}",
+             f"  compiled models: {', '.join(COMPILED['models'])} (vector fields, RK4 steps)",
+             f"  compiled truth: {COMPILED['truth']}"]
+    for name, what in COMPILED["observers"].items():
+        lines.append(f"  compiled observer {name}: {what}")
+    lines.append(f"  compiled fitting: {COMPILED['fitting']}")
+    return lines

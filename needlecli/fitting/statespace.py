@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from needlecli import kernels
 from needlecli.models import Model
 from needlecli.numerics.kalman import Channel, finite_difference_h, rk4_with_jacobian
 
@@ -155,6 +156,11 @@ class DiscreteModel:
     def transition_all(self, zbar: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Every interval at once from ``zbar (N, K, n)`` (the states at ticks ``0..K-1``):
         ``(f_k(zbar_k) (N, K, n), A (N, K, n, n))``."""
+        if kernels.compiled() and self.model.registered_name in kernels.COMPILED["linearised"]:
+            from needlecli.kernels import kalman as compiled
+
+            if compiled.transitions_supported(self):
+                return compiled.transition_all(self, zbar)
         z = zbar
         A = None
         for j in range(self.sub_dt.shape[1]):
@@ -293,6 +299,12 @@ class MeasurementModel:
     def linearise(self, z: np.ndarray, y: np.ndarray | None = None):
         """At states ``z (..., n)``: ``(h(z), H (..., m, n), d = h(z) - H z, y)`` with the measurements
         ``y (..., m_raw)`` (default: every sample, ``z`` then ``(N, M, n)``) in the same coordinates."""
+        if kernels.compiled() and z.ndim in (2, 3) and z.shape[0] == self.valid.shape[0]:
+            from needlecli.kernels import kalman as compiled
+
+            kind = compiled.measurement_kind(self)
+            if kind is not None:
+                return compiled.linearise(self, kind, z, y)
         yh, H = finite_difference_h(self.h_aug, z)
         if y is None:
             y = np.where(self.valid[..., None], self.y, 0.0)

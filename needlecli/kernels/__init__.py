@@ -12,8 +12,11 @@ compiled path (or a configuration its kernel does not cover) runs on the numpy p
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import importlib.util
 import os
+from contextvars import ContextVar
 
 MODES = ("auto", "numba", "numpy")
 ENV = "NEEDLECLI_KERNELS"
@@ -27,27 +30,58 @@ COMPILED = {
                "channels that select states (position, roll, curvature); others: numpy",
         "eks": "the smoother passes (affine filter + RTS) of the iterated EKS",
     },
-    "fitting": "fit-em: EKF, EKS and iterated-EKS passes over all trials at once, the M-step sums; "
-               "linearisation of mnm and binm",
+    "fitting": "fit-em: the affine filter and RTS passes of the iterated EKS over all trials at once, the "
+               "M-step sums, the linearisation of mnm and binm",
+    "linearised": ("mnm", "binm"),
 }
+
+
+_SETTING: ContextVar[str | None] = ContextVar("needlecli_kernels", default=None)
+
+
+@contextlib.contextmanager
+def using(setting: str | None):
+    """The kernels setting for pure array functions deep in a computation (the Kalman passes of EM), which
+    take no config: ``with kernels.using(cfg.simulation.kernels): ...``."""
+    token = _SETTING.set(setting)
+    try:
+        yield
+    finally:
+        _SETTING.reset(token)
+
+
+@contextlib.contextmanager
+def threads(n: int | None):
+    """Worker threads of the kernels while the block runs (None: as configured; e.g. 1 where processes
+    already share the cores: one EM process per model)."""
+    from needlecli.kernels import _threads
+
+    before = list(_threads._FORCED)
+    _threads.set_threads(n)
+    try:
+        yield
+    finally:
+        _threads._FORCED[:] = before
 
 
 class KernelError(RuntimeError):
     """``kernels: numba`` asked for and numba cannot be imported."""
 
 
+@functools.lru_cache(maxsize=1)
 def numba_available() -> bool:
     return importlib.util.find_spec("numba") is not None
 
 
 def mode(setting: str | None = None) -> str:
-    """The requested mode: ``NEEDLECLI_KERNELS`` if set, else ``setting`` (a config's), else ``auto``."""
+    """The requested mode: ``NEEDLECLI_KERNELS`` if set, else ``setting`` (a config's), else the one of
+    :func:`using`, else ``auto``."""
     env = os.environ.get(ENV, "").strip().lower()
     if env:
         if env not in MODES:
             raise KernelError(f"{ENV}={env!r}: expected one of {', '.join(MODES)}")
         return env
-    return setting or "auto"
+    return setting or _SETTING.get() or "auto"
 
 
 def compiled(setting: str | None = None) -> bool:

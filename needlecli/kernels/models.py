@@ -94,35 +94,34 @@ def f_so3(X, U, Pm, out, nl):
             out[3 * r + 2, i] = r0 * w1 - r1 * w0
 
 
+@inline
+def magnetic_field(h0, h1, h2, b0, b1, b2, p, v, w0, w1, w2, bicycle):
+    """MNM / BiNM vector field (seed 004, eqs. 1, 4) at one state: ``p = h v``,
+    ``h' = g (h x B) x h + h (1 - |h|^2)`` with ``g = c v`` or ``l_inv v / (B . h)``,
+    ``B' = w x B + B (1 - |B|^2)``."""
+    a0 = h1 * b2 - h2 * b1
+    a1 = h2 * b0 - h0 * b2
+    a2 = h0 * b1 - h1 * b0
+    t0 = a1 * h2 - a2 * h1
+    t1 = a2 * h0 - a0 * h2
+    t2 = a0 * h1 - a1 * h0
+    if bicycle:
+        g = (p * v) / (b0 * h0 + b1 * h1 + b2 * h2)
+    else:
+        g = p * v
+    hh = 1.0 - (h0 * h0 + h1 * h1 + h2 * h2)
+    bb = 1.0 - (b0 * b0 + b1 * b1 + b2 * b2)
+    return (h0 * v, h1 * v, h2 * v, g * t0 + h0 * hh, g * t1 + h1 * hh, g * t2 + h2 * hh,
+            (w1 * b2 - w2 * b1) + b0 * bb, (w2 * b0 - w0 * b2) + b1 * bb, (w0 * b1 - w1 * b0) + b2 * bb)
+
+
 @jit
 def f_magnetic(X, U, Pm, out, nl, bicycle):
     for i in range(nl):
-        v = U[0, i]
-        h0, h1, h2 = X[3, i], X[4, i], X[5, i]
-        b0, b1, b2 = X[6, i], X[7, i], X[8, i]
-        # (h x B) x h
-        a0 = h1 * b2 - h2 * b1
-        a1 = h2 * b0 - h0 * b2
-        a2 = h0 * b1 - h1 * b0
-        t0 = a1 * h2 - a2 * h1
-        t1 = a2 * h0 - a0 * h2
-        t2 = a0 * h1 - a1 * h0
-        if bicycle:
-            g = (Pm[0, i] * v) / (b0 * h0 + b1 * h1 + b2 * h2)
-        else:
-            g = Pm[0, i] * v
-        hh = 1.0 - (h0 * h0 + h1 * h1 + h2 * h2)
-        bb = 1.0 - (b0 * b0 + b1 * b1 + b2 * b2)
-        w0, w1, w2 = U[1, i], U[2, i], U[3, i]
-        out[0, i] = h0 * v
-        out[1, i] = h1 * v
-        out[2, i] = h2 * v
-        out[3, i] = g * t0 + h0 * hh
-        out[4, i] = g * t1 + h1 * hh
-        out[5, i] = g * t2 + h2 * hh
-        out[6, i] = (w1 * b2 - w2 * b1) + b0 * bb
-        out[7, i] = (w2 * b0 - w0 * b2) + b1 * bb
-        out[8, i] = (w0 * b1 - w1 * b0) + b2 * bb
+        f = magnetic_field(X[3, i], X[4, i], X[5, i], X[6, i], X[7, i], X[8, i], Pm[0, i], U[0, i], U[1, i],
+                           U[2, i], U[3, i], bicycle)
+        for c in range(9):
+            out[c, i] = f[c]
 
 
 @jit

@@ -103,6 +103,9 @@ class Output(Strict):
     path: str | None = Field(None, description="results file (default results/<name>.h5)")
     store_every: int = Field(1, ge=1, description="store covariances every k-th step")
     covariance: Literal["full", "diag", "none"] = "full"
+    compression: Literal["auto", "gzip", "none"] = Field(
+        "auto", description="auto: gzip the arrays that repeat along an axis, store the others as they are; "
+                            "gzip: every large array (smallest file, 10x the writing time); none")
     tables: list[str] = Field(default_factory=lambda: ["summary"], description="tables of needle evaluate")
     formats: list[Literal["md", "csv", "tex"]] = Field(default_factory=lambda: ["md", "csv", "tex"])
 

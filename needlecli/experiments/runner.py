@@ -123,7 +123,8 @@ def run_experiment(
     path = None
     if write:
         path = Path(out) if out is not None else default_output(cfg)
-        write_atomic(path, results_tree(cfg, config_text, truth, streams, estimates, sensors, control))
+        write_atomic(path, results_tree(cfg, config_text, truth, streams, estimates, sensors, control),
+                     compression=cfg.output.compression)
     return ExperimentResult(truth=truth, measurements=streams, estimates=estimates, path=path, control=control)
 
 

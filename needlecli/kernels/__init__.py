@@ -33,6 +33,7 @@ COMPILED = {
     "fitting": "fit-em: the affine filter and RTS passes of the iterated EKS over all trials at once, the "
                "M-step sums, the linearisation of mnm and binm",
     "linearised": ("mnm", "binm"),
+    "metrics": "the rotation error E_R of orientations given as Euler angles (needle evaluate, summary tables)",
 }
 
 
@@ -111,4 +112,5 @@ def describe() -> list[str]:
     for name, what in COMPILED["observers"].items():
         lines.append(f"  compiled observer {name}: {what}")
     lines.append(f"  compiled fitting: {COMPILED['fitting']}")
+    lines.append(f"  compiled metrics: {COMPILED['metrics']}")
     return lines

@@ -37,10 +37,14 @@ MODE_NONE, MODE_SCALAR, MODE_SELECT = 0, 1, 2
 LAYOUT_NONE, LAYOUT_DIAG, LAYOUT_FULL = 0, 1, 2
 
 
+MAX_CHANNELS = 4
+
+
 def supports(model, chans) -> bool:
-    """Whether the kernel covers this filter: a model with compiled equations and only channels that
-    select states."""
-    return model.registered_name in MODEL_IDS and all(c["select"] is not None for c in chans)
+    """Whether the kernel covers this filter: a model with compiled equations and at most
+    :data:`MAX_CHANNELS` channels, each selecting states."""
+    return (model.registered_name in MODEL_IDS and len(chans) <= MAX_CHANNELS
+            and all(c["select"] is not None for c in chans))
 
 
 # ---------------------------------------------------------------------------------------------- the kernel
@@ -518,9 +522,8 @@ def filter_runs(model, params, problem, s, chans, ticks, inputs, x0, P0, Q, kapp
     reset_target = -1.0
     if s.kappa_reset is not None and kappa_i is not None and itf.size:
         reset_target = float(s.kappa_reset.factor * P0[kappa_i, kappa_i])
-    # ---- channels as arrays
-    from numba.typed import List  # (numba is imported by now: this module's kernels)
-
+    # ---- channels as arrays; their samples as a tuple of MAX_CHANNELS arrays (padded: one compiled kernel for
+    # any number of channels; numba's typed lists would cost 0.6 s of compilation in every process)
     C = len(chans)
     mmax = max([c["m"] for c in chans], default=1)
     ch_m = np.array([c["m"] for c in chans], dtype=np.int64)
@@ -533,7 +536,7 @@ def filter_runs(model, params, problem, s, chans, ticks, inputs, x0, P0, Q, kapp
     ch_gd = np.ones(max(C, 1))
     ch_gtr = np.zeros((max(C, 1), 3))
     ch_pos = np.full((max(C, 1), mmax), -1, dtype=np.int64)
-    vals, valids = List(), List()
+    vals, valids = [], []
     for ci, c in enumerate(chans):
         m = c["m"]
         ch_sel[ci, :m] = c["select"]
@@ -550,9 +553,8 @@ def filter_runs(model, params, problem, s, chans, ticks, inputs, x0, P0, Q, kapp
                 ch_pos[ci, col] = ax
         vals.append(np.ascontiguousarray(c["value"], dtype=float))
         valids.append(np.ascontiguousarray(c["valid"], dtype=np.bool_))
-    if not C:
-        vals.append(np.zeros((1, 1, 1)))
-        valids.append(np.zeros((1, 1), dtype=np.bool_))
+    vals = tuple(vals + [np.zeros((1, 1, 1))] * (MAX_CHANNELS - C))
+    valids = tuple(valids + [np.zeros((1, 1), dtype=np.bool_)] * (MAX_CHANNELS - C))
     # ---- the schedule (UnscentedKalmanFilter._schedule as arrays): per tick its events, each a channel and
     # the samples of it that became available since the last tick (time order); channels in their order
     e_tick, e_chan, e_first, e_count, samples, any_valid = [], [], [], [], [], []

@@ -238,22 +238,13 @@ class UnscentedKalmanFilter(Observer):
 
         from needlecli import kernels  # the compiled tick loop, where it covers this filter
 
-        if kernels.compiled(problem.kernels) and kernels.has_model(model.registered_name) and all(
-                c["select"] is not None for c in chans):
-            from needlecli.kernels.ukf import filter_runs
+        if kernels.compiled(problem.kernels) and kernels.has_model(model.registered_name):
+            from needlecli.kernels import ukf as compiled
 
-            k = filter_runs(model, params, problem, s, chans, ticks, inputs, x, P0, Q, kappa_i, interfaces, depths, w,
-                            order, n_act, progress)
-            status = np.where(k["status"] == 0, STATUS_OK, np.where(k["status"] == 2, STATUS_SINGULAR, STATUS_DIVERGED))
-            at = time[np.maximum(k["event"], 0)]
-            reason = np.array(["" if c == 0 else f"{model.singular_reason} (t = {t:.2f} s)" if c == 2 else
-                               f"non-finite or exploding covariance at t = {t:.2f} s" for c, t in zip(k["status"], at)],
-                              dtype=object)
-            return self._posterior(model, s, chans, time, stride, dt_grid, k["states"], k["cov"], status, reason,
-                                   k["repairs"], k["hits"], k["resets"],
-                                   {c["name"]: k["used"][:, i] for i, c in enumerate(chans)},
-                                   {c["name"]: k["gated"][:, i] for i, c in enumerate(chans)},
-                                   depths, k["pred_tick"], k["roll"])
+            if compiled.supports(model, chans):
+                return self._from_kernel(compiled.filter_runs(
+                    model, params, problem, s, chans, ticks, inputs, x, P0, Q, kappa_i, interfaces, depths, w, order,
+                    n_act, progress), model, s, chans, time, stride, dt_grid, depths)
 
         schedule = self._schedule(chans, ticks)
         # --- outputs
@@ -394,6 +385,19 @@ class UnscentedKalmanFilter(Observer):
         cov = np.stack(covs, 1) if covs is not None else None
         return self._posterior(model, s, chans, time, stride, dt_grid, states, cov, status, reason, repairs,
                                constraint_hits, resets, used, gated, depths, pred_tick, pred_final)
+
+    def _from_kernel(self, k, model, s, chans, time, stride, dt_grid, depths) -> Posterior:
+        """The posterior from the compiled filter's arrays (status codes: 0 ok, 1 diverged, 2 singular)."""
+        status = np.where(k["status"] == 0, STATUS_OK, np.where(k["status"] == 2, STATUS_SINGULAR, STATUS_DIVERGED))
+        at = time[np.maximum(k["event"], 0)]
+        reason = np.array(["" if c == 0 else f"{model.singular_reason} (t = {t:.2f} s)" if c == 2 else
+                           f"non-finite or exploding covariance at t = {t:.2f} s" for c, t in zip(k["status"], at)],
+                          dtype=object)
+        return self._posterior(model, s, chans, time, stride, dt_grid, k["states"], k["cov"], status, reason,
+                               k["repairs"], k["hits"], k["resets"],
+                               {c["name"]: k["used"][:, i] for i, c in enumerate(chans)},
+                               {c["name"]: k["gated"][:, i] for i, c in enumerate(chans)},
+                               depths, k["pred_tick"], k["roll"])
 
     @staticmethod
     def _posterior(model, s, chans, time, stride, dt_grid, states, cov, status, reason, repairs, constraint_hits,

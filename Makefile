@@ -9,7 +9,7 @@ help:
 	@echo "make install  - install needlecli with test extras (editable)"
 	@echo "make demo     - run the bundled default experiment and write its tables"
 	@echo "make test     - run the test suite (what .ci/run runs)"
-	@echo "make bench    - speed benchmarks (figures also as ratios against an in-run reference)"
+	@echo "make bench    - speed benchmarks (figures also as ratios against an in-run reference; issue 14's targets first)"
 	@echo "make lint     - ruff"
 	@echo "make seed003  - seed 003's simulation study: Table 1, Figs. 6-8 (results and tables in $(STUDIES))"
 	@echo "make datasets - rebuild the synthetic logs in datasets/ from configs/datasets/"
@@ -29,6 +29,7 @@ test:
 	$(PY) -m pytest
 
 bench:
+	$(PY) benchmarks/bench_kernels.py
 	$(PY) benchmarks/bench_simulate.py
 	$(PY) benchmarks/bench_ukf.py
 	$(PY) benchmarks/bench_sweep.py

@@ -28,7 +28,7 @@ COMPILED = {
     "observers": {
         "ukf": "predict, multi-rate update with masks, gating, resets, constraint, predictions; "
                "channels that select states (position, roll, curvature); others: numpy",
-        "eks": "the smoother passes (affine filter + RTS) of the iterated EKS",
+        "eks": "the RTS smoother, the linearisation of mnm and binm, the affine filter with joseph: false",
     },
     "fitting": "fit-em: the affine filter and RTS passes of the iterated EKS over all trials at once, the "
                "M-step sums, the linearisation of mnm and binm",

@@ -9,7 +9,7 @@ help:
 	@echo "make install  - install needlecli with test extras (editable)"
 	@echo "make demo     - run the bundled default experiment and write its tables"
 	@echo "make test     - run the test suite (what .ci/run runs)"
-	@echo "make bench    - speed benchmarks (figures also as ratios against an in-run reference)"
+	@echo "make bench    - speed benchmarks (figures also as ratios against an in-run reference; issue 14's targets first)"
 	@echo "make lint     - ruff"
 	@echo "make seed000  - seed 000's simulation and experiment-like studies: Table I, the sweep of theta (in $(STUDIES))"
 	@echo "make seed001  - seed 001's helix studies: convergence, half turns, Fig. 3, the alternative reading (in $(STUDIES))"
@@ -33,6 +33,7 @@ test:
 
 bench:
 	$(PY) benchmarks/bench_startup.py
+	$(PY) benchmarks/bench_kernels.py
 	$(PY) benchmarks/bench_simulate.py
 	$(PY) benchmarks/bench_ukf.py
 	$(PY) benchmarks/bench_sweep.py

@@ -70,6 +70,7 @@ class EstimationProblem:
     cov_stride: int = 1  # keep covariances every k-th step of the time grid
     cov_layout: str = "full"  # "full" (..., n, n), "diag" (..., n) or "none"
     start: CommonStart | None = None  # one initial estimate for every observer (needle compare), or None
+    kernels: str = "auto"  # compiled kernels or the numpy reference (needlecli.kernels.compiled)
 
     @property
     def n_runs(self) -> int:

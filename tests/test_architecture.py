@@ -17,17 +17,17 @@ PKG = Path(__file__).resolve().parent.parent / "needlecli"
 #: each package (or top-level module) and the ones it may import: README's layer drawing, as data
 LAYERS: dict[str, set[str]] = {
     "foundation": set(),  # errors, registry, schema, provenance, the package's __init__
-    "numerics": {"foundation"},
-    "models": {"numerics", "foundation"},
-    "problem": {"models", "numerics", "foundation"},  # problem.py, initial.py
-    "sensors": {"models", "numerics", "foundation"},
-    "io": {"sensors", "models", "numerics", "foundation"},
-    "metrics": {"io", "models", "numerics", "foundation"},
-    "fitting": {"problem", "sensors", "io", "models", "numerics", "foundation"},
-    "observers": {"fitting", "problem", "sensors", "models", "numerics", "foundation"},
-    "control": {"sensors", "io", "models", "numerics", "foundation"},
-    "kernels": {"models", "numerics", "foundation"},
-    "reports": {"metrics", "io", "sensors", "models", "numerics", "foundation"},
+    "kernels": {"foundation"},  # compiled numerics: import nothing of the package above them
+    "numerics": {"kernels", "foundation"},
+    "models": {"numerics", "foundation", "kernels"},
+    "problem": {"models", "numerics", "foundation", "kernels"},  # problem.py, initial.py
+    "sensors": {"models", "numerics", "foundation", "kernels"},
+    "io": {"sensors", "models", "numerics", "foundation", "kernels"},
+    "metrics": {"io", "models", "numerics", "foundation", "kernels"},
+    "fitting": {"problem", "sensors", "io", "models", "numerics", "foundation", "kernels"},
+    "observers": {"fitting", "problem", "sensors", "models", "numerics", "foundation", "kernels"},
+    "control": {"sensors", "io", "models", "numerics", "foundation", "kernels"},
+    "reports": {"metrics", "io", "sensors", "models", "numerics", "foundation", "kernels"},
     "experiments": {"observers", "fitting", "control", "reports", "metrics", "problem", "sensors", "io", "models",
                     "numerics", "foundation", "kernels"},
     "cli": {"experiments", "observers", "fitting", "control", "reports", "metrics", "problem", "sensors", "io",

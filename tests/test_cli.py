@@ -302,7 +302,7 @@ def test_failed_write_leaves_old_results_and_no_temporary(work: Path, tmp_path: 
     (folder / "r.h5").write_bytes(b"previous results")
     real = results._write_group
 
-    def broken(g, grp):
+    def broken(g, grp, *_):
         real(g, results.Group(data={"time": np.arange(3.0)}))  # something is on disk already
         raise exc
 

@@ -26,6 +26,11 @@ def list_components(
                   ("controllers", CONTROLLERS), ("tables", TABLES), ("plots", PLOTS))
     for title, reg in registries:
         typer.echo(f"{title}: {', '.join(named(reg, n) for n in reg.names())}")
+    from needlecli import kernels  # what has a compiled path (imports neither numba nor a kernel)
+
+    typer.echo("")
+    for line in kernels.describe():
+        typer.echo(line)
     if not details:
         return
     typer.echo("")

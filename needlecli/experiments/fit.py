@@ -18,6 +18,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from needlecli import kernels
 from needlecli.errors import DataError
 from needlecli.experiments.config import load_config
 from needlecli.experiments.runner import build_problem, simulate_and_measure
@@ -183,7 +184,9 @@ def fit_trials(
 
     # models are independent: all but the first go to child processes (forked, so nothing is pickled
     # but the results), the first runs here; the children report progress through a queue
-    with single_blas_thread() if workers > 1 and len(names) > 1 else contextlib.nullcontext():
+    parallel = workers > 1 and len(names) > 1
+    with single_blas_thread() if parallel else contextlib.nullcontext(), kernels.using(cfg.simulation.kernels), \
+            kernels.threads(1 if parallel else None):  # a process per model: one kernel thread each
         _run_models(names, workers, run, systems, out, progress)
     out.fits = {name: out.fits[name] for name in names}
     for mf in out.fits.values():

@@ -81,6 +81,7 @@ def build_problem(cfg, truth: Truth, sensors, streams: dict[str, MeasurementStre
         initial_truth=truth.states[:, 0].copy(),
         cov_stride=cfg.output.store_every,
         cov_layout=cfg.output.covariance,
+        kernels=cfg.simulation.kernels,
     )
 
 
@@ -111,7 +112,8 @@ def run_experiment(
     path = None
     if write:
         path = Path(out) if out is not None else default_output(cfg)
-        write_atomic(path, results_tree(cfg, config_text, truth, streams, estimates, sensors, control))
+        write_atomic(path, results_tree(cfg, config_text, truth, streams, estimates, sensors, control),
+                     compression=cfg.output.compression)
     return ExperimentResult(truth=truth, measurements=streams, estimates=estimates, path=path, control=control)
 
 

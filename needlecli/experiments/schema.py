@@ -90,12 +90,18 @@ class Source(Strict):
 
 class Simulation(Strict):
     dt: Positive = Field(0.01, le=1.0, description="integration step of the truth, s")
+    kernels: Literal["auto", "numba", "numpy"] = Field(
+        "auto", description="compiled kernels where a component has them (auto, numba) or the numpy reference "
+                            "(numpy); the environment variable NEEDLECLI_KERNELS overrides")
 
 
 class Output(Strict):
     path: str | None = Field(None, description="results file (default results/<name>.h5)")
     store_every: int = Field(1, ge=1, description="store covariances every k-th step")
     covariance: Literal["full", "diag", "none"] = "full"
+    compression: Literal["auto", "gzip", "none"] = Field(
+        "auto", description="auto: gzip the arrays that repeat along an axis, store the others as they are; "
+                            "gzip: every large array (smallest file, 10x the writing time); none")
     tables: list[str] = Field(default_factory=lambda: ["summary"], description="tables of needle evaluate")
     formats: list[Literal["md", "csv", "tex"]] = Field(default_factory=lambda: ["md", "csv", "tex"])
 

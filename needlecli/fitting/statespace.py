@@ -18,7 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from needlecli.models import Model
+from needlecli import kernels
+from needlecli.models import Model, StateSelection
 from needlecli.numerics.kalman import Channel, finite_difference_h, rk4_with_jacobian
 
 
@@ -155,6 +156,11 @@ class DiscreteModel:
     def transition_all(self, zbar: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Every interval at once from ``zbar (N, K, n)`` (the states at ticks ``0..K-1``):
         ``(f_k(zbar_k) (N, K, n), A (N, K, n, n))``."""
+        if kernels.compiled() and self.model.registered_name in kernels.COMPILED["linearised"]:
+            from needlecli.kernels import kalman as compiled
+
+            if compiled.transitions_supported(self):
+                return compiled.transition_all(self, zbar)
         z = zbar
         A = None
         for j in range(self.sub_dt.shape[1]):
@@ -302,6 +308,12 @@ class MeasurementModel:
         """At states ``z (..., n)``: ``(h(z), H (..., m, n), d = h(z) - H z, y)`` with the measurements
         ``y (..., m_raw)`` (default: every sample, ``z`` then ``(N, M, n)``) in the same coordinates
         (whitened by ``scale``: of every sample, or of sample ``sample`` when ``z`` is ``(N, n)``)."""
+        if self.scale is None and kernels.compiled() and z.ndim in (2, 3) and z.shape[0] == self.valid.shape[0]:
+            from needlecli.kernels import kalman as compiled  # (per-sample whitening: the numpy path below)
+
+            kind = measurement_kind(self)
+            if kind is not None:
+                return compiled.linearise(self, kind, z, y)
         yh, H = finite_difference_h(self.h_aug, z)
         if y is None:
             y = np.where(self.valid[..., None], self.y, 0.0)
@@ -331,3 +343,21 @@ class MeasurementModel:
             y = np.where(self.valid[..., None], self.y, 0.0)
         return Channel(tick=self.tick, y=y, valid=self.valid, R=R,
                        angle=None if self.tangent else self.angle)
+
+
+def measurement_kind(mm):
+    """``(kind, idx)`` of a channel's ``h`` that the compiled linearisation
+    (:func:`needlecli.kernels.kalman.fd_linearise`) covers, or None."""
+    h = mm.h
+    if isinstance(h, StateSelection):
+        return 0, np.asarray(h.index, dtype=np.int64)
+    sensor = getattr(h, "__self__", None)
+    model = getattr(sensor, "model", None)
+    if sensor is None or model is None or model.registered_name not in ("mnm", "binm") or not mm.tangent:
+        return None
+    name = getattr(h, "__name__", "")
+    if sensor.registered_name == "bfield" and name == "h":
+        return 1, np.array([6, 7, 8], dtype=np.int64)
+    if sensor.registered_name == "tangent" and name == "h":
+        return 1, np.array([3, 4, 5], dtype=np.int64)
+    return None

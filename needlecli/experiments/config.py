@@ -20,7 +20,7 @@ from needlecli.errors import ConfigError
 from needlecli.experiments.overrides import apply_overrides
 from needlecli.experiments.schedule import signal_size
 from needlecli.experiments.schema import all_tags, experiment_schema, used_types
-from needlecli.io.yamlfile import parse_yaml
+from needlecli.io.yamlfile import parse_yaml, read_text
 from needlecli.models import MODELS, Model
 from needlecli.observers import OBSERVERS
 from needlecli.registry import PluginError
@@ -45,12 +45,7 @@ def load_config(
     """
     source = str(path) if path is not None else "<string>"
     if text is None:
-        try:
-            text = Path(path).read_text(encoding="utf-8")  # type: ignore[arg-type]
-        except FileNotFoundError:
-            raise ConfigError(source, (), "no such file") from None
-        except (OSError, UnicodeDecodeError) as e:
-            raise ConfigError(source, (), f"cannot read the file: {e}") from None
+        text = read_text(path)  # type: ignore[arg-type]
     data = copy.deepcopy(parse_yaml(text, source))
     changed = apply_overrides(data, overrides, source, runs=runs, seed=seed)
     types = used_types(data)

@@ -38,7 +38,7 @@ from pydantic import Field, ValidationError
 
 from needlecli.errors import ConfigError, DataError
 from needlecli.io.logs import InputStream, Log, SensorStream, Trial, TruthStream
-from needlecli.io.yamlfile import parse_yaml
+from needlecli.io.yamlfile import read_yaml
 from needlecli.schema import Strict, error_message
 from needlecli.sensors import SENSORS
 
@@ -162,11 +162,7 @@ def _convert(path: Path, what: str, have: list[str], want: tuple[str, ...], valu
 def import_csv(mapping_path: str | Path) -> Log:
     """Build a log from CSV exports as a mapping YAML describes them."""
     mapping_path = Path(mapping_path)
-    try:
-        text = mapping_path.read_text(encoding="utf-8")
-    except OSError as e:
-        raise ConfigError(str(mapping_path), (), f"cannot read the mapping: {e}") from None
-    data = parse_yaml(text, str(mapping_path))
+    data, _ = read_yaml(mapping_path, "a CSV mapping")
     try:
         mp = Mapping.model_validate(data)
     except ValidationError as e:

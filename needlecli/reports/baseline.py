@@ -55,16 +55,13 @@ class Failure:
 
 
 def load_baseline(path: str | Path) -> Baseline:
-    from needlecli.io.yamlfile import parse_yaml
+    from needlecli.io.yamlfile import read_yaml
     from needlecli.schema import error_message
 
     path = Path(path)
+    data, _ = read_yaml(path, "a baseline")
     try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as e:
-        raise ConfigError(str(path), (), f"cannot read the baseline: {e}") from None
-    try:
-        return Baseline.model_validate(parse_yaml(text, str(path)))
+        return Baseline.model_validate(data)
     except ValidationError as e:
         err = e.errors()[0]
         raise ConfigError(str(path), tuple(err["loc"]), error_message(err)) from None

@@ -23,7 +23,7 @@ import numpy as np
 from pydantic import Field, ValidationError, field_validator, model_validator
 
 from needlecli.errors import ConfigError
-from needlecli.schema import Strict
+from needlecli.schema import MAX_SEED, Strict
 
 MAX_CELLS = 100_000
 
@@ -119,7 +119,7 @@ class RandomSamples(Strict):
     default: the grid's ``seed``, else 0, whatever the config's runs.seed)."""
 
     count: int = Field(ge=1, le=MAX_CELLS)
-    seed: int | None = Field(None, ge=0, description="seed of the samples (default: the grid's seed, else 0)")
+    seed: int | None = Field(None, ge=0, le=MAX_SEED, description="seed of the samples (default: the grid's seed, else 0)")
     params: dict[str, Distribution] = Field(min_length=1)
 
     @field_validator("params")
@@ -143,7 +143,7 @@ class Grid(Strict):
     """
 
     description: str = ""
-    seed: int | None = Field(None, ge=0, description="sweep seed (default: the config's runs.seed)")
+    seed: int | None = Field(None, ge=0, le=MAX_SEED, description="sweep seed (default: the config's runs.seed)")
     seeds: Literal["common", "derived"] = Field(
         "common", description="seed of cells that do not set runs.seed: the sweep seed (common random numbers), "
         "or one derived per cell from its overrides")
@@ -200,16 +200,10 @@ class Grid(Strict):
 
 def load_grid(path: str | Path) -> Grid:
     """Read and validate a grid file. Raises :class:`ConfigError` naming the file and key."""
-    from needlecli.io.yamlfile import parse_yaml
+    from needlecli.io.yamlfile import read_yaml
 
     source = str(path)
-    try:
-        text = Path(path).read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError(source, (), "no such file") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise ConfigError(source, (), f"cannot read the file: {e}") from None
-    data = parse_yaml(text, source)
+    data, _ = read_yaml(path, "a sweep grid")
     try:
         return Grid.model_validate(data)
     except ValidationError as e:

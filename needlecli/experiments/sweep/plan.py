@@ -109,24 +109,16 @@ def plan_sweep(
     naming the cell, its overrides and the config key at fault.
     """
     from needlecli.experiments.config import load_config
-    from needlecli.experiments.overrides import set_dotted
-    from needlecli.io.yamlfile import parse_yaml
+    from needlecli.experiments.overrides import parse_override, set_dotted
+    from needlecli.io.yamlfile import read_yaml
 
     config = Path(config)
     source = str(config)
-    try:
-        text = config.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError(source, (), "no such file") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise ConfigError(source, (), f"cannot read the file: {e}") from None
-    base = parse_yaml(text, source)
+    base, _ = read_yaml(config)
     fixed = dict(grid.fixed)
     for ov in overrides or []:
-        if "=" not in ov:
-            raise ConfigError(source, (), f"override {ov!r} is not of the form key.path=value")
-        k, v = ov.split("=", 1)
-        fixed[k.strip()] = yaml.safe_load(v)
+        k, v = parse_override(ov, source)
+        fixed[k] = v
     cells_dir = Path(out_dir).resolve() / "cells"
     base_seed = (base.get("runs") or {}).get("seed", 0) if isinstance(base.get("runs"), dict) else 0
     sweep_seed = grid.seed if grid.seed is not None else int(base_seed or 0)

@@ -48,5 +48,17 @@ app.add_typer(log.log_app, name="log")
 app.add_typer(imports.import_app, name="import")
 
 
+def _quiet_exit(signum, frame) -> None:  # noqa: ARG001
+    """Before and after a command's own handling (needlecli.io.atomic.handle_signals) no file is open:
+    SIGINT and SIGTERM end the process at once with 128 + the signal, without a traceback."""
+    import os
+
+    os._exit(128 + signum)
+
+
 def run() -> None:
+    import signal
+
+    for s in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(s, _quiet_exit)
     app()

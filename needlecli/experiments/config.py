@@ -17,6 +17,7 @@ from pydantic import ValidationError
 
 from needlecli.control import CONTROLLERS
 from needlecli.errors import ConfigError
+from needlecli.experiments.budget import check_memory
 from needlecli.experiments.overrides import apply_overrides
 from needlecli.experiments.schedule import signal_size
 from needlecli.experiments.schema import all_tags, experiment_schema, used_types
@@ -58,6 +59,7 @@ def load_config(
     except ValidationError as e:
         raise validation_error(e, data, source, tags=all_tags()) from None
     check_consistency(cfg, source)
+    check_memory(cfg, source, Path(source).parent if source != "<string>" else Path("."))
     if changed:
         text = yaml.safe_dump(data, sort_keys=False)
     return cfg, text

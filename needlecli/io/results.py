@@ -36,7 +36,7 @@ import numpy as np
 
 from needlecli import __version__
 from needlecli.errors import DataError
-from needlecli.io.atomic import atomic_path
+from needlecli.io.atomic import deferred_signals, write_bytes_atomic
 from needlecli.io.tree import Group
 from needlecli.provenance import git_hash
 
@@ -70,12 +70,22 @@ def _write_group(g: h5py.Group, grp: Group) -> None:
             g[k].attrs[ak] = _attr(av)
 
 
-def write_atomic(path: str | Path, root: Group) -> Path:
-    """Write ``root`` to ``path`` through a temporary file in the same folder and a rename, so that a
-    reader never sees a half-written file."""
-    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+def file_image(root: Group) -> bytes:
+    """The HDF5 file of ``root``, built in memory. HDF5 itself never writes to disk here: a full disk
+    met inside it ends in a crash (h5py cannot recover from a failed write), and a signal that arrives
+    inside one of its callbacks is lost; so signals are held while it runs (acted on when it is done)."""
+    with deferred_signals(), h5py.File(f"needle-image-{id(root)}", "w", driver="core", backing_store=False) as f:
         _write_group(f, root)
-    return Path(path)
+        f.flush()
+        return f.id.get_file_image()
+
+
+def write_atomic(path: str | Path, root: Group) -> Path:
+    """Write ``root`` to ``path``: the file is built in memory (:func:`file_image`), then written to a
+    temporary file beside ``path`` and renamed over it (:func:`~needlecli.io.atomic.write_bytes_atomic`),
+    so that a reader never sees a half-written file, a full disk is one clear error, and the earlier file
+    at ``path`` is kept until the new one is complete."""
+    return write_bytes_atomic(path, file_image(root))
 
 
 def root_attrs(config_text: str, seed: int, extra: dict | None = None) -> dict:

@@ -34,12 +34,12 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import Field, ValidationError
+from pydantic import Field, ValidationError, field_validator, model_validator
 
 from needlecli.errors import ConfigError, DataError
 from needlecli.io.logs import InputStream, Log, SensorStream, Trial, TruthStream
 from needlecli.io.yamlfile import read_yaml
-from needlecli.schema import Strict, error_message
+from needlecli.schema import Name, Strict, error_message, validation_error
 from needlecli.sensors import SENSORS
 
 # factor from the first unit to the second
@@ -58,7 +58,7 @@ def unit_factor(have: str, want: str) -> float | None:
 
 
 class TrialSpec(Strict):
-    id: str = Field(pattern=r"^[A-Za-z0-9_.\-]+$")
+    id: Name
     dir: str = "."
     meta: dict[str, str | int | float | bool] = Field(default_factory=dict)
 
@@ -73,8 +73,14 @@ class InputSpec(Strict):
 class StreamSpec(Strict):
     file: str
     columns: dict[str, str] = Field(min_length=1, description="channel name -> CSV column")
-    units: list[str] | None = None
+    units: list[str] | None = Field(None, description="one unit per column of `columns`, in their order")
     valid_column: str | None = None
+
+    @model_validator(mode="after")
+    def _units_per_column(self):
+        if self.units is not None and len(self.units) != len(self.columns):
+            raise ValueError(f"units gives {len(self.units)} unit(s) for {len(self.columns)} columns; give one per column")
+        return self
 
 
 class SensorSpec(StreamSpec):
@@ -91,9 +97,19 @@ class Mapping(Strict):
     time_unit: Literal["s", "ms"] = "s"
     length_unit: Literal["mm", "m"] = Field("mm", description="the project's length unit for this data")
     trials: list[TrialSpec] = Field(min_length=1)
-    inputs: dict[str, InputSpec] = Field(default_factory=dict)
-    sensors: dict[str, SensorSpec] = Field(min_length=1)
+    inputs: dict[Name, InputSpec] = Field(default_factory=dict)
+    sensors: dict[Name, SensorSpec] = Field(min_length=1)
     truth: TruthSpec | None = None
+
+    @field_validator("trials")
+    @classmethod
+    def _unique_ids(cls, v):
+        seen: dict[str, int] = {}
+        for i, t in enumerate(v):
+            if t.id in seen:
+                raise ValueError(f"trial {i} has the id {t.id!r} of trial {seen[t.id]}; each trial needs its own id")
+            seen[t.id] = i
+        return v
 
 
 def read_csv(path: Path, columns: list[str]) -> dict[str, np.ndarray]:
@@ -166,8 +182,7 @@ def import_csv(mapping_path: str | Path) -> Log:
     try:
         mp = Mapping.model_validate(data)
     except ValidationError as e:
-        err = e.errors()[0]
-        raise ConfigError(str(mapping_path), tuple(err["loc"]), error_message(err)) from None
+        raise validation_error(e, data, str(mapping_path)) from None
     # sensors from their settings (validated once, before reading any CSV)
     sensors = {}
     for name, spec in mp.sensors.items():
@@ -221,7 +236,8 @@ def import_csv(mapping_path: str | Path) -> Log:
             valid = d[spec.valid_column] != 0 if spec.valid_column else np.ones(len(t), bool)
             nonfinite = ~np.isfinite(v).all(-1)
             valid = valid & ~nonfinite  # a missing value is a lost sample: invalid, and counted
-            v = _convert(path, f"sensor {name}", spec.units or list(chan[1]), chan[1], np.where(nonfinite[:, None], 0.0, v))
+            have = [dict(zip(spec.columns, spec.units))[c] for c in chan[0]] if spec.units else list(chan[1])
+            v = _convert(path, f"sensor {name}", have, chan[1], np.where(nonfinite[:, None], 0.0, v))
             tr.sensors[name] = SensorStream(t=t, value=v, valid=valid, names=chan[0], units=chan[1],
                                             settings=settings.model_dump(mode="json"))
             if nonfinite.any():

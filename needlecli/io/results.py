@@ -37,6 +37,7 @@ import numpy as np
 from needlecli import __version__
 from needlecli.errors import DataError
 from needlecli.io.atomic import deferred_signals, write_bytes_atomic
+from needlecli.io.layout import RESULTS, check_layout
 from needlecli.io.tree import Group
 from needlecli.provenance import git_hash
 
@@ -121,8 +122,14 @@ def _read(g: h5py.Group) -> Group:
     return out
 
 
+def _one_line(e: BaseException) -> str:
+    return " ".join(str(e).split())[:300]
+
+
 def read_results(path: str | Path) -> Group:
-    """Load a results file completely. Raises :class:`DataError` for missing or corrupt files."""
+    """Load a results file completely, its structure checked first against the documented layout
+    (:data:`needlecli.io.layout.RESULTS`). Raises :class:`DataError` for missing, corrupt or damaged files,
+    naming the HDF5 path of the first problem."""
     path = Path(path)
     if not path.exists():
         raise DataError(f"{path}: no such results file")
@@ -131,12 +138,16 @@ def read_results(path: str | Path) -> Group:
             fmt = f.attrs.get("format")
             if fmt is None or "truth" not in f or "time" not in f:
                 raise DataError(f"{path}: not a needlecli results file (no format attribute, /time or /truth)")
+            fmt = _decode(fmt)
+            if isinstance(fmt, np.ndarray) or not isinstance(fmt, (int, np.integer)):
+                raise DataError(f"{path}: [/ attribute format] should be the integer {RESULTS_FORMAT}, is {fmt!r:.40}")
             if int(fmt) > RESULTS_FORMAT:
                 raise DataError(
                     f"{path}: results format {int(fmt)} is newer than this needlecli reads ({RESULTS_FORMAT})"
                 )
+            check_layout(f, RESULTS, path)
             return _read(f)
     except DataError:
         raise
-    except (OSError, KeyError, ValueError) as e:
-        raise DataError(f"{path}: cannot read the results file ({e.__class__.__name__}: {e})") from None
+    except (OSError, KeyError, ValueError, TypeError, RuntimeError) as e:
+        raise DataError(f"{path}: cannot read the results file ({e.__class__.__name__}: {_one_line(e)})") from None

@@ -56,15 +56,14 @@ class Failure:
 
 def load_baseline(path: str | Path) -> Baseline:
     from needlecli.io.yamlfile import read_yaml
-    from needlecli.schema import error_message
+    from needlecli.schema import validation_error
 
     path = Path(path)
     data, _ = read_yaml(path, "a baseline")
     try:
         return Baseline.model_validate(data)
     except ValidationError as e:
-        err = e.errors()[0]
-        raise ConfigError(str(path), tuple(err["loc"]), error_message(err)) from None
+        raise validation_error(e, data, str(path)) from None
 
 
 def _key_columns(df: pd.DataFrame) -> list[str]:

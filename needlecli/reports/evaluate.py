@@ -6,7 +6,6 @@ import logging
 from pathlib import Path
 
 import pandas as pd
-import yaml
 
 from needlecli.errors import DataError
 from needlecli.io.fit import is_fit_file
@@ -37,12 +36,16 @@ def experiment_name(path: str | Path) -> str:
 
 def configured_tables(res) -> list[str]:
     """The tables the experiment's config asks for (``output.tables``), else the summary."""
+    from needlecli.errors import ConfigError
+    from needlecli.io.yamlfile import parse_yaml
+
     try:
-        cfg = yaml.safe_load(res.attrs.get("config", "")) or {}
-        names = (cfg.get("output") or {}).get("tables")
-    except yaml.YAMLError:
+        cfg = parse_yaml(str(res.attrs.get("config", "")), "the results file's config")
+        out = cfg.get("output") if isinstance(cfg.get("output"), dict) else {}
+        names = out.get("tables") if isinstance(out.get("tables"), list) else None
+    except ConfigError:
         names = None
-    return [n for n in (names or ["summary", "accuracy", "status"]) if n in TABLES]
+    return [n for n in (names or ["summary", "accuracy", "status"]) if isinstance(n, str) and n in TABLES]
 
 
 def evaluate_results(

@@ -22,8 +22,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field, ValidationError, field_validator, model_validator
 
-from needlecli.errors import ConfigError
-from needlecli.schema import MAX_SEED, Strict
+from needlecli.schema import MAX_SEED, Strict, validation_error
 
 MAX_CELLS = 100_000
 
@@ -207,15 +206,7 @@ def load_grid(path: str | Path) -> Grid:
     try:
         return Grid.model_validate(data)
     except ValidationError as e:
-        err = e.errors()[0]
-        loc = tuple(p for p in err["loc"] if not (isinstance(p, str) and ("[" in p or p.startswith("function-"))))
-        msg = err.get("msg", "invalid value")
-        msg = msg[len("Value error, "):] if msg.startswith("Value error, ") else msg
-        if err.get("type") == "extra_forbidden":
-            msg = "unknown key"
-        elif err.get("type") == "missing":
-            msg = "required key is missing"
-        raise ConfigError(source, loc, " ".join(msg.split())) from None
+        raise validation_error(e, data, source) from None
 
 
 def grid_overrides(grid: Grid) -> list[dict]:

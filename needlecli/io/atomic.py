@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from needlecli.errors import Interrupted, OutputError
+from needlecli.schema import NAME_PATTERN
 
 TMP_MARK = ".needle-tmp"
 STALE_AGE = 24 * 3600.0  # s: a temporary file of another host (or of an unknown process) older than this is stale
@@ -133,13 +134,31 @@ def handle_signals() -> Iterator[None]:
             signal.signal(s, h)
 
 
+_WORKER = {"busy": False}
+
+
+def _worker_handler(signum, frame) -> None:
+    if not _WORKER["busy"]:  # idle: nothing is being written
+        os._exit(128 + signum)
+    _handler(signum, frame)
+
+
 def install_worker_signals() -> None:
-    """In a worker process (a sweep's): SIGINT and SIGTERM raise :class:`Interrupted` for good, so that
-    the cell being written removes its temporary file before the worker ends."""
+    """In a worker process (a sweep's): SIGINT and SIGTERM raise :class:`Interrupted` inside a task
+    (:func:`worker_task`), so that what it writes removes its temporary file; an idle worker just ends."""
     if threading.current_thread() is threading.main_thread():
         for s in _SIGNALS:
-            signal.signal(s, _handler)
-        _SIG.installed = True
+            signal.signal(s, _worker_handler)
+
+
+@contextlib.contextmanager
+def worker_task() -> Iterator[None]:
+    """Mark a worker busy with a task (see :func:`install_worker_signals`)."""
+    _WORKER["busy"] = True
+    try:
+        yield
+    finally:
+        _WORKER["busy"] = False
 
 
 @contextlib.contextmanager
@@ -267,14 +286,22 @@ def free_space(folder: Path) -> int | None:
     return st.f_bavail * st.f_frsize
 
 
+def _check_names(path: Path, target: Path, last: str = "folder") -> None:
+    """Every part of ``path`` fits the file system's name length (before any call that would fail on it);
+    ``last``: what its last part names (file or folder)."""
+    for i, part in enumerate(path.parts):
+        if len(part.encode()) > 255:
+            what = last if i == len(path.parts) - 1 else "folder"
+            raise OutputError(target if len(str(target)) < 300 else f"{str(target)[:120]}...",
+                              f"the {what} name {part[:40]!r}... is too long ({len(part.encode())} bytes; at most 255)")
+
+
 def _check_parents(path: Path, target: Path, what: str) -> Path:
     """The nearest existing ancestor of ``path``: a folder we can write in."""
+    _check_names(path, target)
     base = _nearest_existing(path)
-    if base != path and not base.is_dir():
+    if not base.is_dir():
         raise OutputError(target, f"cannot make {what} here: {base} is a file, not a folder")
-    for part in path.relative_to(base).parts if base != path else ():
-        if len(part.encode()) > _name_max(base if base.is_dir() else base.parent):
-            raise OutputError(target, f"the folder name {part[:40]!r}... is too long ({len(part)} characters)")
     return base
 
 
@@ -291,6 +318,7 @@ def check_output_file(path: str | Path, *, what: str = "the file", size: int | N
     """Check, before any work, that ``path`` can be written as a file (see the module docstring); record it
     in the journal. ``size`` is what it may need on disk. Raises :class:`OutputError`."""
     path = Path(path)
+    _check_names(path, path, last="file")
     if path.name in ("", ".", ".."):
         raise OutputError(path, f"is a folder; give a file name for {what}")
     if path.is_dir():
@@ -315,6 +343,7 @@ def check_output_file(path: str | Path, *, what: str = "the file", size: int | N
 def check_output_dir(path: str | Path, *, what: str = "the outputs", size: int | None = None) -> Path:
     """Check, before any work, that files can be written in folder ``path`` (made if missing); record it."""
     path = Path(path)
+    _check_names(path, path)
     if path.exists() and not path.is_dir():
         raise OutputError(path, f"is a file, not a folder for {what}")
     base = _check_parents(path, path, what)
@@ -325,6 +354,17 @@ def check_output_dir(path: str | Path, *, what: str = "the outputs", size: int |
         remove_stale(path)
     JOURNAL.plan(path)
     return path
+
+
+def output_stem(name, fallback: str) -> str:
+    """The stem of output file names taken from a file's contents (a results file's ``name``): used as
+    it is only when it is a plain name (letters, digits, ``_ . -``, not starting with a dot, at most 100
+    characters), else ``fallback`` (the file's own stem) with everything else replaced by ``_``. Never a
+    path: an absolute or ``../`` name cannot put outputs outside the folder asked for."""
+    if isinstance(name, str) and re.fullmatch(NAME_PATTERN, name) and len(name) <= 100:
+        return name
+    plain = re.sub(r"[^A-Za-z0-9_.\-]", "_", str(fallback))[:100].lstrip(".")
+    return plain or "results"
 
 
 # ---------------------------------------------------------------------------------------------- writing

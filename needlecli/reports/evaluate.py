@@ -8,6 +8,7 @@ from pathlib import Path
 import pandas as pd
 
 from needlecli.errors import DataError
+from needlecli.io.atomic import output_stem
 from needlecli.io.fit import is_fit_file
 from needlecli.io.results import read_results
 from needlecli.metrics import compute_errors
@@ -26,7 +27,8 @@ def configured_tables_of(path: str | Path) -> list[str]:
 
 
 def experiment_name(path: str | Path) -> str:
-    """The ``name`` attribute of a results or fit file."""
+    """The ``name`` attribute of a results or fit file (the file is checked in full: a damaged one is an
+    error here, before anything is written)."""
     if is_fit_file(path):
         from needlecli.io.fit import read_fit
 
@@ -74,7 +76,7 @@ def evaluate_results(
         out[name] = TABLES.get(name)(res, errors)
     if out_dir is not None:
         out_dir = Path(out_dir)
-        stem = res.attrs.get("name", path.stem)
+        stem = output_stem(res.attrs.get("name"), path.stem)
         for name, df in out.items():
             doc = " ".join((TABLES.get(name).__doc__ or "").strip().split("\n\n")[0].split())
             if res.attrs.get("source") == "replay":

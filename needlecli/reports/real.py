@@ -309,11 +309,12 @@ def write_fit_tables(path, out_dir, formats=("md", "csv", "tex")) -> list:
     writes only the fit tables it lists)."""
     from pathlib import Path
 
+    from needlecli.io.atomic import output_stem
     from needlecli.io.fit import read_fit
     from needlecli.reports.tables import write_table
 
     res = read_fit(path)
-    stem = res.attrs.get("name", Path(path).stem)
+    stem = output_stem(res.attrs.get("name"), Path(path).stem)
     out = []
     for n in FIT_TABLES_HERE:
         doc = " ".join((TABLES.get(n).__doc__ or "").strip().split("\n\n")[0].split())

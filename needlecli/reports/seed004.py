@@ -497,6 +497,7 @@ def evaluate_fit(
 ) -> dict[str, pd.DataFrame]:
     """``needle evaluate FIT.h5``: the fit tables (default all of :data:`FIT_TABLES`), written to
     ``out_dir`` with the figures when asked."""
+    from needlecli.io.atomic import output_stem
     from needlecli.io.fit import read_fit
 
     path = Path(path)
@@ -508,7 +509,7 @@ def evaluate_fit(
     out = {n: TABLES.get(n)(res, None) for n in names}
     if out_dir is not None:
         out_dir = Path(out_dir)
-        stem = res.attrs.get("name", path.stem)
+        stem = output_stem(res.attrs.get("name"), path.stem)
         for n, df in out.items():
             doc = " ".join((TABLES.get(n).__doc__ or "").strip().split("\n\n")[0].split())
             write_table(df, out_dir / f"{stem}_{n}", formats or ["md", "csv", "tex"], caption=doc)

@@ -201,6 +201,8 @@ def error_message(err: dict) -> str:
         msg = (f"{_yaml_type(err.get('input'))} is not a plain name: use letters, digits and _ . - "
                "(it names groups and files)")
     msg = msg.replace(" after validation", "")
+    if msg.startswith("Input should be "):
+        msg = msg[len("Input "):]
     return " ".join(msg.split())  # one line
 
 

@@ -132,10 +132,14 @@ def _steps(cfg, base_dir: Path, trials) -> tuple[int, tuple, str]:
         return int(math.ceil(end / dt - 1e-9)) + 1, ("source", "logs"), where
     model_cls = MODELS.get(cfg.model.type)
     if cfg.stop.time is not None:
-        return int(math.ceil(cfg.stop.time / dt - 1e-9)) + 1, ("stop", "time"), f"stop.time = {cfg.stop.time:g} s"
-    t = _time_to_depth(cfg.inputs[model_cls.insertion_input], float(cfg.stop.depth))
-    steps = int(math.ceil(t / dt)) + 2 if math.isfinite(t) else 2**62
-    return steps, ("stop", "depth"), f"stop.depth = {cfg.stop.depth:g} reached after {t:.6g} s"
+        t, key, why = float(cfg.stop.time), ("stop", "time"), f"stop.time = {cfg.stop.time:g} s"
+    else:
+        t = _time_to_depth(cfg.inputs[model_cls.insertion_input], float(cfg.stop.depth))
+        key, why = ("stop", "depth"), f"stop.depth = {cfg.stop.depth:g} reached after {t:.6g} s"
+    if t <= 3600.0:  # an insertion of at most an hour: the step is what makes the grid long
+        key, why = ("simulation", "dt"), f"{why} in steps of simulation.dt = {dt:g} s"
+    steps = int(math.ceil(t / dt - 1e-9)) + 2 if math.isfinite(t) else 2**62
+    return steps, key, why
 
 
 # ---------------------------------------------------------------------------------------------- the estimate
@@ -159,6 +163,7 @@ def estimate(cfg, base_dir: str | Path = ".", trials=None) -> Estimate:
              "grid runs.seed: range(K))") if cfg.source is None else "fewer trials (source.trials)"
     # what sizes N x T: blame the factor that is far from usual (runs in the hundreds, steps ~1e4-1e5)
     nt_key, nt_why = (runs_key, f"{N:,} runs") if N / 1e3 >= T / 1e5 else (t_key, f"{T:,} steps of dt = {dt:g} s ({t_why})")
+    absurd = N > 1e5 or T > 1e7  # then N x T drives every block, whatever else sizes it
     nt_hint = fewer if nt_key == runs_key else (
         "a shorter insertion (stop), a faster insertion speed, or a larger simulation.dt" if cfg.source is None
         else "check the log's timestamps (s), or a larger simulation.dt")
@@ -171,9 +176,10 @@ def estimate(cfg, base_dir: str | Path = ".", trials=None) -> Estimate:
         width = _channels(s, model_cls)
         key = ("sensors", i, "rate")
         name = s.name or s.type
-        est.parts.append(Part(f"sensor {name}", N * M * (2 * width * _F8 + 1) + 3 * M * _F8, key,
-                              f"sensor {name}: {M:,} samples per run at {rate:g} Hz over {duration:.6g} s",
-                              f"a lower rate of sensor {name}, " + fewer))
+        est.parts.append(Part(f"sensor {name}", N * M * (2 * width * _F8 + 1) + 3 * M * _F8, nt_key if absurd else key,
+                              f"sensor {name}: {M:,} samples per run at {rate:g} Hz over {duration:.6g} s"
+                              + (f" ({nt_why})" if absurd else ""),
+                              nt_hint if absurd else f"a lower rate of sensor {name}, " + fewer))
         if clock > T:  # the clock's sample times before they are placed on the grid
             est.transient.append(Part(f"clock of {name}", 4 * clock * _F8, key,
                                       f"sensor {name} samples at {rate:g} Hz, {clock:,} sample times over "
@@ -202,11 +208,11 @@ def estimate(cfg, base_dir: str | Path = ".", trials=None) -> Estimate:
         layout = cfg.output.covariance
         cov = {"full": no * no, "diag": no, "none": 0}[layout]
         if cov:
-            est.parts.append(Part(f"covariances of {oname}", N * Tc * cov * _F8, ("output", "covariance"),
+            est.parts.append(Part(f"covariances of {oname}", N * Tc * cov * _F8, nt_key if absurd else ("output", "covariance"),
                                   f"the {layout} covariances of observer {oname} ({N:,} runs x {Tc:,} stored steps x "
-                                  f"{cov} entries; store_every = {stride})",
-                                  "keep fewer: output.store_every: K (every K-th step), output.covariance: diag or "
-                                  "none; or " + fewer))
+                                  f"{cov} entries; store_every = {stride}" + (f"; {nt_why})" if absurd else ")"),
+                                  nt_hint if absurd else "keep fewer: output.store_every: K (every K-th step), "
+                                  "output.covariance: diag or none; or " + fewer))
     return est
 
 
@@ -223,6 +229,9 @@ def check_memory(cfg, source: str, base_dir: str | Path = ".", trials=None) -> E
     than is available; return the estimate."""
     est = estimate(cfg, base_dir, trials)
     avail = available_memory()
+    if avail is not None and BASE_BYTES > avail:
+        raise ConfigError(source, (), f"{human_bytes(avail)} of memory are available, less than the "
+                          f"{human_bytes(BASE_BYTES)} the program itself needs (NEEDLECLI_MEMORY sets the limit)")
     if avail is not None and est.needed > avail:
         big = est.largest()
         raise ConfigError(source, big.key, (

@@ -84,7 +84,7 @@ class Source(Strict):
     file). Inputs, sensor streams and (where recorded) the truth come from the logs."""
 
     logs: list[str] = Field(min_length=1)
-    trials: list[str] | None = Field(None, description="trial ids to use (default: all)")
+    trials: list[str] | None = Field(None, min_length=1, description="trial ids to use (default: all)")
     reference: PolynomialReference | None = Field(
         None, description="what errors are computed against when the logs have no truth (default: the logs' truth)"
     )

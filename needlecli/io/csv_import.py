@@ -220,7 +220,10 @@ def import_csv(mapping_path: str | Path) -> Log:
         for name, spec in mp.sensors.items():
             cls, settings = sensors[name]
             path = tdir / spec.file
-            chan = _channels(cls, settings, mp.length_unit)
+            try:
+                chan = _channels(cls, settings, mp.length_unit)
+            except ConfigError as e:
+                raise ConfigError(str(mapping_path), ("sensors", name, "sensor"), e.message) from None
             for c in spec.columns:
                 if c not in chan[0]:
                     raise ConfigError(str(mapping_path), ("sensors", name, "columns", c),
@@ -267,8 +270,11 @@ def _channels(cls, settings, length_unit: str) -> tuple[tuple[str, ...], tuple[s
         registered_name = "import"
 
     _Units.length_unit = length_unit
-    sensor = cls(settings, _Units())
-    return tuple(sensor.channel_names), tuple(sensor.channel_units)
+    try:
+        sensor = cls(settings, _Units())
+        return tuple(sensor.channel_names), tuple(sensor.channel_units)
+    except ValueError as e:  # settings that contradict each other (2 sigmas for 3 axes)
+        raise ConfigError("", (), " ".join(str(e).split())) from None
 
 
 def _truth_unit(name: str, length_unit: str) -> str:

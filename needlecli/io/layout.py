@@ -210,7 +210,7 @@ class _Check:
                 v = obj.attrs[name]
             except (OSError, RuntimeError, TypeError, ValueError) as e:
                 raise self.fail(where, f"attribute {name!r} cannot be read ({_reason(e)})") from None
-            self.attr_value(v, a, f"{where} attribute {name}", env)
+            self.attr_value(v, a, f"{where or '/'} attribute {name}", env)
 
     def attr_value(self, v, a: A, where: str, env: dict) -> None:
         v = _decode(v)
@@ -411,6 +411,8 @@ def _decode(v):
 
 
 def _what(v: Any) -> str:
+    if isinstance(v, np.generic):
+        v = v.item()
     if isinstance(v, str):
         return f"the text {v[:30]!r}"
     if isinstance(v, np.ndarray):

@@ -302,7 +302,8 @@ def read_log(path: str | Path) -> Log:
         with h5py.File(path, "r") as f:
             fmt = _decode(f.attrs.get("format", ""))
             if fmt != LOG_FORMAT:
-                raise DataError(f"{path}: not a needlecli log (format attribute {fmt!r}, expected {LOG_FORMAT!r})")
+                shown = fmt.item() if isinstance(fmt, np.generic) else fmt
+                raise DataError(f"{path}: not a needlecli log (format attribute {shown!r:.40}, expected {LOG_FORMAT!r})")
             version = int(f.attrs.get("version", 0))
             if version > LOG_VERSION:
                 raise DataError(f"{path}: log version {version} is newer than this needlecli reads ({LOG_VERSION})")

@@ -35,28 +35,55 @@ def user_errors(fn: Callable) -> Callable:
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
-        from needlecli.io.atomic import JOURNAL, handle_signals
+        from needlecli.io.atomic import JOURNAL, handle_signals, hold_signals, raised_signal, start_signals
 
         JOURNAL.reset()
         with handle_signals():
             try:
+                start_signals()
                 return fn(*args, **kwargs)
             except NeedleError as e:
+                hold_signals()
                 JOURNAL.remove_inflight()
                 fail(str(e), e.exit_code)
             except KeyboardInterrupt as e:  # Interrupted (SIGINT, SIGTERM), or Ctrl-C before the handlers
-                JOURNAL.remove_inflight()
-                sig = e if isinstance(e, Interrupted) else Interrupted(2)
-                hint = f"; {sig.hint}" if sig.hint else ""
-                fail(f"interrupted by {sig.name}: {JOURNAL.summary()}{hint}", sig.exit_code)
+                hold_signals()
+                _interrupted(e if isinstance(e, Interrupted) else Interrupted(2))
             except MemoryError:
+                hold_signals()
                 JOURNAL.remove_inflight()
                 fail(f"out of memory (more than the memory the estimate checked was needed): {JOURNAL.summary()}")
             except OSError as e:
+                hold_signals()
                 JOURNAL.remove_inflight()
                 fail(f"{_os_error(e)}; {JOURNAL.summary()}")
+            except Exception as e:  # a library that wrapped the signal's exception in its own (RuntimeError)
+                sig = _wrapped_interrupt(e) or raised_signal()
+                if sig is None:
+                    raise
+                hold_signals()
+                _interrupted(sig)
 
     return wrapper
+
+
+def _wrapped_interrupt(e: BaseException) -> Interrupted | None:
+    """The :class:`Interrupted` a library turned into another exception (its cause or context), if any."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        if isinstance(e, Interrupted):
+            return e
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return None
+
+
+def _interrupted(sig: Interrupted) -> None:
+    from needlecli.io.atomic import JOURNAL
+
+    JOURNAL.remove_inflight()
+    hint = f"; {sig.hint}" if sig.hint else ""
+    fail(f"interrupted by {sig.name}: {JOURNAL.summary()}{hint}", sig.exit_code)
 
 
 def check_results_target(cfg, target, base_dir, what: str = "the results file"):

@@ -61,17 +61,17 @@ def sweep(
         with progress_bar(not quiet) as bar:
             result = run_sweep(cells, out_dir=out_dir, executor=executor, workers=workers, scheduler=scheduler,
                                resume=resume, progress=bar, manifest=manifest)
+        table = result.table
+        metric, param = default_plot_choice(table, plot_metric, plot_param)
+        plot = None
+        if metric is not None and param is not None and (table["status"] == "ok").any():
+            plot = plot_sweep(table, metric=metric, param=param, path=out_dir / plot_name(metric, param),
+                              units=result.units, title=g.description or config.stem)
     except KeyboardInterrupt as e:  # SIGINT, SIGTERM: the message (needlecli.cli.common) says what is on disk
         sig = e if isinstance(e, Interrupted) else Interrupted(2)
         sig.hint = f"the complete cells are kept in {out_dir / 'cells'}; run again with --resume to finish the others"
         raise sig from None
-    table = result.table
-    metric, param = default_plot_choice(table, plot_metric, plot_param)
-    plot = None
-    if metric is not None and param is not None and (table["status"] == "ok").any():
-        plot = plot_sweep(table, metric=metric, param=param, path=out_dir / plot_name(metric, param),
-                          units=result.units, title=g.description or config.stem)
-    elif plot_metric or plot_param:
+    if plot is None and (plot_metric or plot_param):
         fail("nothing to plot: no cell succeeded" if not (table["status"] == "ok").any() else
              "nothing to plot: the sweep varies no parameter besides runs.seed")
     if not quiet:

@@ -101,6 +101,7 @@ class _SignalState:
         self.deferring = 0
         self.pending: int | None = None
         self.installed = False
+        self.raised: int | None = None  # the last signal raised as Interrupted in this command
 
 
 _SIG = _SignalState()
@@ -111,30 +112,62 @@ def _handler(signum, frame) -> None:  # noqa: ARG001
     if _SIG.deferring:
         _SIG.pending = _SIG.pending or signum
         return
+    _SIG.raised = signum
     raise Interrupted(signum)
+
+
+def raised_signal() -> Interrupted | None:
+    """The signal raised as :class:`Interrupted` in this command, if any: a library may have turned that
+    exception into one of its own (pydantic, a class being created) on its way out."""
+    return Interrupted(_SIG.raised) if _SIG.raised is not None else None
 
 
 @contextlib.contextmanager
 def handle_signals() -> Iterator[None]:
     """SIGINT and SIGTERM raise :class:`Interrupted` while the block runs (main thread only; elsewhere,
-    and when already installed, nothing changes). The earlier handlers come back afterwards."""
+    and when already installed, nothing changes), from the moment the block calls :func:`start_signals`
+    (a signal before that is held, so that it is raised where the command catches it). The earlier
+    handlers come back afterwards; a signal that came while they were put back is passed on to them
+    when the block ended normally."""
     if _SIG.installed or threading.current_thread() is not threading.main_thread():
         yield
         return
     old = {s: signal.getsignal(s) for s in _SIGNALS}
+    _SIG.raised = None
+    _SIG.deferring += 1  # released by start_signals
     for s in _SIGNALS:
         signal.signal(s, _handler)
     _SIG.installed = True
+    finished = False
     try:
         yield
+        finished = True
     finally:
+        _SIG.deferring += 1
         _SIG.installed = False
-        _SIG.pending = None
         for s, h in old.items():
             signal.signal(s, h)
+        pending, _SIG.pending, _SIG.deferring = _SIG.pending, None, 0
+        if pending is not None and finished:
+            os.kill(os.getpid(), pending)
 
 
-_WORKER = {"busy": False}
+def start_signals() -> None:
+    """Inside :func:`handle_signals`, where the command can catch :class:`Interrupted`: signals act from
+    now on (one held since the handlers were installed is raised here)."""
+    if _SIG.deferring:
+        _SIG.deferring -= 1
+    if not _SIG.deferring and _SIG.pending is not None:
+        signum, _SIG.pending = _SIG.pending, None
+        raise Interrupted(signum)
+
+
+def hold_signals() -> None:
+    """Hold every further signal until :func:`handle_signals` ends (the command is ending anyway)."""
+    _SIG.deferring += 1
+
+
+_WORKER = {"busy": False, "process": False}
 
 
 def _worker_handler(signum, frame) -> None:
@@ -143,20 +176,41 @@ def _worker_handler(signum, frame) -> None:
     _handler(signum, frame)
 
 
+def _watch_parent(parent: int) -> None:
+    """A worker whose parent is gone (killed with SIGKILL) stops as if it got SIGTERM, instead of waiting
+    for tasks for ever."""
+    while os.getppid() == parent:
+        time.sleep(0.5)
+    os.kill(os.getpid(), signal.SIGTERM)
+
+
 def install_worker_signals() -> None:
-    """In a worker process (a sweep's): SIGINT and SIGTERM raise :class:`Interrupted` inside a task
-    (:func:`worker_task`), so that what it writes removes its temporary file; an idle worker just ends."""
+    """In a worker process (a sweep's): SIGINT and SIGTERM stop the task (:func:`worker_task`) with
+    :class:`Interrupted`, so that what it writes removes its temporary file, and then the process; an
+    idle worker just ends. So does a worker whose parent process died."""
     if threading.current_thread() is threading.main_thread():
         for s in _SIGNALS:
             signal.signal(s, _worker_handler)
+        _WORKER["process"] = True
+        import multiprocessing
+
+        parent = multiprocessing.parent_process()  # the process that started this one, even if already gone
+        parent_pid = parent.pid if parent is not None and parent.pid else os.getppid()
+        threading.Thread(target=_watch_parent, args=(parent_pid,), daemon=True, name="needle-parent").start()
 
 
 @contextlib.contextmanager
 def worker_task() -> Iterator[None]:
-    """Mark a worker busy with a task (see :func:`install_worker_signals`)."""
+    """Mark a worker busy with a task (see :func:`install_worker_signals`); in a worker process, a task
+    stopped by a signal ends the process once its temporary files are removed."""
     _WORKER["busy"] = True
     try:
         yield
+    except Interrupted as e:
+        if _WORKER["process"]:
+            JOURNAL.remove_inflight()
+            os._exit(e.exit_code)
+        raise
     finally:
         _WORKER["busy"] = False
 

@@ -40,7 +40,7 @@ def characterize_sensor(
             fail(f"--format: unknown format {f!r}; use md, csv, tex")
     from needlecli.io.atomic import check_output_dir
 
-    cfg, _ = load_config(config, overrides=set_)
+    cfg, _ = load_config(config, overrides=set_, memory=False)  # frames of chosen poses, not the experiment
     out_dir = out if out is not None else config.parent / f"{config.stem}_characterization"
     check_output_dir(out_dir, what="the characterization tables")
     results = characterize_sensors(cfg, sensor=sensor, repeats=repeats, seed=seed, outlier=outlier, mode=mode,

@@ -36,8 +36,11 @@ def load_config(
     overrides: list[str] | None = None,
     runs: int | None = None,
     seed: int | None = None,
+    memory: bool = True,
 ):
-    """Read, override and validate a config. Returns ``(config, raw_text)``.
+    """Read, override and validate a config. Returns ``(config, raw_text)``. With ``memory`` (the
+    default), an experiment that needs more memory than is available is refused too
+    (:mod:`needlecli.experiments.budget`).
 
     Raises
     ------
@@ -59,7 +62,8 @@ def load_config(
     except ValidationError as e:
         raise validation_error(e, data, source, tags=all_tags()) from None
     check_consistency(cfg, source)
-    check_memory(cfg, source, Path(source).parent if source != "<string>" else Path("."))
+    if memory:
+        check_memory(cfg, source, Path(source).parent if source != "<string>" else Path("."))
     if changed:
         text = yaml.safe_dump(data, sort_keys=False)
     return cfg, text

@@ -3,7 +3,7 @@ PY ?= python
 
 STUDIES := results/studies
 
-.PHONY: help install demo test bench lint clean seed000 seed001 seed003 seed004 datasets regress real owndata
+.PHONY: help install demo test bench lint clean seed000 seed001 seed003 seed004 datasets regress real owndata faults
 
 help:
 	@echo "make install  - install needlecli with test extras (editable)"
@@ -16,6 +16,7 @@ help:
 	@echo "make seed003  - seed 003's simulation study: Table 1 (and its variant), Figs. 6-8 (results and tables in $(STUDIES))"
 	@echo "make datasets - rebuild the synthetic logs in datasets/ from configs/datasets/"
 	@echo "make regress  - replay every bundled data set and check its tables against datasets/baselines/"
+	@echo "make faults   - kill needle simulate and needle sweep at 20 random points each and check what is on disk"
 	@echo "make real     - import the recorded ultrasteer insertions (../shared/real-data) and make their tables in $(REAL)"
 	@echo "make seed004  - seed 004's synthetic study and T2prelim: EM fits, Tables 1-3, Figs. 5, 10 (in $(STUDIES))"
 	@echo "make owndata  - a lab's exports made by needlecli, imported by a mapping, fitted with and without the slip (in $(OWN))"
@@ -92,6 +93,11 @@ regress:
 	  needle simulate $$c --out results/regress/$$n.h5 --quiet > /dev/null && \
 	  needle evaluate results/regress/$$n.h5 --out results/regress/$$n --no-plots --quiet --baseline datasets/baselines/$$n.yaml || exit 1; \
 	done
+
+# Fault injection (issue 16): SIGKILL, SIGTERM, SIGINT at random points of simulate and sweep (local
+# processes), what is on disk checked after each, sweep --resume to the same table (a few minutes).
+faults:
+	$(PY) tools/faults.py --points 20 --executor local --work results/faults
 
 # Recorded insertions (issue 8): the data stay outside the repository; not part of CI (about 3 minutes
 # on 2 cores, half of it EM). NEEDLECLI_REAL_DATA overrides where they are.

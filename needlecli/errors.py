@@ -40,3 +40,27 @@ class DataError(NeedleError):
 class SweepError(NeedleError):
     """A sweep that cannot start: a bad grid, a cell whose config is invalid, an executor not available;
     or a sweep table asked for a metric or parameter it does not have."""
+
+
+class OutputError(NeedleError):
+    """An output that cannot be written: a folder given for a file, a read-only place, a name too long, a
+    full disk. Raised before the work where it can be seen then (the checks of :mod:`needlecli.io.atomic`)."""
+
+    def __init__(self, path, message: str) -> None:
+        self.path = path
+        self.message = message
+        super().__init__(f"{path}: {message}")
+
+
+class Interrupted(KeyboardInterrupt):
+    """SIGINT or SIGTERM while a command runs (both handled the same way). Exit code 128 + the signal:
+    130 for SIGINT, 143 for SIGTERM. ``hint`` may say how to carry on (``--resume``)."""
+
+    def __init__(self, signum: int, hint: str = "") -> None:
+        import signal
+
+        super().__init__(signum)
+        self.signum = int(signum)
+        self.name = signal.Signals(signum).name
+        self.exit_code = 128 + self.signum
+        self.hint = hint

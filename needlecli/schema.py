@@ -4,18 +4,62 @@ naming the file and the key path as the user wrote it."""
 
 from __future__ import annotations
 
-from typing import Annotated, Any
+import functools
+import types
+import typing
+from typing import Annotated, Any, Union
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from needlecli.errors import ConfigError
 
+#: what every config section (and every file mapping, grid, baseline) is validated with: unknown keys are
+#: errors, values are frozen, types are strict (a string is not a number, true is not 1.0, 4.0 is not a
+#: count) and every number is finite (NaN and infinity are rejected wherever a number is expected)
+STRICT_CONFIG = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
+
+
+def _has_tuple(tp: Any) -> bool:
+    """Whether a field's annotation is (or may be, in a union) a fixed-length tuple."""
+    origin = typing.get_origin(tp)
+    if origin is tuple:
+        return True
+    if origin is Annotated:
+        return _has_tuple(typing.get_args(tp)[0])
+    if origin in (Union, types.UnionType):
+        return any(_has_tuple(a) for a in typing.get_args(tp))
+    return False
+
+
+@functools.cache
+def _tuple_fields(cls: type) -> frozenset[str]:
+    return frozenset(k for k, f in cls.model_fields.items() if _has_tuple(f.annotation))
+
 
 class Strict(BaseModel):
-    """Base of every config section: unknown keys are errors, values are frozen after validation."""
+    """Base of every config section: unknown keys are errors, values are frozen after validation, types
+    are strict and numbers finite (:data:`STRICT_CONFIG`). YAML has no tuples: a list given for a
+    fixed-length field (``transducer: [0, 0, 90]``) is taken as one, its entries still validated strictly."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = STRICT_CONFIG
+
+    @model_validator(mode="before")
+    @classmethod
+    def _lists_as_tuples(cls, data: Any) -> Any:
+        if isinstance(data, dict):
+            fields = _tuple_fields(cls)
+            if any(isinstance(data.get(k), list) for k in fields):
+                data = {k: tuple(v) if k in fields and isinstance(v, list) else v for k, v in data.items()}
+        return data
+
+
+#: the largest seed a results file can store (a 64-bit signed integer attribute)
+MAX_SEED = 2**63 - 1
+
+#: names that become HDF5 group names and parts of file names (sensors, observers, controllers, trials)
+NAME_PATTERN = r"^[A-Za-z0-9_][A-Za-z0-9_.\-]*$"
+Name = Annotated[str, Field(pattern=NAME_PATTERN, max_length=100)]
 
 
 NonNeg = Annotated[float, Field(ge=0.0)]
@@ -82,10 +126,15 @@ def _pick_errors(errs: list[dict]) -> list[dict]:
 
 
 def _yaml_type(v: Any) -> str:
-    for t, name in ((bool, "true/false"), (int, "a number"), (float, "a number"), (str, "a string"),
-                    (list, "a list"), (dict, "a mapping"), (type(None), "empty (null)")):
+    if isinstance(v, float) and not np.isfinite(v):
+        return "NaN (.nan)" if np.isnan(v) else f"{'-' if v < 0 else ''}infinity (.inf)"
+    for t, name in ((bool, f"{str(v).lower()} (true/false)"), (int, "a number"), (float, "a number"),
+                    (str, "a string"), (list, "a list"), (tuple, "a list"), (dict, "a mapping"),
+                    (type(None), "empty (null)")):
         if isinstance(v, t):
-            return f"{name} {v!r}" if isinstance(v, (str, int, float)) and not isinstance(v, bool) else name
+            if isinstance(v, str):
+                return f"{name} {v[:40]!r}" + ("..." if len(v) > 40 else "")
+            return f"{name} {v!r}" if isinstance(v, (int, float)) and not isinstance(v, bool) else name
     return type(v).__name__
 
 
@@ -142,7 +191,18 @@ def error_message(err: dict) -> str:
         msg = f"should be {what}, not {_yaml_type(err.get('input'))}"
     elif err.get("type") in ("list_type", "tuple_type"):
         msg = f"should be a list, not {_yaml_type(err.get('input'))}"
+    elif err.get("type") == "int_type" and isinstance(err.get("input"), float) and not isinstance(err.get("input"), bool):
+        msg = f"should be an integer, not {err['input']!r} (write a whole number without a decimal point)"
+    elif err.get("type") in _TYPE_ERRORS:
+        msg = f"should be {_TYPE_ERRORS[err['type']]}, not {_yaml_type(err.get('input'))}"
+    elif err.get("type") == "finite_number":
+        msg = f"should be a finite number, not {_yaml_type(err.get('input'))}"
+    elif err.get("type") == "string_pattern_mismatch" and err.get("ctx", {}).get("pattern") == NAME_PATTERN:
+        msg = (f"{_yaml_type(err.get('input'))} is not a plain name: use letters, digits and _ . - "
+               "(it names groups and files)")
     msg = msg.replace(" after validation", "")
+    if msg.startswith("Input should be "):
+        msg = msg[len("Input "):]
     return " ".join(msg.split())  # one line
 
 

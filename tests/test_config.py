@@ -203,7 +203,7 @@ def test_set_on_the_command_line(good: Path):
     "override, loc, sub",
     [
         ("sensors.0.rate=-1", "[sensors -> 0 -> rate]", "greater than 0"),
-        ("sensors.0.rate=fast", "[sensors -> 0 -> rate]", "valid number"),
+        ("sensors.0.rate=fast", "[sensors -> 0 -> rate]", "should be a number, not a string"),
         ("sensors.7.rate=1", "[sensors -> 7]", "no such list entry"),
         ("runs.cout=3", "[runs -> cout]", "unknown key"),
         ("name.first=x", "[name]", "is not a mapping"),

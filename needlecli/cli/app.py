@@ -64,5 +64,23 @@ app.add_typer(log.log_app, name="log")
 app.add_typer(imports.import_app, name="import")
 
 
+def _quiet_exit(signum, frame) -> None:  # noqa: ARG001
+    """Before and after a command's own handling (needlecli.io.atomic.handle_signals) no file is open:
+    SIGINT and SIGTERM end the process at once with 128 + the signal, the one line saying what is on disk
+    (what the command completed, if it ran), without a traceback."""
+    import os
+    import signal
+    import sys
+
+    journal = getattr(sys.modules.get("needlecli.io.atomic"), "JOURNAL", None)  # None: not (fully) imported yet
+    done = journal.summary() if journal is not None else "no file was written"
+    os.write(2, f"error: interrupted by {signal.Signals(signum).name}: {done}\n".encode())
+    os._exit(128 + signum)
+
+
 def run() -> None:
+    import signal
+
+    for s in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(s, _quiet_exit)
     app()

@@ -38,10 +38,13 @@ def characterize_sensor(
     for f in formats:
         if f not in ("md", "csv", "tex"):
             fail(f"--format: unknown format {f!r}; use md, csv, tex")
-    cfg, _ = load_config(config, overrides=set_)
+    from needlecli.io.atomic import check_output_dir
+
+    cfg, _ = load_config(config, overrides=set_, memory=False)  # frames of chosen poses, not the experiment
+    out_dir = out if out is not None else config.parent / f"{config.stem}_characterization"
+    check_output_dir(out_dir, what="the characterization tables")
     results = characterize_sensors(cfg, sensor=sensor, repeats=repeats, seed=seed, outlier=outlier, mode=mode,
                                    source=str(config))
-    out_dir = out if out is not None else config.parent / f"{config.stem}_characterization"
     for r in results:
         caption = (f"{r.sensor} ({r.device}): error of the image pipeline over {repeats} frames per pose "
                    f"({mode}); bias and std over the frames that are not outliers")

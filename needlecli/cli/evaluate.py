@@ -38,10 +38,18 @@ def evaluate(
         if t not in TABLES:
             fail(f"--tables: unknown table {t!r}; known: {', '.join(TABLES.names())}")
     out_dir = out if out is not None else results.parent / f"{results.stem}_tables"
+    from needlecli.errors import ConfigError
+    from needlecli.io.atomic import check_output_dir, check_output_file
     from needlecli.reports.baseline import compare, load_baseline, make_baseline
     from needlecli.reports.baseline import write_baseline as store
 
     expected = load_baseline(baseline) if baseline is not None else None
+    name = experiment_name(results)
+    if expected is not None and expected.results and expected.results != name:
+        raise ConfigError(str(baseline), ("results",), f"is for experiment {expected.results!r}, {results} is {name!r}")
+    check_output_dir(out_dir, what="the tables")
+    if write_baseline is not None:
+        check_output_file(write_baseline, what="the baseline")
     if expected is not None and names is None:  # compute every table the baseline names
         names = sorted({c.table for c in expected.cells} | set(configured_tables_of(results)))
     design = {"group_by": [k.strip() for k in group_by.split(",") if k.strip()] if group_by else [],
@@ -52,20 +60,19 @@ def evaluate(
             fail(f"--regress: {item.strip()!r} is not CONSTANT:FACTOR (e.g. kappa:duty_cycle)")
         design["regress"].append((c.strip(), f.strip()))
     written = evaluate_results(results, tables=names, out_dir=out_dir, formats=formats, plots=plots, design=design)
-    name = experiment_name(results)
     if write_baseline is not None:
         store(write_baseline, make_baseline(written, name, rel_tol, abs_tol))
         typer.echo(f"baseline: {write_baseline}", err=quiet)
     if not quiet:
-        for name, df in written.items():
-            typer.echo(f"## {name}\n")
+        for table, df in written.items():
+            typer.echo(f"## {table}\n")
             if df.attrs.get("caption"):
                 typer.echo(df.attrs["caption"] + "\n")
             typer.echo(to_markdown(df) if not df.empty else "(empty)")
             typer.echo("")
         typer.echo(f"tables: {out_dir}")
     if expected is not None:
-        failures = compare(written, expected, name)
+        failures = compare(written, expected, name, source=str(baseline))
         if failures:
             typer.echo(f"REGRESSION: {len(failures)} of {len(expected.cells)} baseline cells of {baseline} fail:", err=True)
             for f in failures:

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from needlecli.cli.common import fail, log, progress_bar, setup_logging, user_errors
+from needlecli.cli.common import check_results_target, fail, log, progress_bar, setup_logging, user_errors
 
 
 @user_errors
@@ -23,7 +23,7 @@ def fit_em_cmd(
     fits, smoothed trajectories and convergence histories to one HDF5 file per config."""
     import numpy as np
 
-    from needlecli.experiments.fit import default_fit_output, fit_tree, fit_trials, load_trials
+    from needlecli.experiments.fit import default_fit_output, fit_tree, fit_trials, load_fit_config, load_trials
     from needlecli.io.results import write_atomic
 
     setup_logging(quiet)
@@ -35,6 +35,9 @@ def fit_em_cmd(
         if choice not in ("mnm", "binm", "both"):
             fail(f"--model: {model!r} is not one of mnm, binm, both")
         models = ["mnm", "binm"] if choice == "both" else [choice]
+    for src in sources:  # every config and output checked before the first fit
+        cfg, _ = load_fit_config(src, overrides=set_)
+        check_results_target(cfg, out if out is not None else default_fit_output(cfg), src.parent, what="the fit file")
     for src in sources:
         trials = load_trials(src, overrides=set_)
         cfg = trials.cfg

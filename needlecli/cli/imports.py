@@ -24,12 +24,14 @@ def ultrasteer_cmd(
 ) -> None:
     """Import the ultrasteer insertions (EM tracker ground truth, ultrasound tip positions) into a log."""
     from needlecli.errors import DataError
+    from needlecli.io.atomic import check_output_file
     from needlecli.io.logs import write_log
     from needlecli.io.ultrasteer import import_ultrasteer
 
     if frame not in ("trial", "tracker"):
         raise DataError(f"--frame: {frame!r} is not one of trial, tracker")
+    check_output_file(out, what="the log file")
     log = import_ultrasteer(data_dir, align=align, frame=frame)
-    write_log(out, log)
+    write_log(out, log, source=data_dir)
     us = sum(1 for tr in log.trials if "us" in tr.sensors)
     typer.echo(f"log: {out} ({len(log.trials)} trial(s), {us} with ultrasound)")

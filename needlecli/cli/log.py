@@ -18,11 +18,13 @@ def import_csv_cmd(
     out: Path = typer.Option(..., "--out", "-o", help="Log file to write (HDF5)."),
 ) -> None:
     """Import CSV exports (one file per stream: a time column and value columns) into a log."""
+    from needlecli.io.atomic import check_output_file
     from needlecli.io.csv_import import import_csv
     from needlecli.io.logs import write_log
 
+    check_output_file(out, what="the log file")
     log = import_csv(mapping)
-    write_log(out, log)
+    write_log(out, log, source=mapping)
     typer.echo(f"log: {out} ({len(log.trials)} trial(s))")
 
 
@@ -36,11 +38,13 @@ def from_results_cmd(
     prefix: str = typer.Option("run", "--prefix", help="Trial ids are <prefix><run number>."),
 ) -> None:
     """Turn a simulated experiment into a log (one trial per run), marked synthetic with its config."""
+    from needlecli.io.atomic import check_output_file
     from needlecli.io.logs import log_from_results, write_log
     from needlecli.io.results import read_results
 
+    check_output_file(out, what="the log file")
     log = log_from_results(read_results(results), description=description, truth_every=truth_every, prefix=prefix)
-    write_log(out, log)
+    write_log(out, log, source=results)
     typer.echo(f"log: {out} ({len(log.trials)} trial(s), synthetic)")
 
 
@@ -149,8 +153,10 @@ def merge_cmd(
     description: str = typer.Option("", help="Description stored in the log."),
 ) -> None:
     """Merge the trials of several logs into one file."""
+    from needlecli.io.atomic import check_output_file
     from needlecli.io.logs import merge_logs, read_log, write_log
 
+    check_output_file(out, what="the merged log")
     merged = merge_logs([read_log(p) for p in logs], description=description)
-    write_log(out, merged)
+    write_log(out, merged, source=", ".join(str(p) for p in logs))
     typer.echo(f"log: {out} ({len(merged.trials)} trial(s))")

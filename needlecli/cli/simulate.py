@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from needlecli.cli.common import log, progress_bar, setup_logging, user_errors
+from needlecli.cli.common import check_results_target, log, progress_bar, setup_logging, user_errors
 
 
 @user_errors
@@ -29,6 +29,7 @@ def simulate(
     setup_logging(quiet)
     cfg, text = load_config(config, overrides=set_, runs=runs, seed=seed)
     target = out if out is not None else default_output(cfg)
+    check_results_target(cfg, target, config.parent)
     if dry_run:
         typer.echo(
             f"{config}: valid; {cfg.runs.count} run(s) of model {cfg.model.type!r}, seed {cfg.runs.seed}, "
@@ -40,11 +41,13 @@ def simulate(
     with progress_bar(not quiet) as bar:
         result = run_experiment(cfg, text, out=target, progress=bar, base_dir=config.parent)
     stopped = any((p.status != "ok").any() for p in result.estimates.values()) or (result.truth.status != "ok").any()
+    path = result.path
+    del result  # its arrays: the tables below read the file back
     wanted = (["summary"] if cfg.observers else []) + (["status"] if stopped else [])
-    tables = evaluate_results(result.path, tables=wanted, out_dir=None) if wanted else {}
+    tables = evaluate_results(path, tables=wanted, out_dir=None) if wanted else {}
     for df in tables.values():
         if not df.empty:
             typer.echo((df.attrs["caption"] + "\n\n" if df.attrs.get("caption") else "") + to_markdown(df) + "\n")
     if not cfg.observers:
         typer.echo("no observers configured: truth and measurements only")
-    typer.echo(f"results: {result.path}")
+    typer.echo(f"results: {path}")

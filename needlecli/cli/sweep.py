@@ -7,6 +7,7 @@ from pathlib import Path
 import typer
 
 from needlecli.cli.common import fail, log, progress_bar, setup_logging, user_errors
+from needlecli.errors import Interrupted
 
 
 @user_errors
@@ -42,9 +43,13 @@ def sweep(
         fail(f"--executor: unknown executor {executor!r}; use local, dask or inline")
     if scheduler and executor != "dask":
         fail("--scheduler needs --executor dask")
+    from needlecli.io.atomic import check_output_dir
+
     g = load_grid(grid)
     out_dir = out if out is not None else Path("results") / "sweeps" / f"{config.stem}_{grid.stem}"
+    check_output_dir(out_dir, what="the sweep")
     cells = plan_sweep(config, g, out_dir=out_dir, overrides=set_, grid_source=str(grid))
+    check_output_dir(out_dir, what="the sweep's results", size=sum(c.file_bytes for c in cells if not Path(c.path).exists()))
     if dry_run:
         typer.echo(f"{grid}: {len(cells)} valid cell(s) of {config} -> {out_dir}")
         for c in cells:
@@ -56,17 +61,17 @@ def sweep(
         with progress_bar(not quiet) as bar:
             result = run_sweep(cells, out_dir=out_dir, executor=executor, workers=workers, scheduler=scheduler,
                                resume=resume, progress=bar, manifest=manifest)
-    except KeyboardInterrupt:
-        typer.echo(f"interrupted: the complete cells are kept in {out_dir / 'cells'}; run again with --resume "
-                   "to finish the others", err=True)
-        raise typer.Exit(130) from None
-    table = result.table
-    metric, param = default_plot_choice(table, plot_metric, plot_param)
-    plot = None
-    if metric is not None and param is not None and (table["status"] == "ok").any():
-        plot = plot_sweep(table, metric=metric, param=param, path=out_dir / plot_name(metric, param),
-                          units=result.units, title=g.description or config.stem)
-    elif plot_metric or plot_param:
+        table = result.table
+        metric, param = default_plot_choice(table, plot_metric, plot_param)
+        plot = None
+        if metric is not None and param is not None and (table["status"] == "ok").any():
+            plot = plot_sweep(table, metric=metric, param=param, path=out_dir / plot_name(metric, param),
+                              units=result.units, title=g.description or config.stem)
+    except KeyboardInterrupt as e:  # SIGINT, SIGTERM: the message (needlecli.cli.common) says what is on disk
+        sig = e if isinstance(e, Interrupted) else Interrupted(2)
+        sig.hint = f"the complete cells are kept in {out_dir / 'cells'}; run again with --resume to finish the others"
+        raise sig from None
+    if plot is None and (plot_metric or plot_param):
         fail("nothing to plot: no cell succeeded" if not (table["status"] == "ok").any() else
              "nothing to plot: the sweep varies no parameter besides runs.seed")
     if not quiet:

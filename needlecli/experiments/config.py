@@ -17,11 +17,12 @@ from pydantic import ValidationError
 
 from needlecli.control import CONTROLLERS
 from needlecli.errors import ConfigError
+from needlecli.experiments.budget import check_memory
 from needlecli.experiments.from_fit import expand_from_fit
 from needlecli.experiments.overrides import apply_overrides
 from needlecli.experiments.schedule import signal_size
 from needlecli.experiments.schema import all_tags, experiment_schema, used_types
-from needlecli.io.yamlfile import parse_yaml
+from needlecli.io.yamlfile import parse_yaml, read_text
 from needlecli.models import MODELS, Model
 from needlecli.observers import OBSERVERS
 from needlecli.registry import PluginError
@@ -36,8 +37,11 @@ def load_config(
     overrides: list[str] | None = None,
     runs: int | None = None,
     seed: int | None = None,
+    memory: bool = True,
 ):
-    """Read, override and validate a config. Returns ``(config, raw_text)``.
+    """Read, override and validate a config. Returns ``(config, raw_text)``. With ``memory`` (the
+    default), an experiment that needs more memory than is available is refused too
+    (:mod:`needlecli.experiments.budget`).
 
     Raises
     ------
@@ -46,12 +50,7 @@ def load_config(
     """
     source = str(path) if path is not None else "<string>"
     if text is None:
-        try:
-            text = Path(path).read_text(encoding="utf-8")  # type: ignore[arg-type]
-        except FileNotFoundError:
-            raise ConfigError(source, (), "no such file") from None
-        except (OSError, UnicodeDecodeError) as e:
-            raise ConfigError(source, (), f"cannot read the file: {e}") from None
+        text = read_text(path)  # type: ignore[arg-type]
     data = copy.deepcopy(parse_yaml(text, source))
     changed = apply_overrides(data, overrides, source, runs=runs, seed=seed)
     fitted = expand_from_fit(data, source, Path(source).parent if path is not None else Path("."))
@@ -65,6 +64,8 @@ def load_config(
     except ValidationError as e:
         raise validation_error(e, data, source, tags=all_tags()) from None
     check_consistency(cfg, source)
+    if memory:
+        check_memory(cfg, source, Path(source).parent if source != "<string>" else Path("."))
     if changed or fitted:  # the config as it ran: from_fit's values written out, where they came from above
         text = "".join(f"# {line}\n" for line in fitted) + yaml.safe_dump(data, sort_keys=False)
     return cfg, text

@@ -48,6 +48,15 @@ class Trials:
     simulated: bool
 
 
+def load_fit_config(path: str | Path, *, overrides: list[str] | None = None):
+    """Read and check the config of a fit: ``(cfg, text)``. A file that is not a config is a DataError
+    saying what to do instead."""
+    path = Path(path)
+    if path.suffix.lower() not in CONFIG_SUFFIXES:
+        raise DataError(_not_a_config(path))
+    return load_config(path, overrides=overrides)
+
+
 def load_trials(path: str | Path, *, overrides: list[str] | None = None) -> Trials:
     """Read a config and simulate (or replay) its trials.
 
@@ -56,9 +65,7 @@ def load_trials(path: str | Path, *, overrides: list[str] | None = None) -> Tria
     ConfigError for a bad config; DataError for a file that is not a config (with what to do instead).
     """
     path = Path(path)
-    if path.suffix.lower() not in CONFIG_SUFFIXES:
-        raise DataError(_not_a_config(path))
-    cfg, text = load_config(path, overrides=overrides)
+    cfg, text = load_fit_config(path, overrides=overrides)
     if cfg.source is not None:  # recorded trials through the replay machinery
         from needlecli.experiments.replay import replay_truth
 

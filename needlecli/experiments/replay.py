@@ -10,6 +10,7 @@ sample hold NaN, so errors are computed only where the truth was recorded.
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -22,11 +23,25 @@ from needlecli.models import MODELS
 from needlecli.sensors import SENSORS, MeasurementStream
 
 
+@functools.lru_cache(maxsize=8)
+def _read_log_once(path: str, mtime_ns: int, size: int):
+    """A log read and checked once per version of the file (a config's checks and its run share it)."""
+    return read_log(path)
+
+
+def _read_log(path: Path):
+    try:
+        st = path.stat()
+    except OSError:
+        return read_log(path)  # says what is wrong with it
+    return _read_log_once(str(path), st.st_mtime_ns, st.st_size)
+
+
 def load_trials(cfg, base_dir: Path) -> list[Trial]:
     trials: list[Trial] = []
     for p in cfg.source.logs:
         path = Path(p) if Path(p).is_absolute() else base_dir / p
-        log = read_log(path)
+        log = _read_log(path)
         for tr in log.trials:
             tr.meta.setdefault("log", str(path))
         trials.extend(log.trials)

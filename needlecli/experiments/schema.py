@@ -18,7 +18,8 @@ from needlecli.fitting.settings import FitSettings
 from needlecli.models import MODELS, Model
 from needlecli.observers import OBSERVERS
 from needlecli.registry import Registry
-from needlecli.schema import NonNeg, Positive, Strict, error_message
+from needlecli.reports import TABLES
+from needlecli.schema import MAX_SEED, NAME_PATTERN, NonNeg, Positive, Strict, error_message
 from needlecli.sensors import SENSORS
 
 
@@ -51,7 +52,8 @@ class ProcessNoise(Strict):
 
 class Runs(Strict):
     count: int = Field(1, ge=1, le=1_000_000, description="number of Monte-Carlo runs")
-    seed: int = Field(0, ge=0, description="seed of every random stream of the experiment")
+    seed: int = Field(0, ge=0, le=MAX_SEED, description="seed of every random stream of the experiment (stored "
+                      "in the results file as a 64-bit integer)")
 
 
 class Stop(Strict):
@@ -82,7 +84,7 @@ class Source(Strict):
     file). Inputs, sensor streams and (where recorded) the truth come from the logs."""
 
     logs: list[str] = Field(min_length=1)
-    trials: list[str] | None = Field(None, description="trial ids to use (default: all)")
+    trials: list[str] | None = Field(None, min_length=1, description="trial ids to use (default: all)")
     reference: PolynomialReference | None = Field(
         None, description="what errors are computed against when the logs have no truth (default: the logs' truth)"
     )
@@ -104,6 +106,15 @@ class Output(Strict):
                             "gzip: every large array (smallest file, 10x the writing time); none")
     tables: list[str] = Field(default_factory=lambda: ["summary"], description="tables of needle evaluate")
     formats: list[Literal["md", "csv", "tex"]] = Field(default_factory=lambda: ["md", "csv", "tex"])
+
+    @field_validator("tables")
+    @classmethod
+    def _known_tables(cls, v):
+        known = TABLES.names()
+        for name in v:
+            if name not in known:
+                raise ValueError(f"unknown table {name!r}; known: {', '.join(known)}")
+        return v
 
 
 class ParamCases(Strict):
@@ -235,7 +246,7 @@ def _schema(types: tuple[tuple[str, tuple[str, ...]], ...]) -> type[Strict]:
     controller_t = union(controllers)
 
     class Base(Strict):
-        name: str = Field("experiment", pattern=r"^[A-Za-z0-9_.\-]+$", description="names the results file: results/<name>.h5")
+        name: str = Field("experiment", pattern=NAME_PATTERN, max_length=100, description="names the results file: results/<name>.h5")
         description: str = Field("", description="what the experiment is, in words")
         model: model_t  # type: ignore[valid-type]
         inputs: dict[str, Signal] = Field(default_factory=dict, description="one entry per model input; a number is a constant")

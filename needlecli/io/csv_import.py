@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import Field, ValidationError, model_validator
+from pydantic import Field, ValidationError, field_validator, model_validator
 
 from needlecli.errors import ConfigError, DataError
 from needlecli.io.csv_layout import (
@@ -59,9 +59,9 @@ from needlecli.io.csv_layout import (
     time_columns,
 )
 from needlecli.io.logs import InputStream, Log, SensorStream, Trial, TruthStream
-from needlecli.io.yamlfile import parse_yaml
+from needlecli.io.yamlfile import read_yaml
 from needlecli.numerics import matrix_to_euler_xyz, quaternion_to_matrix
-from needlecli.schema import Strict, error_message
+from needlecli.schema import Name, Strict, error_message, validation_error
 from needlecli.sensors import SENSORS
 
 R_NAMES = tuple(f"R{i}{j}" for i in range(1, 4) for j in range(1, 4))
@@ -82,7 +82,7 @@ def unit_factor(have: str, want: str) -> float | None:
 
 
 class TrialSpec(Strict):
-    id: str = Field(pattern=r"^[A-Za-z0-9_.\-]+$")
+    id: Name
     dir: str = "."
     meta: dict[str, str | int | float | bool] = Field(default_factory=dict)
     meta_file: str | None = Field(None, description="a command file of this trial (key,value lines, a header "
@@ -109,8 +109,8 @@ class InputSpec(Strict):
 
 class StreamSpec(Strict):
     file: str = Field(description="CSV file in the trial's folder; may hold {id} and metadata fields")
-    columns: dict[str, str] = Field(default_factory=dict, description="channel name -> CSV column")
-    units: list[str] | None = None
+    columns: dict[str, str] = Field(default_factory=dict, description="channel name -> CSV column (none for a tangent from a quaternion)")
+    units: list[str] | None = Field(None, description="one unit per column of `columns`, in their order")
     valid_column: str | None = None
     time: TimeSpec | None = Field(None, description="this stream's time (default: the mapping's)")
     missing: MissingSpec | None = Field(None, description="this stream's lost-sample rules (default: the mapping's)")
@@ -118,6 +118,12 @@ class StreamSpec(Strict):
     sigma_column: str | list[str] | None = Field(None, description="per-sample noise std: one column for every "
                                                  "component or one per component")
     sigma_unit: str | None = Field(None, description="unit of the sigma column(s) (default: the values' unit)")
+
+    @model_validator(mode="after")
+    def _units_per_column(self):
+        if self.units is not None and len(self.units) != len(self.columns):
+            raise ValueError(f"units gives {len(self.units)} unit(s) for {len(self.columns)} columns; give one per column")
+        return self
 
 
 class SensorSpec(StreamSpec):
@@ -135,8 +141,9 @@ class Mapping(Strict):
     time_unit: Literal["s", "ms"] = "s"
     time: TimeSpec | None = Field(None, description="where sample times come from (default: time_column)")
     length_unit: Literal["mm", "m"] = Field("mm", description="the project's length unit for this data")
-    trials: list[TrialSpec] = Field(default_factory=list)
     discover: DiscoverSpec | None = Field(None, description="trials from file names instead of a list")
+    trials: list[TrialSpec] = Field(default_factory=list, validate_default=True,
+                                    description="the trials, each with its id and folder (or use discover)")
     factors: list[str] = Field(default_factory=list, description="metadata keys that are design factors")
     missing: MissingSpec | None = None
     leading_invalid: Literal["start", "trim", "keep"] = Field(
@@ -145,17 +152,24 @@ class Mapping(Strict):
     start_stream: str | None = Field(None, description="the stream whose first valid sample starts the trial "
                                      "(default: the frame's reference, else the first sensor)")
     frame: FrameSpec | None = Field(None, description="express each trial in its own frame")
-    inputs: dict[str, InputSpec] = Field(default_factory=dict)
-    sensors: dict[str, SensorSpec] = Field(min_length=1)
+    inputs: dict[Name, InputSpec] = Field(default_factory=dict)
+    sensors: dict[Name, SensorSpec] = Field(min_length=1)
     truth: TruthSpec | None = None
 
-    @model_validator(mode="after")
-    def _trials(self):
-        if not self.trials and self.discover is None:
+    @field_validator("trials")
+    @classmethod
+    def _unique_ids(cls, v, info):
+        discover = info.data.get("discover")
+        if not v and discover is None:
             raise ValueError("give the trials (a list) or discover (a file-name template)")
-        if self.trials and self.discover is not None:
+        if v and discover is not None:
             raise ValueError("give either trials or discover, not both")
-        return self
+        seen: dict[str, int] = {}
+        for i, t in enumerate(v):
+            if t.id in seen:
+                raise ValueError(f"trial {i} has the id {t.id!r} of trial {seen[t.id]}; each trial needs its own id")
+            seen[t.id] = i
+        return v
 
 
 def read_csv(path: Path, columns: list[str]) -> dict[str, np.ndarray]:
@@ -226,16 +240,11 @@ def _convert(path: Path, what: str, have: list[str], want: tuple[str, ...], valu
 def load_mapping(mapping_path: str | Path) -> Mapping:
     """Read and validate a mapping YAML (a :class:`~needlecli.errors.ConfigError` naming the key)."""
     mapping_path = Path(mapping_path)
-    try:
-        text = mapping_path.read_text(encoding="utf-8")
-    except OSError as e:
-        raise ConfigError(str(mapping_path), (), f"cannot read the mapping: {e}") from None
-    data = parse_yaml(text, str(mapping_path))
+    data, _ = read_yaml(mapping_path, "a CSV mapping")
     try:
         return Mapping.model_validate(data)
     except ValidationError as e:
-        err = e.errors()[0]
-        raise ConfigError(str(mapping_path), tuple(err["loc"]), error_message(err)) from None
+        raise validation_error(e, data, str(mapping_path)) from None
 
 
 def import_csv(mapping_path: str | Path) -> Log:
@@ -462,7 +471,10 @@ def _read_samples(mp, spec: StreamSpec, name: str, value_cols: list[str], tid, t
 
 
 def _read_sensor(mp, spec: SensorSpec, name, cls, settings, rate_from_data, tid, tdir, meta, default_time, src, report):
-    chan = _channels(cls, settings, mp.length_unit)
+    try:
+        chan = _channels(cls, settings, mp.length_unit)
+    except ConfigError as e:  # settings that contradict each other: the mapping's sensor entry
+        raise ConfigError(src, ("sensors", name, "sensor"), e.message) from None
     derived = settings.type == "tangent" and spec.quaternion is not None  # R e3 of the quaternion
     for c in spec.columns:
         if c not in chan[0]:
@@ -481,7 +493,8 @@ def _read_sensor(mp, spec: SensorSpec, name, cls, settings, rate_from_data, tid,
     if derived:
         v = np.where(valid[:, None], np.nan_to_num(rot[:, :, 2]), 0.0)
     else:
-        v = _convert(path, f"sensor {name}", spec.units or list(chan[1]), chan[1], np.where(valid[:, None], v, 0.0))
+        have = [dict(zip(spec.columns, spec.units))[c] for c in chan[0]] if spec.units else list(chan[1])  # column order
+        v = _convert(path, f"sensor {name}", have, chan[1], np.where(valid[:, None], v, 0.0))
         v = np.where(valid[:, None], v, 0.0)
     sigma = None
     if sig is not None:
@@ -525,8 +538,11 @@ def _channels(cls, settings, length_unit: str) -> tuple[tuple[str, ...], tuple[s
         registered_name = "import"
 
     _Units.length_unit = length_unit
-    sensor = cls(settings, _Units())
-    return tuple(sensor.channel_names), tuple(sensor.channel_units)
+    try:
+        sensor = cls(settings, _Units())
+        return tuple(sensor.channel_names), tuple(sensor.channel_units)
+    except ValueError as e:  # settings that contradict each other (2 sigmas for 3 axes)
+        raise ConfigError("", (), " ".join(str(e).split())) from None
 
 
 def _truth_unit(name: str, length_unit: str) -> str:

@@ -365,9 +365,9 @@ def quaternion_masks(q: np.ndarray, tol: float) -> tuple[np.ndarray, np.ndarray]
 
 def order_rows(t: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """Rows to keep so that the times increase: every row when they already do; else the invalid rows
-    (lost samples with an unusable time, e.g. an all-zero row whose time column is zero too) are dropped
-    where they break the order. The caller checks the kept times."""
-    keep = np.isfinite(t)
+    (lost samples with an unusable time, e.g. an all-zero row whose time column is zero too, or empty) are
+    dropped where they break the order. A valid sample is always kept: the caller checks the kept times."""
+    keep = np.isfinite(t) | valid  # a valid sample without a usable time stays: the caller's check names it
     d = np.diff(t[keep])
     if (d > 0).all():
         return keep

@@ -36,7 +36,8 @@ import numpy as np
 
 from needlecli import __version__
 from needlecli.errors import DataError
-from needlecli.io.atomic import atomic_path
+from needlecli.io.atomic import deferred_signals, write_bytes_atomic
+from needlecli.io.layout import RESULTS, check_layout
 from needlecli.io.tree import Group
 from needlecli.provenance import git_hash
 
@@ -87,9 +88,10 @@ def _write_group(g: h5py.Group, grp: Group, compression: str = "auto") -> None:
             g[k].attrs[ak] = _attr(av)
 
 
-def write_atomic(path: str | Path, root: Group, compression: str = "auto") -> Path:
-    """Write ``root`` to ``path`` through a temporary file in the same folder and a rename, so that a
-    reader never sees a half-written file.
+def file_image(root: Group, compression: str = "auto") -> bytes:
+    """The HDF5 file of ``root``, built in memory. HDF5 itself never writes to disk here: a full disk
+    met inside it ends in a crash (h5py cannot recover from a failed write), and a signal that arrives
+    inside one of its callbacks is lost; so signals are held while it runs (acted on when it is done).
 
     ``compression``: ``auto`` compresses (gzip, level 1, shuffled) the large arrays that repeat along an
     axis (broadcast inputs, parameters held over time, constant noise levels: 10 to 1000 times smaller
@@ -97,9 +99,18 @@ def write_atomic(path: str | Path, root: Group, compression: str = "auto") -> Pa
     at ten times the writing time); ``gzip`` every large array (the smallest files); ``none`` nothing."""
     if compression not in COMPRESSION:
         raise ValueError(f"compression {compression!r}: expected one of {', '.join(COMPRESSION)}")
-    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+    with deferred_signals(), h5py.File(f"needle-image-{id(root)}", "w", driver="core", backing_store=False) as f:
         _write_group(f, root, compression)
-    return Path(path)
+        f.flush()
+        return f.id.get_file_image()
+
+
+def write_atomic(path: str | Path, root: Group, compression: str = "auto") -> Path:
+    """Write ``root`` to ``path``: the file is built in memory (:func:`file_image`), then written to a
+    temporary file beside ``path`` and renamed over it (:func:`~needlecli.io.atomic.write_bytes_atomic`),
+    so that a reader never sees a half-written file, a full disk is one clear error, and the earlier file
+    at ``path`` is kept until the new one is complete."""
+    return write_bytes_atomic(path, file_image(root, compression))
 
 
 def root_attrs(config_text: str, seed: int, extra: dict | None = None) -> dict:
@@ -135,8 +146,14 @@ def _read(g: h5py.Group) -> Group:
     return out
 
 
+def _one_line(e: BaseException) -> str:
+    return " ".join(str(e).split())[:300]
+
+
 def read_results(path: str | Path) -> Group:
-    """Load a results file completely. Raises :class:`DataError` for missing or corrupt files."""
+    """Load a results file completely, its structure checked first against the documented layout
+    (:data:`needlecli.io.layout.RESULTS`). Raises :class:`DataError` for missing, corrupt or damaged files,
+    naming the HDF5 path of the first problem."""
     path = Path(path)
     if not path.exists():
         raise DataError(f"{path}: no such results file")
@@ -145,12 +162,16 @@ def read_results(path: str | Path) -> Group:
             fmt = f.attrs.get("format")
             if fmt is None or "truth" not in f or "time" not in f:
                 raise DataError(f"{path}: not a needlecli results file (no format attribute, /time or /truth)")
+            fmt = _decode(fmt)
+            if isinstance(fmt, np.ndarray) or not isinstance(fmt, (int, np.integer)):
+                raise DataError(f"{path}: [/ attribute format] should be the integer {RESULTS_FORMAT}, is {fmt!r:.40}")
             if int(fmt) > RESULTS_FORMAT:
                 raise DataError(
                     f"{path}: results format {int(fmt)} is newer than this needlecli reads ({RESULTS_FORMAT})"
                 )
+            check_layout(f, RESULTS, path)
             return _read(f)
     except DataError:
         raise
-    except (OSError, KeyError, ValueError) as e:
-        raise DataError(f"{path}: cannot read the results file ({e.__class__.__name__}: {e})") from None
+    except (OSError, KeyError, ValueError, TypeError, RuntimeError) as e:
+        raise DataError(f"{path}: cannot read the results file ({e.__class__.__name__}: {_one_line(e)})") from None

@@ -97,14 +97,20 @@ def default_data_dir() -> Path | None:
 
 
 # ---------------------------------------------------------------------------------------------- reading
-def read_numbers(path: Path) -> np.ndarray:
-    """A whitespace-separated numeric file as a 2D array (a single row or column stays 2D)."""
+def read_numbers(path: Path, *, finite: bool = False) -> np.ndarray:
+    """A whitespace-separated numeric file as a 2D array (a single row or column stays 2D); with
+    ``finite``, a NaN or infinite entry is an error naming its row and column (times, speeds, angles)."""
     if not path.exists():
         raise DataError(f"{path}: no such file")
     try:
         a = np.loadtxt(path, ndmin=2)
-    except (OSError, ValueError) as e:
-        raise DataError(f"{path}: cannot read the numbers ({e})") from None
+    except (OSError, ValueError, UnicodeDecodeError) as e:
+        raise DataError(f"{path}: cannot read the numbers ({' '.join(str(e).split())[:200]})") from None
+    if finite:
+        bad = np.argwhere(~np.isfinite(a))
+        if bad.size:
+            r, c = bad[0]
+            raise DataError(f"{path}: [row {r + 1}, column {c + 1}] {a[r, c]} is not a finite number")
     return a
 
 
@@ -232,7 +238,7 @@ def read_trial(folder: Path, *, trial_id: str, session: str, speed_folder: str |
     # times
     dts_path = folder / "dts.dat"
     if dts_path.exists():
-        dts = read_numbers(dts_path).ravel()
+        dts = read_numbers(dts_path, finite=True).ravel()
         if dts.size != N:
             raise DataError(f"{dts_path}: {dts.size} entries for {N} frames")
         if (dts[1:] <= 0).any():
@@ -247,7 +253,7 @@ def read_trial(folder: Path, *, trial_id: str, session: str, speed_folder: str |
     speed = speed_from_folder(speed_folder) if speed_folder else None
     v_path = folder / "V.dat"
     if v_path.exists():
-        V = read_numbers(v_path).ravel()
+        V = read_numbers(v_path, finite=True).ravel()
         if V.size != N:
             raise DataError(f"{v_path}: {V.size} entries for {N} frames")
         v = (t[:-1], V[1:])
@@ -259,7 +265,7 @@ def read_trial(folder: Path, *, trial_id: str, session: str, speed_folder: str |
     u = None
     th_path = folder / "Thetas.dat"
     if th_path.exists():
-        th = read_numbers(th_path).ravel()
+        th = read_numbers(th_path, finite=True).ravel()
         if th.size != N:
             raise DataError(f"{th_path}: {th.size} entries for {N} frames")
         u = (t[:-1], np.diff(th) / dts[1:])

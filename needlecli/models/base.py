@@ -15,10 +15,10 @@ from collections.abc import Mapping
 from typing import ClassVar
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict
 
 from needlecli.models import MODELS  # noqa: F401  (the registry, at the package's front door)
 from needlecli.numerics import complex_step_jacobian, rk4_step
+from needlecli.schema import Strict
 
 Params = Mapping[str, np.ndarray]
 
@@ -44,10 +44,9 @@ class StateSelection:
         return f"StateSelection({self.index.tolist()})"
 
 
-class ModelParams(BaseModel):
-    """Base schema of a model's parameters in a config (``model.params``)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
+class ModelParams(Strict):
+    """Base schema of a model's parameters in a config (``model.params``): strict and finite, as every
+    config section (:class:`~needlecli.schema.Strict`)."""
 
 
 class NotMeasurable(Exception):

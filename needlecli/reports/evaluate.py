@@ -6,9 +6,9 @@ import logging
 from pathlib import Path
 
 import pandas as pd
-import yaml
 
 from needlecli.errors import DataError
+from needlecli.io.atomic import output_stem
 from needlecli.io.fit import is_fit_file
 from needlecli.io.results import read_results
 from needlecli.metrics import compute_errors
@@ -27,7 +27,8 @@ def configured_tables_of(path: str | Path) -> list[str]:
 
 
 def experiment_name(path: str | Path) -> str:
-    """The ``name`` attribute of a results or fit file."""
+    """The ``name`` attribute of a results or fit file (the file is checked in full: a damaged one is an
+    error here, before anything is written)."""
     if is_fit_file(path):
         from needlecli.io.fit import read_fit
 
@@ -37,12 +38,16 @@ def experiment_name(path: str | Path) -> str:
 
 def configured_tables(res) -> list[str]:
     """The tables the experiment's config asks for (``output.tables``), else the summary."""
+    from needlecli.errors import ConfigError
+    from needlecli.io.yamlfile import parse_yaml
+
     try:
-        cfg = yaml.safe_load(res.attrs.get("config", "")) or {}
-        names = (cfg.get("output") or {}).get("tables")
-    except yaml.YAMLError:
+        cfg = parse_yaml(str(res.attrs.get("config", "")), "the results file's config")
+        out = cfg.get("output") if isinstance(cfg.get("output"), dict) else {}
+        names = out.get("tables") if isinstance(out.get("tables"), list) else None
+    except ConfigError:
         names = None
-    return [n for n in (names or ["summary", "accuracy", "status"]) if n in TABLES]
+    return [n for n in (names or ["summary", "accuracy", "status"]) if isinstance(n, str) and n in TABLES]
 
 
 def evaluate_results(
@@ -82,7 +87,7 @@ def evaluate_results(
         df.attrs["caption"] = table_caption(name, df, res)
     if out_dir is not None:
         out_dir = Path(out_dir)
-        stem = res.attrs.get("name", path.stem)
+        stem = output_stem(res.attrs.get("name"), path.stem)
         for name, df in out.items():
             write_table(df, out_dir / f"{stem}_{name}", formats or ["md", "csv", "tex"], caption=df.attrs["caption"])
         if plots:

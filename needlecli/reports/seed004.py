@@ -579,6 +579,7 @@ def evaluate_fit(
     """``needle evaluate FIT.h5``: the fit tables (default :data:`FIT_TABLES`; any of :data:`ALL_FIT_TABLES`), written to
     ``out_dir`` with the figures when asked; ``design`` (``group_by``, ``regress``) for the tables by the
     trials' design factors (``needle evaluate --group-by/--regress``)."""
+    from needlecli.io.atomic import output_stem
     from needlecli.io.fit import read_fit
 
     path = Path(path)
@@ -598,7 +599,7 @@ def evaluate_fit(
         df.attrs["caption"] = table_caption(n, df, res)
     if out_dir is not None:
         out_dir = Path(out_dir)
-        stem = res.attrs.get("name", path.stem)
+        stem = output_stem(res.attrs.get("name"), path.stem)
         for n, df in out.items():
             write_table(df, out_dir / f"{stem}_{n}", formats or ["md", "csv", "tex"], caption=df.attrs["caption"])
         if plots:

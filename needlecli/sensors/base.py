@@ -21,7 +21,7 @@ from pydantic import Field
 
 from needlecli.models.base import NotMeasurable, StateSelection
 from needlecli.numerics import wrap_angle
-from needlecli.schema import NonNeg, Positive, Probability, Strict
+from needlecli.schema import Name, NonNeg, Positive, Probability, Strict
 from needlecli.sensors import PIPELINES, SENSORS  # noqa: F401  (the registries, at the package's front door)
 
 if TYPE_CHECKING:
@@ -33,7 +33,7 @@ class SensorSettings(Strict):
     """Settings every sensor has. Times in s, rates in Hz."""
 
     type: str
-    name: str | None = Field(None, description="name in the results file (defaults to the type)")
+    name: Name | None = Field(None, description="name in the results file (defaults to the type)")
     rate: Positive = Field(description="sampling rate, Hz")
     start: NonNeg = Field(0.0, description="time of the first sample, s")
     latency: NonNeg = Field(0.0, description="delay between acquisition and availability, s")

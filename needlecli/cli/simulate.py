@@ -23,7 +23,7 @@ def simulate(
     the summary table."""
     from needlecli.experiments.config import load_config
     from needlecli.experiments.runner import default_output, run_experiment
-    from needlecli.reports.evaluate import evaluate_results
+    from needlecli.reports.evaluate import results_tables
     from needlecli.reports.tables import to_markdown
 
     setup_logging(quiet)
@@ -42,9 +42,10 @@ def simulate(
         result = run_experiment(cfg, text, out=target, progress=bar, base_dir=config.parent)
     stopped = any((p.status != "ok").any() for p in result.estimates.values()) or (result.truth.status != "ok").any()
     path = result.path
-    del result  # its arrays: the tables below read the file back
     wanted = (["summary"] if cfg.observers else []) + (["status"] if stopped else [])
-    tables = evaluate_results(path, tables=wanted, out_dir=None) if wanted else {}
+    tables = results_tables(result.tree, wanted, str(path)) if wanted else {}  # the file's content, in memory
+    tables.pop("__errors__", None)
+    del result
     for df in tables.values():
         if not df.empty:
             typer.echo((df.attrs["caption"] + "\n\n" if df.attrs.get("caption") else "") + to_markdown(df) + "\n")

@@ -27,6 +27,7 @@ class ExperimentResult:
     estimates: dict[str, Posterior]
     path: Path | None
     control: dict[str, Group] = field(default_factory=dict)  # what each controller did (closed loops)
+    tree: Group | None = None  # the results file's content, as written (tables need not read it back)
 
 
 def default_output(cfg) -> Path:
@@ -109,12 +110,13 @@ def run_experiment(
         obs = OBSERVERS.get(o.type)(o)
         cb = (lambda k, n, _name=obs.name: progress(f"observer {_name}", k, n)) if progress else None
         estimates[obs.name] = obs.run(problem, stream(seed, f"observer/{obs.name}"), progress=cb)
-    path = None
+    path = tree = None
     if write:
         path = Path(out) if out is not None else default_output(cfg)
-        write_atomic(path, results_tree(cfg, config_text, truth, streams, estimates, sensors, control),
-                     compression=cfg.output.compression)
-    return ExperimentResult(truth=truth, measurements=streams, estimates=estimates, path=path, control=control)
+        tree = results_tree(cfg, config_text, truth, streams, estimates, sensors, control)
+        write_atomic(path, tree, compression=cfg.output.compression)
+    return ExperimentResult(truth=truth, measurements=streams, estimates=estimates, path=path, control=control,
+                            tree=tree if write else None)
 
 
 def results_tree(cfg, config_text, truth: Truth, streams, estimates, sensors, control=None) -> Group:

@@ -31,6 +31,13 @@ _PLOT_MODULES = {
     "needlecli.reports.design": ("fit_regression",),
 }
 
+#: the tables that read a fit file of ``needle fit-em`` (the others read results files); ``needle evaluate
+#: FIT.h5`` writes the first ones by default (:data:`FIT_DEFAULT`), the others when named
+FIT_TABLE_NAMES = ("seed004_table1", "seed004_table2", "seed004_table3", "seed004_recovery", "fit_status",
+                   "identifiability", "fit_by_design", "fit_regression", "fit_warnings",
+                   "em_per_trial", "em_per_speed", "em_loglik")
+FIT_DEFAULT = FIT_TABLE_NAMES[:9]
+
 #: table functions ``(results, errors) -> DataFrame``
 TABLES: Registry = Registry("table", group="needlecli.tables",
                             builtins={n: m for m, names in _TABLE_MODULES.items() for n in names})
@@ -38,4 +45,4 @@ TABLES: Registry = Registry("table", group="needlecli.tables",
 PLOTS: Registry = Registry("plot", group="needlecli.plots",
                            builtins={n: m for m, names in _PLOT_MODULES.items() for n in names})
 
-__all__ = ["PLOTS", "TABLES"]
+__all__ = ["FIT_DEFAULT", "FIT_TABLE_NAMES", "PLOTS", "TABLES"]

@@ -10,7 +10,7 @@ import pandas as pd
 from needlecli.errors import DataError
 from needlecli.io.atomic import output_stem
 from needlecli.io.fit import is_fit_file
-from needlecli.io.results import read_results
+from needlecli.io.results import Group, read_results
 from needlecli.metrics import compute_errors
 from needlecli.reports.tables import TABLES, table_caption, write_table
 
@@ -71,20 +71,8 @@ def evaluate_results(
         raise DataError(f"{path}: --group-by and --regress group the fitted constants of a fit file (needle fit-em); "
                         "this is a results file")
     res = read_results(path)
-    try:
-        errors = compute_errors(res)
-    except KeyError as e:  # a readable HDF5 file that lacks part of the layout
-        raise DataError(f"{path}: incomplete results file (missing {e})") from None
-    names = tables or configured_tables(res)
-    from needlecli.reports.seed004 import ALL_FIT_TABLES
-
-    for name in names:
-        if name in ALL_FIT_TABLES:
-            raise DataError(f"{path}: table {name!r} needs a fit file of needle fit-em; this is a results file")
-    out: dict[str, pd.DataFrame] = {}
-    for name in names:
-        out[name] = df = TABLES.get(name)(res, errors)
-        df.attrs["caption"] = table_caption(name, df, res)
+    out = results_tables(res, tables or configured_tables(res), str(path))
+    errors = out.pop("__errors__")
     if out_dir is not None:
         out_dir = Path(out_dir)
         stem = output_stem(res.attrs.get("name"), path.stem)
@@ -94,4 +82,25 @@ def evaluate_results(
             from needlecli.reports.plots import draw_plots
 
             draw_plots(res, errors, out_dir / stem)
+    return out
+
+
+def results_tables(res: Group, names: list[str], source: str) -> dict[str, pd.DataFrame]:
+    """The tables ``names`` of a results file's content (read from the file, or the very tree a run has
+    just written: ``needle simulate`` prints its summary without reading 66 MB back), each with its
+    caption; ``"__errors__"`` holds the errors they were computed from."""
+    from needlecli.reports import FIT_TABLE_NAMES
+
+    try:
+        errors = compute_errors(res)
+    except KeyError as e:  # a readable HDF5 file that lacks part of the layout
+        raise DataError(f"{source}: incomplete results file (missing {e})") from None
+    for name in names:
+        if name in FIT_TABLE_NAMES:
+            raise DataError(f"{source}: table {name!r} needs a fit file of needle fit-em; this is a results file")
+    out: dict[str, pd.DataFrame] = {}
+    for name in names:
+        out[name] = df = TABLES.get(name)(res, errors)
+        df.attrs["caption"] = table_caption(name, df, res)
+    out["__errors__"] = errors
     return out

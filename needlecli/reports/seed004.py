@@ -28,17 +28,16 @@ import pandas as pd
 from needlecli.errors import DataError
 from needlecli.io.results import Group
 from needlecli.models import MODELS
+from needlecli.reports import FIT_DEFAULT, FIT_TABLE_NAMES
 from needlecli.reports.identify import MARK, mark_label, weak_note, weak_quantities
 from needlecli.reports.plots import PLOTS, draw_plots, observer_colours, observer_style, save_figure, subplots
-from needlecli.reports.real import FIT_TABLES_HERE
 from needlecli.reports.tables import TABLES, count_cell, table_caption, write_table
 
 log = logging.getLogger("needlecli")
 
-FIT_TABLES = ("seed004_table1", "seed004_table2", "seed004_table3", "seed004_recovery", "fit_status", "identifiability",
-              "fit_by_design", "fit_regression", "fit_warnings")  # the last three: reports/design.py
+FIT_TABLES = FIT_DEFAULT  # written by default (the tables of a fit file: needlecli.reports.FIT_TABLE_NAMES)
 #: every table of a fit file: :data:`FIT_TABLES` (written by default) and those asked for by name
-ALL_FIT_TABLES = FIT_TABLES + FIT_TABLES_HERE
+ALL_FIT_TABLES = FIT_TABLE_NAMES
 FIT_PLOTS = ("seed004_fig5", "seed004_fig10", "fit_regression")
 FAILED = ("singular", "diverged")
 _TO_MM = {"m": 1000.0, "mm": 1.0, "cm": 10.0}

@@ -208,7 +208,7 @@ def assess(S: System, res: EMResult, fit: FitSettings) -> Identifiability | None
         return None
     sd = np.sqrt(np.maximum(np.diagonal(res.P[:, 0], axis1=-2, axis2=-1), 0.0))[:, S.dm.nx:]
     return identify(S.dm, S.meas, res.x0, S.P0, res.Qc, res.R, res.status == "ok", const_sd=sd,
-                    options=IdentifyOptions(rse_max=s.rse_max, nats=s.nats))
+                    options=IdentifyOptions(rse_max=s.rse_max, nats=s.nats), zbar=res.m)
 
 
 def add_data_hints(result: EMResult, problem) -> None:

@@ -538,3 +538,37 @@ def test_results_file_the_same_however_written(tmp_path, monkeypatch):
     with h5py.File(tmp_path / "direct.h5") as f:
         assert f["extra/rows_alike"].compression == "gzip" and f["extra/held"].compression == "gzip"
         assert f["extra/rows_alike"].id.get_storage_size() < 1e5 and f["truth/state"].compression is None
+
+
+@pytest.mark.parametrize("path,overrides", [("configs/seed003/table1.yaml", ["stop.depth=10"]),
+                                            ("configs/default.yaml", ["stop.depth=30"]),
+                                            ("configs/seed004/study.yaml", ["stop.time=3"])],
+                         ids=["seed003", "flips", "mnm"])
+def test_errors_equal_numpy(path, overrides, numpy_path):
+    """The errors of the summary tables straight from the state arrays: the position norm, the wrapped
+    angle errors and the other states' errors equal the numpy path's bit for bit, E_R to 1e-10; runs
+    excluded alike (a run made to diverge, one with a NaN estimate)."""
+    from needlecli.experiments.runner import build_sensors, results_tree
+    from needlecli.metrics import compute_errors
+
+    cfg, text = load_config(ROOT / path, runs=5, overrides=overrides)
+    res = run_experiment(cfg, text, write=False)
+    tree = results_tree(cfg, text, res.truth, res.measurements, res.estimates, build_sensors(cfg, res.truth.model))
+    for grp in tree.data["estimates"].data.values():
+        grp.data["status"] = np.asarray(grp.data["status"]).astype(object)
+        grp.data["status"][1] = "diverged"
+        grp.data["state"] = np.array(grp.data["state"])
+        grp.data["state"][2, 5:9] = np.nan
+    got = compute_errors(tree)
+    with numpy_path:
+        ref = compute_errors(tree)
+    assert got.keys() == ref.keys()
+    for obs, es in ref.items():
+        assert list(got[obs].quantities) == list(es.quantities) and got[obs].excluded == es.excluded
+        for q, qe in es.quantities.items():
+            g = got[obs].quantities[q]
+            assert g.unit == qe.unit and np.array_equal(g.runs, qe.runs), q
+            if q == "E_R":
+                np.testing.assert_allclose(g.values, qe.values, rtol=0, atol=1e-10 * 180 / np.pi, err_msg=q)
+            else:
+                np.testing.assert_array_equal(g.values, qe.values, err_msg=q)

@@ -342,15 +342,21 @@ def as_text(sec: SectionDoc, width: int = 100) -> str:
     return "\n".join(out)
 
 
+def _md_text(s: str) -> str:
+    """Markdown text: angle brackets outside `code` escaped (results/<name>.h5 is no HTML tag)."""
+    parts = s.split("`")
+    return "`".join(p.replace("<", "&lt;").replace(">", "&gt;") if i % 2 == 0 else p for i, p in enumerate(parts))
+
+
 def _md_cell(s: str) -> str:
-    return s.replace("|", "\\|").replace("\n", " ")
+    return _md_text(s.replace("|", "\\|").replace("\n", " "))
 
 
 def as_markdown(sec: SectionDoc, level: int = 2) -> str:
     title = f"`{sec.path}`" if sec.path else "The config"
     out = [f"{'#' * level} {title}", ""]
     if sec.doc:
-        out += [sec.doc, ""]
+        out += [_md_text(sec.doc), ""]
     if sec.fields:
         out += ["| key | type | default | description |", "| --- | --- | --- | --- |"]
         for f in sec.fields:

@@ -1,5 +1,4 @@
-"""The results file: one HDF5 file per experiment. Its layout is a public contract (README, "Results
-file"); change it only with a version bump of :data:`RESULTS_FORMAT`.
+"""The results file: one HDF5 file per experiment. Its layout is a public contract (docs/reference/results-file.md); change it only with a version bump of :data:`RESULTS_FORMAT`.
 
 ::
 

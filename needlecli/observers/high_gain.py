@@ -33,7 +33,7 @@ Kravaris' inter-sample predictor; a latency is bridged the same way), so the inn
 continuous and nothing is learnt from the staircase. ``hold: zoh`` holds the last sample (the literal
 reading); it biases the derivative estimates between samples and is kept for comparison. Either way
 the sampled-data design needs ``theta * T_s`` small: the ``theta = 67e4`` of seed 000's simulation (as
-legible) assumes a continuous measurement; at 25-100 Hz, theta of order 10-1000 is usable (README).
+legible) assumes a continuous measurement; at 25-100 Hz, theta of order 10-1000 is usable (docs/papers/seed000.md).
 """
 
 from __future__ import annotations

@@ -11,7 +11,10 @@ def list_components(
                                  "and unit (imports the models)."),
 ) -> None:
     """List what configs can name (and which installed package adds a plug-in). Nothing is imported to
-    print the names; --details loads the models."""
+    print the names; --details loads the models.
+
+    Example: needle list --details
+    """
     from needlecli.control import CONTROLLERS
     from needlecli.models import MODELS
     from needlecli.observers import OBSERVERS

@@ -466,8 +466,9 @@ def _fsync(p: Path) -> None:
         os.close(fd)
 
 
-def write_bytes_atomic(path: str | Path, data: bytes | memoryview) -> Path:
-    """Write ``data`` to ``path`` atomically, in pieces (a signal between them stops the write cleanly)."""
+def write_bytes_atomic(path: str | Path, data: bytes | memoryview, progress=None) -> Path:
+    """Write ``data`` to ``path`` atomically, in pieces (a signal between them stops the write cleanly);
+    ``progress(bytes written)`` after each piece, if given."""
     view = memoryview(data)
     with atomic_path(path) as tmp:
         fd = os.open(tmp, os.O_WRONLY | os.O_TRUNC)
@@ -477,6 +478,8 @@ def write_bytes_atomic(path: str | Path, data: bytes | memoryview) -> Path:
                 while chunk:
                     n = os.write(fd, chunk)
                     chunk = chunk[n:]
+                if progress is not None:
+                    progress(min(i + _CHUNK, len(view)))
         finally:
             os.close(fd)
     return Path(path)

@@ -1,5 +1,4 @@
-"""The results file: one HDF5 file per experiment. Its layout is a public contract (README, "Results
-file"); change it only with a version bump of :data:`RESULTS_FORMAT`.
+"""The results file: one HDF5 file per experiment. Its layout is a public contract (docs/reference/results-file.md); change it only with a version bump of :data:`RESULTS_FORMAT`.
 
 ::
 
@@ -69,14 +68,21 @@ def _repeats(arr: np.ndarray) -> bool:
     return False
 
 
-def _write_group(g: h5py.Group, grp: Group, compression: str = "auto") -> None:
+def _nbytes(grp: Group) -> int:
+    """The bytes of every array below ``grp`` (what building its file has to copy)."""
+    return sum(_nbytes(v) if isinstance(v, Group) else np.asarray(v).nbytes for v in grp.data.values())
+
+
+def _write_group(g: h5py.Group, grp: Group, compression: str = "auto", done=None) -> None:
     for k, v in grp.attrs.items():
         g.attrs[k] = _attr(v)
     for k, v in grp.data.items():
         if isinstance(v, Group):
-            _write_group(g.create_group(k), v, compression)
+            _write_group(g.create_group(k), v, compression, done)
             continue
         arr = np.asarray(v)
+        if done is not None:
+            done(arr.nbytes)
         big = arr.ndim >= 2 and arr.size > 4096
         if arr.dtype.kind in "UO":
             g.create_dataset(k, data=arr.astype(str).astype(_STR), dtype=_STR)
@@ -88,7 +94,7 @@ def _write_group(g: h5py.Group, grp: Group, compression: str = "auto") -> None:
             g[k].attrs[ak] = _attr(av)
 
 
-def file_image(root: Group, compression: str = "auto") -> bytes:
+def file_image(root: Group, compression: str = "auto", done=None) -> bytes:
     """The HDF5 file of ``root``, built in memory. HDF5 itself never writes to disk here: a full disk
     met inside it ends in a crash (h5py cannot recover from a failed write), and a signal that arrives
     inside one of its callbacks is lost; so signals are held while it runs (acted on when it is done).
@@ -96,21 +102,37 @@ def file_image(root: Group, compression: str = "auto") -> bytes:
     ``compression``: ``auto`` compresses (gzip, level 1, shuffled) the large arrays that repeat along an
     axis (broadcast inputs, parameters held over time, constant noise levels: 10 to 1000 times smaller
     at once) and stores the others as they are (simulated states and estimates shrink by a quarter only,
-    at ten times the writing time); ``gzip`` every large array (the smallest files); ``none`` nothing."""
+    at ten times the writing time); ``gzip`` every large array (the smallest files); ``none`` nothing.
+    ``done(nbytes)``, if given, is called before each array is written (a progress bar's step)."""
     if compression not in COMPRESSION:
         raise ValueError(f"compression {compression!r}: expected one of {', '.join(COMPRESSION)}")
     with deferred_signals(), h5py.File(f"needle-image-{id(root)}", "w", driver="core", backing_store=False) as f:
-        _write_group(f, root, compression)
+        _write_group(f, root, compression, done)
         f.flush()
         return f.id.get_file_image()
 
 
-def write_atomic(path: str | Path, root: Group, compression: str = "auto") -> Path:
+def write_atomic(path: str | Path, root: Group, compression: str = "auto", progress=None) -> Path:
     """Write ``root`` to ``path``: the file is built in memory (:func:`file_image`), then written to a
     temporary file beside ``path`` and renamed over it (:func:`~needlecli.io.atomic.write_bytes_atomic`),
     so that a reader never sees a half-written file, a full disk is one clear error, and the earlier file
-    at ``path`` is kept until the new one is complete."""
-    return write_bytes_atomic(path, file_image(root, compression))
+    at ``path`` is kept until the new one is complete. ``progress(done, total)`` (bytes: the arrays
+    copied into the file, then the file written) reports how far it is."""
+    if progress is None:
+        return write_bytes_atomic(path, file_image(root, compression))
+    raw = max(_nbytes(root), 1)
+    state = {"built": 0}
+
+    def built(n: int) -> None:
+        state["built"] += n
+        progress(state["built"], 2 * raw)
+
+    image = file_image(root, compression, built)
+    total = raw + max(len(image), 1)
+    progress(raw, total)
+    out = write_bytes_atomic(path, image, progress=lambda k: progress(raw + k, total))
+    progress(total, total)
+    return out
 
 
 def root_attrs(config_text: str, seed: int, extra: dict | None = None) -> dict:

@@ -3,7 +3,7 @@ PY ?= python
 
 STUDIES := results/studies
 
-.PHONY: help install demo test bench lint clean seed000 seed001 seed003 seed004 datasets regress real owndata faults
+.PHONY: help install demo test bench lint docs clean seed000 seed001 seed003 seed004 datasets regress real owndata faults
 
 help:
 	@echo "make install  - install needlecli with test extras (editable)"
@@ -11,6 +11,7 @@ help:
 	@echo "make test     - run the test suite (what .ci/run runs)"
 	@echo "make bench    - speed benchmarks (figures also as ratios against an in-run reference; issue 14's targets first)"
 	@echo "make lint     - ruff"
+	@echo "make docs     - the documentation site in site/ (mkdocs build --strict; pip install -e '.[docs]')"
 	@echo "make seed000  - seed 000's simulation and experiment-like studies: Table I, the sweep of theta (in $(STUDIES))"
 	@echo "make seed001  - seed 001's helix studies: convergence, half turns, Fig. 3, the alternative reading (in $(STUDIES))"
 	@echo "make seed003  - seed 003's simulation study: Table 1 (and its variant), Figs. 6-8 (results and tables in $(STUDIES))"
@@ -45,8 +46,13 @@ bench:
 lint:
 	$(PY) -m ruff check needlecli tests benchmarks
 
+# The documentation site: warnings are errors; the reference pages (commands, config keys, tables and plots)
+# are generated at build time from the code (tools/docs_hooks.py), the Python API from the docstrings.
+docs:
+	NO_MKDOCS_2_WARNING=1 $(PY) -m mkdocs build --strict
+
 clean:
-	rm -rf results .pytest_cache .ruff_cache .hypothesis
+	rm -rf results site .pytest_cache .ruff_cache .hypothesis
 
 seed000:
 	@for c in simulation experiment_like; do \
@@ -120,7 +126,7 @@ real:
 	fi
 	@echo "tables: $(REAL)/tables"
 
-# Bringing your own recorded data (issue 18, README "Bringing your own recorded data"): a synthetic study in
+# Bringing your own recorded data (issue 18, docs/tutorials/own-data.md): a synthetic study in
 # the shape of a lab's exports (step-indexed tracker poses with quaternions, zero rows, per-sample rms, a
 # command file per trial; kappa = 0.012 (1 - duty_cycle), 86-94 % slip), imported by the mapping the export
 # writes, fitted by EM with the speed scale and without it; tables and plots in $(OWN)/tables. OWN_RUNS

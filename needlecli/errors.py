@@ -64,3 +64,16 @@ class Interrupted(KeyboardInterrupt):
         self.name = signal.Signals(signum).name
         self.exit_code = 128 + self.signum
         self.hint = hint
+
+
+def did_you_mean(word: object, candidates) -> str:
+    """``"; did you mean 'rate'?"`` when ``word`` is a likely misspelling of one of ``candidates`` (difflib's
+    closest match, case-insensitive), else ``""``: appended to a message about an unknown key or name."""
+    import difflib
+
+    if not isinstance(word, str) or not word:
+        return ""
+    names = [str(c) for c in candidates if str(c) != word]
+    lower = {n.lower(): n for n in names}
+    hit = difflib.get_close_matches(word.lower(), list(lower), n=1, cutoff=0.6)
+    return f"; did you mean {lower[hit[0]]!r}?" if hit else ""

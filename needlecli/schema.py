@@ -71,7 +71,7 @@ class DistanceGrowth(Strict):
     """Noise growing with distance from a transducer: ``sigma = (1 + a d / d_max) sigma_c`` (seed 003)."""
 
     transducer: tuple[float, float, float] = Field(description="transducer position, model length unit")
-    a: NonNeg = 1.0
+    a: NonNeg = Field(1.0, description="growth coefficient (dimensionless): sigma is (1 + a) times sigma_c at d_max")
     d_max: Positive = Field(80.0, description="normalising distance, model length unit")
 
     def factor(self, position: np.ndarray, axes: list[int] | None = None) -> np.ndarray:
@@ -151,13 +151,17 @@ def _strip_tags(loc: tuple, data: Any) -> tuple:
                 shorthand = part == "constant" and not isinstance(cur, dict)
                 continue
         out.append(part)
-        if isinstance(cur, dict):
-            cur = cur.get(part)
-        elif isinstance(cur, list) and isinstance(part, int) and part < len(cur):
-            cur = cur[part]
-        else:
-            cur = None
+        cur = _child(cur, part)
     return tuple(out)
+
+
+def _child(data: Any, part: Any) -> Any:
+    """``data[part]`` of parsed YAML (a mapping's key, a list's index), or None where there is none."""
+    if isinstance(data, dict):
+        return data.get(part)
+    if isinstance(data, list) and isinstance(part, int) and part < len(data):
+        return data[part]
+    return None
 
 
 def _location(err: dict, data: Any) -> tuple:
@@ -206,10 +210,83 @@ def error_message(err: dict) -> str:
     return " ".join(msg.split())  # one line
 
 
-def validation_error(e: ValidationError, data: Any, source: str, prefix: tuple = (),
-                     tags: dict[str, str] | None = None) -> ConfigError:
-    """The first problem of a failed validation of ``data`` (from file ``source``) as a ConfigError, its
-    key path as written in the file (under ``prefix``), with how many more problems there are.
+def _schemas(t: Any) -> list[type[BaseModel]]:
+    """The schemas a field's type holds (through Annotated, Optional, unions)."""
+    while typing.get_origin(t) is Annotated:
+        t = typing.get_args(t)[0]
+    if isinstance(t, type) and issubclass(t, BaseModel):
+        return [t]
+    if typing.get_origin(t) in (Union, types.UnionType):
+        return [m for a in typing.get_args(t) for m in _schemas(a)]
+    return []
+
+
+def _member(models: list[type[BaseModel]], data: Any, key: Any = None) -> type[BaseModel] | None:
+    """The member of a union of schemas that ``data`` chose (by its ``type``, ``kind`` or ``device``: a
+    one-value Literal field), else the one that has ``key``, else the first."""
+    if isinstance(data, dict):
+        for m in models:
+            for name, info in m.model_fields.items():
+                lit = info.annotation
+                if typing.get_origin(lit) is typing.Literal and len(typing.get_args(lit)) == 1 and \
+                        data.get(info.alias or name) == typing.get_args(lit)[0]:
+                    return m
+    having = [m for m in models if any((i.alias or n) == key for n, i in m.model_fields.items())]
+    return (having or models or [None])[0]
+
+
+def keys_at(schema: type[BaseModel], data: Any, loc: tuple) -> list[str]:
+    """The keys the schema allows at ``loc`` (a key path as the user wrote it, without the last key) of
+    the config ``data``: what an unknown key there may have been meant to be. Empty when it is no section."""
+    t: Any = schema
+    for part in loc:
+        while typing.get_origin(t) is Annotated:
+            t = typing.get_args(t)[0]
+        models = _schemas(t)
+        if models:
+            m = _member(models, data, part)
+            info = next((i for n, i in m.model_fields.items() if (i.alias or n) == part), None)
+            if info is None:
+                return []
+            t = info.annotation
+        else:
+            args = [a for a in typing.get_args(t) if a is not type(None) and a is not Ellipsis]
+            origin = typing.get_origin(t)
+            if origin in (Union, types.UnionType):  # e.g. list | None: the container member
+                args = [a for a in args if typing.get_origin(a) in (list, tuple, dict)]
+                t = args[0] if args else None
+                origin = typing.get_origin(t)
+                args = [a for a in typing.get_args(t) if a is not Ellipsis] if t is not None else []
+            if origin in (list, tuple) and isinstance(part, int) and args:
+                t = args[min(part, len(args) - 1)] if origin is tuple else args[0]
+            elif origin is dict and len(args) == 2:
+                t = args[1]
+            else:
+                return []
+        data = _child(data, part)
+    models = _schemas(t)
+    m = _member(models, data) if models else None
+    return [i.alias or n for n, i in m.model_fields.items()] if m is not None else []
+
+
+def _suggestion(err: dict, loc: tuple, data: Any, schema: type[BaseModel] | None) -> str:
+    """A did-you-mean for an unknown key (the schema's keys there) or an unknown type (the known ones)."""
+    from needlecli.errors import did_you_mean
+
+    if err.get("type") == "extra_forbidden" and schema is not None and loc:
+        return did_you_mean(loc[-1], keys_at(schema, data, loc[:-1]))
+    if err.get("type") == "union_tag_invalid":
+        ctx = err.get("ctx", {})
+        known = [k.strip().strip(chr(39)) for k in str(ctx.get("expected_tags", "")).split(",")]
+        return did_you_mean(ctx.get("tag"), known)
+    return ""
+
+
+def validation_errors(e: ValidationError, data: Any, source: str, prefix: tuple = (),
+                      tags: dict[str, str] | None = None, schema: type[BaseModel] | None = None) -> list[ConfigError]:
+    """Every problem of a failed validation of ``data`` (from file ``source``), each a ConfigError with its
+    key path as written in the file (under ``prefix``) and, given the ``schema`` that failed, a "did you
+    mean" for a misspelt key or type.
 
     ``tags`` lists every type a top-level section may name (``{"observers": "'ekf', 'ukf'"}``) where the
     schema was built of the types the file names only: an unknown type then lists them all.
@@ -218,7 +295,18 @@ def validation_error(e: ValidationError, data: Any, source: str, prefix: tuple =
     for err in errs:
         if err.get("type") == "union_tag_invalid" and tags and err["loc"] and err["loc"][0] in tags:
             err["ctx"] = {**err.get("ctx", {}), "expected_tags": tags[err["loc"][0]]}
-    errs = _pick_errors(errs)
-    err = errs[0]
+    out = []
+    for err in _pick_errors(errs):
+        loc = _location(err, data)
+        out.append(ConfigError(source, tuple(prefix) + loc, error_message(err) + _suggestion(err, loc, data, schema)))
+    return out
+
+
+def validation_error(e: ValidationError, data: Any, source: str, prefix: tuple = (),
+                     tags: dict[str, str] | None = None, schema: type[BaseModel] | None = None) -> ConfigError:
+    """The first problem of :func:`validation_errors` as one ConfigError, with how many more problems there
+    are (``needle validate`` lists them all)."""
+    errs = validation_errors(e, data, source, prefix, tags, schema)
+    first = errs[0]
     more = f" (and {len(errs) - 1} more problem{'s' if len(errs) > 2 else ''})" if len(errs) > 1 else ""
-    return ConfigError(source, tuple(prefix) + _location(err, data), error_message(err) + more)
+    return ConfigError(first.source, first.loc, first.message + more)

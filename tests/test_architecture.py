@@ -1,6 +1,6 @@
 """The house rules, read from the source with ``ast``: no import cycle between needlecli's modules
 (imports inside functions count; ``if TYPE_CHECKING:`` blocks do not), dependencies between the
-packages point one way (the layers drawn in README's "Layout"), and ``needle --help`` loads no
+packages point one way (the layers drawn in docs/layout.md), and ``needle --help`` loads no
 numerical library."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import pytest
 
 PKG = Path(__file__).resolve().parent.parent / "needlecli"
 
-#: each package (or top-level module) and the ones it may import: README's layer drawing, as data
+#: each package (or top-level module) and the ones it may import: docs/layout.md's layer drawing, as data
 LAYERS: dict[str, set[str]] = {
     "foundation": set(),  # errors, registry, schema, provenance, the package's __init__
     "kernels": {"foundation"},  # compiled numerics: import nothing of the package above them

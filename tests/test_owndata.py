@@ -499,12 +499,12 @@ def test_a_fit_on_raw_exports_says_what_in_the_data_is_wrong(tmp_path):
 
 
 def test_the_readme_mapping_is_a_valid_mapping_and_says_what_export_csv_writes(study):
-    """The tutorial's mapping (README, "Bringing your own recorded data") passes the schema and has the keys
-    the export writes for the synthetic set (the same layout)."""
+    """The tutorial's mapping (docs/tutorials/own-data.md, "Bringing your own recorded data") passes the
+    schema and has the keys the export writes for the synthetic set (the same layout)."""
     from needlecli.io.csv_import import Mapping
 
-    text = (ROOT / "README.md").read_text()
-    section = text[text.index("## Bringing your own recorded data"):]
+    text = (ROOT / "docs" / "tutorials" / "own-data.md").read_text()
+    section = text[text.index("# Bringing your own recorded data"):]
     block = section[section.index("```yaml\n") + 8:]
     doc = yaml.safe_load(block[: block.index("```")])
     Mapping.model_validate(doc)

@@ -27,7 +27,8 @@ from needlecli.cli import (
 
 app = typer.Typer(
     name="needle",
-    help="Batch experiments with steerable-needle models, emulated sensors and observers.",
+    help="Batch experiments with steerable-needle models, emulated sensors and observers.\n\n"
+         "Example: needle simulate configs/default.yaml && needle evaluate results/default.h5",
     no_args_is_help=True,
     pretty_exceptions_enable=False,
     add_completion=True,  # --install-completion / --show-completion for the user's shell

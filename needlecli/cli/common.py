@@ -97,9 +97,10 @@ def check_results_target(cfg, target, base_dir, what: str = "the results file"):
     return est
 
 
-def setup_logging(quiet: bool) -> None:
+def setup_logging(quiet: bool, level: int = logging.INFO) -> None:
+    """Log lines to stderr from ``level`` on; ``--quiet`` keeps only errors above warnings' level."""
     logging.basicConfig(
-        level=logging.WARNING if quiet else logging.INFO,
+        level=max(logging.WARNING, level + 10) if quiet else level,
         format="%(message)s",
         stream=sys.stderr,
         force=True,

@@ -12,7 +12,7 @@ from needlecli.cli.common import fail, setup_logging, user_errors
 @user_errors
 def evaluate(
     results: Path = typer.Argument(..., help="Results file of needle simulate, or fit file of needle fit-em."),
-    out: Path = typer.Option(None, "--out", "-o", help="Folder for tables and plots (default: beside the results)."),
+    out: Path = typer.Option(None, "--out", "-o", help="Folder for tables and plots (default: RESULTS_tables/ beside the results file)."),
     format_: str = typer.Option("md,csv,tex", "--format", "-f", help="Table formats: md, csv, tex."),
     tables: str = typer.Option(None, "--tables", "-t", help="Tables to write (default: the config's output.tables)."),
     plots: bool = typer.Option(True, "--plots/--no-plots", help="Write PNG plots of error against depth."),
@@ -24,7 +24,11 @@ def evaluate(
     regress: str = typer.Option(None, "--regress", help="Fit files: regressions CONSTANT:FACTOR[,...] of fit_regression."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="Print nothing but errors."),
 ) -> None:
-    """Compute error statistics per observer and write them as Markdown, CSV and LaTeX tables."""
+    """Compute error statistics per observer and write them as Markdown, CSV and LaTeX tables, and the
+    plots (PNG); a fit file of needle fit-em gives seed 004's tables and figures.
+
+    Example: needle evaluate results/default.h5 --tables summary,accuracy,consistency
+    """
     from needlecli.reports.evaluate import configured_tables_of, evaluate_results, experiment_name
     from needlecli.reports.tables import TABLES, to_markdown
 
@@ -36,7 +40,9 @@ def evaluate(
     names = [t.strip() for t in tables.split(",")] if tables else None
     for t in names or []:
         if t not in TABLES:
-            fail(f"--tables: unknown table {t!r}; known: {', '.join(TABLES.names())}")
+            from needlecli.errors import did_you_mean
+
+            fail(f"--tables: unknown table {t!r}; known: {', '.join(TABLES.names())}" + did_you_mean(t, TABLES.names()))
     out_dir = out if out is not None else results.parent / f"{results.stem}_tables"
     from needlecli.errors import ConfigError
     from needlecli.io.atomic import check_output_dir, check_output_file

@@ -14,13 +14,16 @@ def fit_em_cmd(
     sources: list[Path] = typer.Argument(..., metavar="CONFIG_OR_LOG...", help="Experiment configs (.yaml); "
                                          "recorded trials through a config with `source: {logs: [...]}`."),
     model: str = typer.Option(None, "--model", "-m", help="mnm, binm or both (default: the config's fit.models)."),
-    out: Path = typer.Option(None, "--out", "-o", help="Fit file (default: results/<name>_fit.h5; one source only)."),
+    out: Path = typer.Option(None, "--out", "-o", help="Fit file (default: results/NAME_fit.h5; one source only)."),
     set_: list[str] = typer.Option([], "--set", help="Override a config key: --set fit.em.max_iter=50"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar or log lines."),
 ) -> None:
     """Fit the process noise Q, each measurement noise R_j and the model's constant (c of the MNM,
     l_inv of the BiNM) to every trial by EM with the iterated extended Kalman smoother, and write the
-    fits, smoothed trajectories and convergence histories to one HDF5 file per config."""
+    fits, smoothed trajectories and convergence histories to one HDF5 file per config.
+
+    Example: needle fit-em configs/seed004/study.yaml --model both --out results/seed004_fit.h5
+    """
     import numpy as np
 
     from needlecli.experiments.fit import default_fit_output, fit_tree, fit_trials, load_fit_config, load_trials
@@ -46,8 +49,8 @@ def fit_em_cmd(
         log.info("fitting %d trial(s) of %s (%s)", n, cfg.name, "simulated" if trials.simulated else "recorded")
         with progress_bar(not quiet) as bar:
             result = fit_trials(trials, models=models, progress=bar)
-        tree = fit_tree(result)
-        write_atomic(target, tree)
+            tree = fit_tree(result)
+            write_atomic(target, tree, progress=(lambda k, n: bar("fit file", k, n)) if bar else None)
         ids = trials.truth.trial_ids or [f"run {i}" for i in range(n)]
         if not quiet:
             for name, mf in result.fits.items():

@@ -6,9 +6,10 @@ from pathlib import Path
 
 import typer
 
-from needlecli.cli.common import user_errors
+from needlecli.cli.common import setup_logging, user_errors
 
-log_app = typer.Typer(help="Log files of recorded insertions: import, convert, inspect.", no_args_is_help=True)
+log_app = typer.Typer(help="Log files of recorded insertions: import, convert, inspect.\n\n"
+                           "Example: needle log info datasets/seed003_like.h5", no_args_is_help=True)
 
 
 @log_app.command("import-csv")
@@ -16,8 +17,13 @@ log_app = typer.Typer(help="Log files of recorded insertions: import, convert, i
 def import_csv_cmd(
     mapping: Path = typer.Argument(..., help="Mapping YAML describing the CSV exports."),
     out: Path = typer.Option(..., "--out", "-o", help="Log file to write (HDF5)."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No log lines or warnings on stderr (the file written is still named)."),
 ) -> None:
-    """Import CSV exports (one file per stream: a time column and value columns) into a log."""
+    """Import CSV exports (one file per stream: a time column and value columns) into a log.
+
+    Example: needle log import-csv results/owndata/exports/mapping.yaml --out results/owndata/lab.h5
+    """
+    setup_logging(quiet)
     from needlecli.io.atomic import check_output_file
     from needlecli.io.csv_import import import_csv
     from needlecli.io.logs import write_log
@@ -35,9 +41,14 @@ def from_results_cmd(
     out: Path = typer.Option(..., "--out", "-o", help="Log file to write (HDF5)."),
     description: str = typer.Option("", help="Description stored in the log."),
     truth_every: int = typer.Option(1, "--truth-every", min=1, help="Keep the truth every k-th step (a slower tracker)."),
-    prefix: str = typer.Option("run", "--prefix", help="Trial ids are <prefix><run number>."),
+    prefix: str = typer.Option("run", "--prefix", help="Trial ids are PREFIX followed by the run number."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No log lines or warnings on stderr (the file written is still named)."),
 ) -> None:
-    """Turn a simulated experiment into a log (one trial per run), marked synthetic with its config."""
+    """Turn a simulated experiment into a log (one trial per run), marked synthetic with its config.
+
+    Example: needle log from-results results/default.h5 --out results/default_log.h5 --truth-every 10
+    """
+    setup_logging(quiet)
     from needlecli.io.atomic import check_output_file
     from needlecli.io.logs import log_from_results, write_log
     from needlecli.io.results import read_results
@@ -57,9 +68,14 @@ def export_csv_cmd(
     tracker_pose: str = typer.Option(None, "--tracker-pose",
                                      help="Where the tracker sees the model frame: rx,ry,rz,tx,ty,tz (deg, mm)."),
     sensor_roll: float = typer.Option(0.0, "--sensor-roll", help="The tracker coil's roll in the needle, deg."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No log lines or warnings on stderr (the file written is still named)."),
 ) -> None:
     """Write a log as a lab's tracker exports: step-indexed pose files (quaternions, zero rows where a
-    sample was lost, each sample's rms), a command file per trial, and the mapping that imports them."""
+    sample was lost, each sample's rms), a command file per trial, and the mapping that imports them.
+
+    Example: needle log export-csv results/default_log.h5 --out results/exports --tracker-pose 10,80,25,120,-40,15
+    """
+    setup_logging(quiet)
     from needlecli.io.csv_export import export_lab_csv
     from needlecli.io.logs import read_log
 
@@ -74,7 +90,10 @@ def info_cmd(
     meta: bool = typer.Option(False, "--meta", help="Print every trial's metadata too."),
 ) -> None:
     """Check a log and describe its trials, streams and truth; for imported trials what was read, dropped
-    and why, where each trial starts and its frame."""
+    and why, where each trial starts and its frame.
+
+    Example: needle log info datasets/seed003_like.h5 --meta
+    """
     from needlecli.io.logs import read_log
 
     log = read_log(log_file)
@@ -151,8 +170,13 @@ def merge_cmd(
     logs: list[Path] = typer.Argument(..., help="Log files to merge."),
     out: Path = typer.Option(..., "--out", "-o", help="Merged log file."),
     description: str = typer.Option("", help="Description stored in the log."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No log lines or warnings on stderr (the file written is still named)."),
 ) -> None:
-    """Merge the trials of several logs into one file."""
+    """Merge the trials of several logs into one file.
+
+    Example: needle log merge a.h5 b.h5 --out merged.h5 --description "two sessions"
+    """
+    setup_logging(quiet)
     from needlecli.io.atomic import check_output_file
     from needlecli.io.logs import merge_logs, read_log, write_log
 

@@ -14,13 +14,16 @@ def simulate(
     config: Path = typer.Argument(..., help="Experiment config (YAML)."),
     runs: int = typer.Option(None, "--runs", "-n", min=1, help="Number of Monte-Carlo runs (overrides runs.count)."),
     seed: int = typer.Option(None, "--seed", "-s", min=0, help="Seed (overrides runs.seed)."),
-    out: Path = typer.Option(None, "--out", "-o", help="Results file (default: output.path or results/<name>.h5)."),
+    out: Path = typer.Option(None, "--out", "-o", help="Results file (default: output.path or results/NAME.h5, NAME the config's name)."),
     set_: list[str] = typer.Option([], "--set", help="Override a config key: --set sensors.0.rate=2"),
     dry_run: bool = typer.Option(False, "--dry-run", help="Validate and describe; simulate nothing."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar or log lines."),
 ) -> None:
     """Simulate the insertions, measure them, run the observers, write one HDF5 results file and print
-    the summary table."""
+    the summary table.
+
+    Example: needle simulate configs/default.yaml --runs 10 --set sensors.0.rate=2
+    """
     from needlecli.experiments.config import load_config
     from needlecli.experiments.runner import default_output, run_experiment
     from needlecli.reports.evaluate import results_tables

@@ -17,7 +17,7 @@ def sweep(
     executor: str = typer.Option("local", "--executor", "-e", help="local (processes), dask (a distributed cluster) or inline."),
     scheduler: str = typer.Option(None, "--scheduler", help="Dask scheduler address, e.g. tcp://10.0.0.5:8786 (default: start a LocalCluster)."),
     workers: int = typer.Option(None, "--workers", "-w", min=1, help="Local worker processes (default: the CPU count)."),
-    out: Path = typer.Option(None, "--out", "-o", help="Sweep folder (default: results/sweeps/<config>_<grid>)."),
+    out: Path = typer.Option(None, "--out", "-o", help="Sweep folder (default: results/sweeps/CONFIG_GRID, the files' names)."),
     resume: bool = typer.Option(False, "--resume", help="Skip cells whose complete results already exist."),
     set_: list[str] = typer.Option([], "--set", help="Override a key in every cell: --set runs.count=10"),
     plot_metric: str = typer.Option(None, "--plot-metric", help="Metric column to plot (default: E_xyz_mean)."),
@@ -25,9 +25,12 @@ def sweep(
     dry_run: bool = typer.Option(False, "--dry-run", help="Validate every cell and list them; run nothing."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar or log lines; print only the paths."),
 ) -> None:
-    """Run one experiment per cell of a grid (each validated first), write DIR/cells/<id>.h5, the table
+    """Run one experiment per cell of a grid (each validated first), write DIR/cells/ID.h5, the table
     DIR/sweep.csv and DIR/sweep.md (one row per cell and observer) and a plot of a metric against a
-    parameter. Exit code 1 when a cell failed (the others still ran), 2 for a bad config or grid."""
+    parameter. Exit code 1 when a cell failed (the others still ran), 2 for a bad config or grid.
+
+    Example: needle sweep configs/seed003/table1.yaml --grid configs/sweeps/seed003_q_kappa.yaml --workers 2
+    """
     from needlecli.experiments.sweep import (
         default_plot_choice,
         load_grid,

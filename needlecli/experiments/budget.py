@@ -1,7 +1,7 @@
 """How much memory and disk an experiment needs, worked out from its config before any work, and a
 refusal, with the figure, the key that drives it and what to change, of an experiment that will not fit.
 
-The estimate counts the arrays of the results file as they are stored (README, "Results file"): the
+The estimate counts the arrays of the results file as they are stored (docs/reference/results-file.md): the
 truth ``(N, T, n)``, its parameters and inputs ``(N, T, .)``, each sensor's values, sigmas and validity
 ``(N, M, m)`` (and the clock's sample times, which a rate far above the grid's makes huge before they are
 placed on it), each observer's estimates ``(N, T, n)`` and covariances ``(N, T', n, n)`` or ``(N, T', n)``

@@ -19,7 +19,7 @@ from pydantic import BaseModel
 from pydantic.fields import FieldInfo
 from pydantic_core import PydanticUndefined
 
-from needlecli.errors import ConfigError
+from needlecli.errors import ConfigError, did_you_mean
 
 #: the sections that choose a registered component by ``type`` (``model`` is one component)
 COMPONENT_SECTIONS = ("model", "sensors", "observers", "control")
@@ -47,6 +47,7 @@ class SectionDoc:
     doc: str
     fields: list[FieldDoc] = field(default_factory=list)
     choices: dict[str, str] = field(default_factory=dict)  # type -> first line of its docstring
+    choice_key: str = "type"  # what chooses among the choices: type, kind (inputs), device (an image section)
 
 
 # ---------------------------------------------------------------------------------------------- types
@@ -108,6 +109,31 @@ def _models_in(t: Any) -> list[type[BaseModel]]:
     return out
 
 
+def variants(models: list[type[BaseModel]]) -> tuple[str, dict[str, type[BaseModel]]] | None:
+    """The schemas of a union chosen by a key (``device`` of an image section, ``kind`` of a signal):
+    ``(key, {value: schema})``, or None when the union has no such key."""
+    if len(models) < 2:
+        return None
+    for key in models[0].model_fields:
+        values = {}
+        for m in models:
+            info = m.model_fields.get(key)
+            lit = _strip(info.annotation) if info is not None else None
+            if lit is None or typing.get_origin(lit) is not Literal or len(typing.get_args(lit)) != 1:
+                break
+            values[str(typing.get_args(lit)[0])] = m
+        else:
+            if len(values) == len(models):
+                return (models[0].model_fields[key].alias or key), values
+    return None
+
+
+def _variants_section(path: str, models: list[type[BaseModel]]) -> SectionDoc:
+    key, values = variants(models)  # type: ignore[misc]
+    return SectionDoc(path=path, doc=f"One of the sections below, chosen by `{key}` (`needle explain {path}.<{key}>`).",
+                      choices={v: _first_paragraph(m) for v, m in values.items()}, choice_key=key)
+
+
 def _constraints(info: FieldInfo) -> str:
     words = {"ge": ">=", "gt": ">", "le": "<=", "lt": "<", "min_length": "at least {} entries",
              "max_length": "at most {} entries", "pattern": "matching {}"}
@@ -116,6 +142,8 @@ def _constraints(info: FieldInfo) -> str:
         for k, sym in words.items():
             v = getattr(m, k, None)
             if v is not None and not callable(v):
+                if k in ("min_length", "max_length") and _strip(info.annotation) is str:
+                    sym = sym.replace("entries", "characters")
                 parts.append(sym.format(v) if "{}" in sym else f"{sym} {v:g}" if isinstance(v, (int, float)) else f"{sym} {v}")
     for a in typing.get_args(info.annotation) if typing.get_origin(info.annotation) is typing.Annotated else ():
         for k, sym in words.items():
@@ -229,7 +257,8 @@ def explain(path: str | None = None) -> SectionDoc:
             t = parts[i + 1]
             if t not in schemas:
                 what = {"model": "model", "sensors": "sensor", "observers": "observer", "control": "controller"}[p]
-                raise ConfigError("needle explain", tuple(where), f"no {what} type {t!r}; known: {', '.join(sorted(schemas))}")
+                raise ConfigError("needle explain", tuple(where), f"no {what} type {t!r}; known: {', '.join(sorted(schemas))}"
+                                  + did_you_mean(t, schemas))
             cur = schemas[t]
             where.append(t)
             i += 2
@@ -239,26 +268,40 @@ def explain(path: str | None = None) -> SectionDoc:
             if i + 1 == len(parts):
                 sec = SectionDoc(path="inputs", doc="One entry per model input (`inputs.<name>`): a number or list "
                                  "(a constant), or a signal of one of the kinds below (`kind:`).",
-                                 choices={k: _first_paragraph(m) for k, m in kinds.items()})
+                                 choices={k: _first_paragraph(m) for k, m in kinds.items()}, choice_key="kind")
                 return sec
-            k = parts[i + 1]
-            if k not in kinds:
-                raise ConfigError("needle explain", tuple(where), f"no input kind {k!r}; kinds: {', '.join(kinds)}")
-            cur = kinds[k]
-            where.append(k)
+            cur = _pick(kinds, parts[i + 1], where, "input kind", "kinds")
             i += 2
             continue
         fields = {(info.alias or n): info for n, info in cur.model_fields.items()}
         if p not in fields:
-            raise ConfigError("needle explain", tuple(where), f"no key {p!r} here; keys: {', '.join(fields)}")
+            raise ConfigError("needle explain", tuple(where), f"no key {p!r} here; keys: {', '.join(fields)}"
+                              + did_you_mean(p, fields))
         nested = _models_in(fields[p].annotation)
         if not nested:
             sec = describe_model(cur, ".".join(where[:-1]))
             sec.fields = [f for f in sec.fields if f.name == p]
             return sec
+        chosen = variants(nested)
+        if chosen is not None:  # a union chosen by a key: name the variant next (sensors.position.image.us3d)
+            key, by_value = chosen
+            if i + 1 == len(parts):
+                return _variants_section(".".join(where), nested)
+            cur = _pick(by_value, parts[i + 1], where, key, key)
+            i += 2
+            continue
         cur = nested[0]
         i += 1
     return describe_model(cur, ".".join(where))
+
+
+def _pick(by_value: dict, v: str, where: list[str], what: str, plural: str):
+    """The schema named ``v`` among ``by_value`` (added to the path ``where``), or an error listing them."""
+    if v not in by_value:
+        raise ConfigError("needle explain", tuple(where), f"no {what} {v!r}; {plural}: {', '.join(by_value)}"
+                          + did_you_mean(v, by_value))
+    where.append(v)
+    return by_value[v]
 
 
 def _section_of(section: str, schemas: dict[str, type[BaseModel]]) -> SectionDoc:
@@ -293,21 +336,27 @@ def as_text(sec: SectionDoc, width: int = 100) -> str:
         if body:
             out.append(textwrap.fill(body, width, initial_indent="      ", subsequent_indent="      "))
     if sec.choices:
-        out.append("  types:" if sec.path != "inputs" else "  kinds:")
+        out.append(f"  {sec.choice_key}s:")
         for k, v in sec.choices.items():
             out.append(textwrap.fill(f"{k}: {v}", width, initial_indent="    ", subsequent_indent="      "))
     return "\n".join(out)
 
 
+def _md_text(s: str) -> str:
+    """Markdown text: angle brackets outside `code` escaped (results/<name>.h5 is no HTML tag)."""
+    parts = s.split("`")
+    return "`".join(p.replace("<", "&lt;").replace(">", "&gt;") if i % 2 == 0 else p for i, p in enumerate(parts))
+
+
 def _md_cell(s: str) -> str:
-    return s.replace("|", "\\|").replace("\n", " ")
+    return _md_text(s.replace("|", "\\|").replace("\n", " "))
 
 
 def as_markdown(sec: SectionDoc, level: int = 2) -> str:
     title = f"`{sec.path}`" if sec.path else "The config"
     out = [f"{'#' * level} {title}", ""]
     if sec.doc:
-        out += [sec.doc, ""]
+        out += [_md_text(sec.doc), ""]
     if sec.fields:
         out += ["| key | type | default | description |", "| --- | --- | --- | --- |"]
         for f in sec.fields:
@@ -315,7 +364,7 @@ def as_markdown(sec: SectionDoc, level: int = 2) -> str:
             out.append(f"| `{f.name}` | {_md_cell(f.type)} | `{_md_cell(f.default)}` | {_md_cell(desc)} |")
         out.append("")
     if sec.choices:
-        out += ["| type | what it is |" if sec.path != "inputs" else "| kind | what it is |", "| --- | --- |"]
+        out += [f"| {sec.choice_key} | what it is |", "| --- | --- |"]
         out += [f"| `{k}` | {_md_cell(v)} |" for k, v in sec.choices.items()]
         out.append("")
     return "\n".join(out)
@@ -332,10 +381,17 @@ def reference_pages() -> dict[str, str]:
     def walk(sec: SectionDoc, level: int, into: list[str]) -> None:
         for f in sec.fields:
             models = f.nested if isinstance(f.nested, list) else ([f.nested] if f.nested is not None else [])
+            base = f"{sec.path}.{f.name}" if sec.path else f.name
+            chosen = variants(models)
+            if chosen is not None and base not in seen:  # the variants' list, then each variant
+                seen.add(base)
+                into.append(as_markdown(_variants_section(base, models), level))
+            names = chosen[1] if chosen is not None else {}
+            by_model = {id(m): v for v, m in names.items()}
             for m in models:
-                p = f"{sec.path}.{f.name}" if sec.path else f.name
+                p = base
                 if len(models) > 1:
-                    p += f" ({m.__name__})"
+                    p += f".{by_model[id(m)]}" if id(m) in by_model else f" ({m.__name__})"
                 if p in seen:
                     continue
                 seen.add(p)
@@ -356,6 +412,7 @@ def reference_pages() -> dict[str, str]:
             for k in explain("inputs").choices:
                 sec = explain(f"inputs.{k}")
                 parts.append(as_markdown(sec, 2))
+                walk(sec, 3, parts)
             pages["inputs"] = "\n".join(parts)
         elif f.nested is not None:
             sec = explain(f.name)
@@ -391,6 +448,8 @@ def undocumented() -> list[str]:
 
     root = experiment_schema()
     for name, info in root.model_fields.items():
+        if not (info.description or "").strip():
+            missing.append(name)
         if name in COMPONENT_SECTIONS:
             for t, m in _component_schemas(name).items():
                 check(m, f"{name}.{t}")
@@ -398,8 +457,6 @@ def undocumented() -> list[str]:
             for k, m in _signal_kinds().items():
                 check(m, f"inputs.{k}")
         else:
-            if not (info.description or "").strip():
-                missing.append(name)
             for sub in _models_in(info.annotation):
                 check(sub, name)
     return missing

@@ -306,7 +306,7 @@ def _run_models(names, workers, run, systems, out, progress) -> None:
 
 # ---------------------------------------------------------------------------------------------- the file
 def fit_tree(out: FitOutput) -> Group:
-    """The fit file's content (README, "Fit file")."""
+    """The fit file's content (docs/reference/fit-file.md)."""
     tr = out.trials
     cfg, truth = tr.cfg, tr.truth
     fit = cfg.fit if cfg.fit is not None else FitSettings()
@@ -411,7 +411,7 @@ def _model_group(mf: ModelFit, fit: FitSettings) -> Group:
 
 
 def identifiability_group(idf: Identifiability, fit: FitSettings) -> Group:
-    """``/fit/<model>/identifiability`` (README, "Fit file")."""
+    """``/fit/<model>/identifiability`` (docs/reference/fit-file.md)."""
     return Group(
         data={
             "estimate": idf.estimate, "se": idf.se, "rse": idf.rse, "hessian": idf.hessian, "step": idf.theta_step,

@@ -38,17 +38,22 @@ def build_sensors(cfg, model):
     return [SENSORS.get(s.type)(s, model) for s in cfg.sensors]
 
 
-def simulate_and_measure(cfg, *, progress: Callable[[int, int], None] | None = None):
+def simulate_and_measure(cfg, *, progress: Callable[[int, int], None] | None = None,
+                         measure_progress: Progress | None = None):
     """Simulate the truth of a config and measure it with every sensor: in open loop (the truth first,
     then each sensor from its own random stream) or, with a ``control:`` section, in closed loop
     (:func:`needlecli.experiments.closed_loop.simulate_closed_loop`). Returns ``(truth, sensors, streams, control)``,
-    ``control`` the results group of each controller (empty in open loop)."""
+    ``control`` the results group of each controller (empty in open loop). ``measure_progress(phase, done,
+    total)`` hears from sensors whose pipeline takes long (rendered frames)."""
     if cfg.control:
         from needlecli.experiments.closed_loop import simulate_closed_loop
 
         return simulate_closed_loop(cfg, progress=progress)
     truth = simulate_truth(cfg, progress=progress)
     sensors = build_sensors(cfg, truth.model)
+    for s in sensors:
+        if measure_progress is not None:
+            s.progress = lambda k, n, _n=s.name: measure_progress(f"sensor {_n}", k, n)
     streams = {s.name: s.measure(truth, stream(cfg.runs.seed, f"sensor/{s.name}")) for s in sensors}
     return truth, sensors, streams, {}
 
@@ -103,7 +108,7 @@ def run_experiment(
         truth, sensors, streams = replay_truth(cfg, Path(base_dir or "."))
     else:
         truth, sensors, streams, control = simulate_and_measure(
-            cfg, progress=(lambda k, n: progress("truth", k, n)) if progress else None)
+            cfg, progress=(lambda k, n: progress("truth", k, n)) if progress else None, measure_progress=progress)
     problem = build_problem(cfg, truth, sensors, streams)
     estimates: dict[str, Posterior] = {}
     for o in cfg.observers:
@@ -114,7 +119,8 @@ def run_experiment(
     if write:
         path = Path(out) if out is not None else default_output(cfg)
         tree = results_tree(cfg, config_text, truth, streams, estimates, sensors, control)
-        write_atomic(path, tree, compression=cfg.output.compression)
+        write_atomic(path, tree, compression=cfg.output.compression,
+                     progress=(lambda k, n: progress("results file", k, n)) if progress else None)
     return ExperimentResult(truth=truth, measurements=streams, estimates=estimates, path=path, control=control,
                             tree=tree if write else None)
 

@@ -49,7 +49,9 @@ class KalmanSetup(Strict):
     p0: dict[str, NonNeg] = Field(default_factory=dict, description="initial variance per state (and constant)")
     measurements: dict[str, ChannelNoise] = Field(
         default_factory=dict, description="channels used (default: every channel the model can predict)")
-    init: KalmanInit = Field(default_factory=KalmanInit)
+    init: KalmanInit = Field(default_factory=KalmanInit, description="the initial estimate (needlecli.initial): from "
+                                                                     "the nominal state unless told otherwise, values, "
+                                                                     "first_measurement, std as the default P0")
 
 
 class EMSettings(Strict):
@@ -113,9 +115,13 @@ class FitSettings(KalmanSetup):
         None, description="model parameters EM estimates as constant states (default: the curvature parameter; "
         "e.g. [kappa, speed_scale] for a needle that slips)")
     design: FitDesign = Field(default_factory=FitDesign, description="tables by the trials' design factors")
-    ticks: Ticks = "measurements"
-    substeps: int | None = Field(1, ge=1, le=1000)
-    em: EMSettings = Field(default_factory=EMSettings)
+    ticks: Ticks = Field("measurements", description="where the filter has a state: grid (every grid step), "
+                                                     "measurements (the times of the samples used), or a rate in Hz "
+                                                     "plus those times")
+    substeps: int | None = Field(1, ge=1, le=1000, description="RK4 steps per tick interval with the interval's mean "
+                                                               "input (null: one per grid step)")
+    em: EMSettings = Field(default_factory=EMSettings, description="the EM iterations: limits, tolerances, "
+                                                                   "acceleration")
     identify: IdentifySettings = Field(default_factory=IdentifySettings, description="standard errors and verdicts")
     store: Literal["full", "diag"] = Field("diag", description="smoothed covariances in the fit file")
     repeats: int = Field(100, ge=1, le=100_000, description="re-simulations per parameter for 'SD as trajectory error'")

@@ -1,6 +1,6 @@
 """``needle log export-csv``: a log written the way a lab's tracker software exports insertions, with the
 mapping that imports it back (``needle log import-csv``). Made to test a mapping and the whole path from
-exports to fits on data whose truth is known (README, "Bringing your own recorded data").
+exports to fits on data whose truth is known (docs/tutorials/own-data.md).
 
 Per trial, in the output folder:
 

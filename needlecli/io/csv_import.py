@@ -244,7 +244,7 @@ def load_mapping(mapping_path: str | Path) -> Mapping:
     try:
         return Mapping.model_validate(data)
     except ValidationError as e:
-        raise validation_error(e, data, str(mapping_path)) from None
+        raise validation_error(e, data, str(mapping_path), schema=Mapping) from None
 
 
 def import_csv(mapping_path: str | Path) -> Log:

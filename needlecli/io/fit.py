@@ -1,4 +1,4 @@
-"""The fit file of ``needle fit-em`` (README, "Fit file"): root attribute ``format = "needlecli-fit"``,
+"""The fit file of ``needle fit-em`` (docs/reference/fit-file.md): root attribute ``format = "needlecli-fit"``,
 ``version``. Written by :func:`needlecli.experiments.fit.fit_tree` through
 :func:`~needlecli.io.results.write_atomic`; read here."""
 

@@ -1,5 +1,5 @@
-"""The documented structure of the files this tool reads (README: "Results file", "Fit file", "Log
-files"), checked once when a file is opened, before anything is read from it.
+"""The documented structure of the files this tool reads (docs/reference/: results-file.md,
+fit-file.md, log-file.md), checked once when a file is opened, before anything is read from it.
 
 A layout is a tree of :class:`G` (groups) and :class:`D` (datasets) with their attributes (:class:`A`).
 Shapes are written with symbols (``("N", "T", "n")``): the first dataset or attribute that has a symbol

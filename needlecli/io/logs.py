@@ -1,4 +1,4 @@
-"""Recorded insertions: the log file format (a public contract, see README "Log files").
+"""Recorded insertions: the log file format (a public contract, see docs/reference/log-file.md).
 
 One HDF5 file holds one or more trials::
 

@@ -1,5 +1,4 @@
-"""The results file: one HDF5 file per experiment. Its layout is a public contract (README, "Results
-file"); change it only with a version bump of :data:`RESULTS_FORMAT`.
+"""The results file: one HDF5 file per experiment. Its layout is a public contract (docs/reference/results-file.md); change it only with a version bump of :data:`RESULTS_FORMAT`.
 
 ::
 
@@ -114,14 +113,21 @@ def _write_repeating(g: h5py.Group, k: str, arr: np.ndarray, axis: int) -> None:
                 d.id.write_direct_chunk(tuple(offset), raw, mask)
 
 
-def _write_group(g: h5py.Group, grp: Group, compression: str = "auto") -> None:
+def _nbytes(grp: Group) -> int:
+    """The bytes of every array below ``grp`` (what building its file has to copy)."""
+    return sum(_nbytes(v) if isinstance(v, Group) else np.asarray(v).nbytes for v in grp.data.values())
+
+
+def _write_group(g: h5py.Group, grp: Group, compression: str = "auto", done=None) -> None:
     for k, v in grp.attrs.items():
         g.attrs[k] = _attr(v)
     for k, v in grp.data.items():
         if isinstance(v, Group):
-            _write_group(g.create_group(k), v, compression)
+            _write_group(g.create_group(k), v, compression, done)
             continue
         arr = np.asarray(v)
+        if done is not None:
+            done(arr.nbytes)
         big = arr.ndim >= 2 and arr.size > 4096
         if arr.dtype.kind in "UO":
             g.create_dataset(k, data=arr.astype(str).astype(_STR), dtype=_STR)
@@ -156,14 +162,22 @@ def _size_bound(grp: Group) -> int:
     return total
 
 
-def file_image(root: Group, compression: str = "auto") -> bytes:
-    """The HDF5 file of ``root``, built in memory (signals held meanwhile: one that arrives inside an HDF5
-    callback would be lost). For file systems that cannot reserve room ahead (see :func:`write_atomic`)."""
+def file_image(root: Group, compression: str = "auto", done=None) -> bytes:
+    """The HDF5 file of ``root``, built in memory, for file systems that cannot reserve room ahead (see
+    :func:`write_atomic`). HDF5 itself never writes to disk here: a full disk met inside it ends in a
+    crash (h5py cannot recover from a failed write), and a signal that arrives inside one of its callbacks
+    is lost; so signals are held while it runs (acted on when it is done).
+
+    ``compression``: ``auto`` compresses (gzip, level 1, shuffled) the large arrays that repeat along an
+    axis (broadcast inputs, parameters held over time, constant noise levels: 10 to 1000 times smaller
+    at once) and stores the others as they are (simulated states and estimates shrink by a quarter only,
+    at ten times the writing time); ``gzip`` every large array (the smallest files); ``none`` nothing.
+    ``done(nbytes)``, if given, is called before each array is written (a progress bar's step)."""
     if compression not in COMPRESSION:
         raise ValueError(f"compression {compression!r}: expected one of {', '.join(COMPRESSION)}")
     with deferred_signals(), h5py.File(f"needle-image-{id(root)}", "w", driver="core", backing_store=False,
                                        block_size=min(1 << 26, max(1 << 16, _size_bound(root)))) as f:
-        _write_group(f, root, compression)
+        _write_group(f, root, compression, done)
         f.flush()
         return f.id.get_file_image()
 
@@ -256,7 +270,7 @@ def _open_direct(path: Path) -> int | None:
         return None
 
 
-def write_atomic(path: str | Path, root: Group, compression: str = "auto") -> Path:
+def write_atomic(path: str | Path, root: Group, compression: str = "auto", progress=None) -> Path:
     """Write ``root`` to ``path``, so that a reader never sees a half-written file, a full disk is one clear
     error, and the earlier file at ``path`` is kept until the new one is complete: the file is written to
     a temporary file beside ``path`` and renamed over it (:func:`~needlecli.io.atomic.atomic_path`).
@@ -265,10 +279,21 @@ def write_atomic(path: str | Path, root: Group, compression: str = "auto") -> Pa
     (:func:`_size_bound`, more than it needs) is reserved first (``posix_fallocate``, a full disk fails
     there, before HDF5 starts), then HDF5 writes the arrays straight from memory into it (one copy, no
     file image; signals held while it works) and the file is cut to its size. Where the file system
-    cannot reserve room, the file is built in memory and written after (:func:`file_image`)."""
+    cannot reserve room, the file is built in memory and written after (:func:`file_image`).
+
+    ``progress(done, total)`` (bytes: the arrays copied into the file, and the file image written where
+    one is built) reports how far it is."""
     if compression not in COMPRESSION:
         raise ValueError(f"compression {compression!r}: expected one of {', '.join(COMPRESSION)}")
     path = Path(path)
+    raw = max(_nbytes(root), 1)
+    state = {"built": 0, "total": raw}
+
+    def built(n: int) -> None:
+        state["built"] += n
+        progress(min(state["built"], state["total"]), state["total"])
+
+    done = built if progress is not None else None
     with atomic_path(path) as tmp:
         fd = os.open(tmp, os.O_RDWR)
         try:
@@ -284,15 +309,22 @@ def write_atomic(path: str | Path, root: Group, compression: str = "auto") -> Pa
                 target = _Reserved(fd, direct)
                 try:
                     with deferred_signals(), h5py.File(target, "w") as f:
-                        _write_group(f, root, compression)
+                        _write_group(f, root, compression, done)
                 finally:
                     target.close()
                     if direct is not None:
                         os.close(direct)
             else:
-                write_fd(fd, file_image(root, compression))
+                state["total"] = 2 * raw
+                image = file_image(root, compression, done)
+                total = state["total"] = raw + max(len(image), 1)
+                if progress is not None:
+                    progress(raw, total)
+                write_fd(fd, image, (lambda k: progress(raw + k, total)) if progress is not None else None)
         finally:
             os.close(fd)
+    if progress is not None:
+        progress(state["total"], state["total"])
     return path
 
 

@@ -71,7 +71,8 @@ class MeasurementSpec(Strict):
 class KappaReset(Strict):
     """Reset of ``P_kappa_kappa`` to ``factor * P0_kappa_kappa`` when the tip crosses an interface."""
 
-    factor: Positive = 1.0
+    factor: Positive = Field(1.0, description="P_kappa_kappa becomes factor times its initial variance at each "
+                                              "interface (seed 003 Fig. 8: 10)")
     interfaces: str = Field("experiment", description="'experiment' or the name of an elastography channel")
 
 
@@ -80,15 +81,20 @@ class UKFSettings(ObserverSettings):
     model: str | None = Field(None, description="the filter's model (default: the experiment's)")
     params: dict[str, float] = Field(default_factory=dict, description="the filter's model parameters")
     rate: Positive | None = Field(None, description="filter rate, Hz (default: the simulation grid's)")
-    alpha: Positive = 1e-3
-    beta: NonNeg = 2.0
-    kappa: float = 0.0
+    alpha: Positive = Field(1e-3, description="spread of the Merwe scaled sigma points around the mean "
+                                              "(seed 003: 1e-3)")
+    beta: NonNeg = Field(2.0, description="prior-distribution weight of the sigma points (2 is optimal for a "
+                                          "Gaussian; seed 003: 2)")
+    kappa: float = Field(0.0, description="secondary scaling of the sigma points (seed 003: 0); not the curvature")
     q: dict[str, NonNeg] = Field(default_factory=dict, description="process noise std per state per tick")
     p0: dict[str, NonNeg] = Field(default_factory=dict, description="initial variance per state")
-    measurements: dict[str, MeasurementSpec] = Field(default_factory=dict)
+    measurements: dict[str, MeasurementSpec] = Field(default_factory=dict, description="channels used, by sensor "
+                                                     "name, with their noise, growth and gate (default: every channel "
+                                                     "the model can predict, with the sensor's own sigma)")
     init: InitialEstimate = Field(default_factory=InitialEstimate, description="initial estimate (needlecli.initial)")
     kappa_max: Positive | None = Field(None, description="curvature constraint 0 <= kappa <= kappa_max")
-    kappa_reset: KappaReset | None = None
+    kappa_reset: KappaReset | None = Field(None, description="reset of the curvature variance at tissue interfaces "
+                                                             "(default: none)")
     predict_at_depths: list[NonNeg] = Field(default_factory=list, description="observation depths for prediction")
     max_cov_trace: Positive = Field(1e8, description="a run whose tr(P) exceeds this has diverged")
 

@@ -76,7 +76,7 @@ def load_baseline(path: str | Path) -> Baseline:
     try:
         return Baseline.model_validate(data)
     except ValidationError as e:
-        raise validation_error(e, data, str(path)) from None
+        raise validation_error(e, data, str(path), schema=Baseline) from None
 
 
 def _key_columns(df: pd.DataFrame) -> list[str]:

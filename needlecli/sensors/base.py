@@ -153,10 +153,15 @@ class Sensor:
         return y
 
     # ------------------------------------------------------------------ the whole thing
+    #: ``progress(samples done, samples)``, set by the runner before :meth:`measure`: a pipeline that takes
+    #: long (rendering frames) reports to it
+    progress: Callable[[int, int], None] | None = None
+
     def measure(self, truth: Truth, rng: np.random.Generator) -> MeasurementStream:
         """Sample the truth on this sensor's clock through its pipeline, then apply dropouts."""
         idx = self.sample_indices(truth.time)
         pipeline = PIPELINES.get(self.settings.pipeline)()
+        pipeline.progress = self.progress
         value, valid, sigma = pipeline.measure(self, truth, idx, rng)
         return self._stream(truth, idx, pipeline, value, valid, sigma, rng)
 
@@ -206,6 +211,9 @@ class Pipeline:
     def __init__(self) -> None:
         #: further arrays of the last ``measure`` (e.g. saved frames), stored beside the stream's values
         self.extras: dict[str, np.ndarray] = {}
+        #: ``progress(samples done, samples)``, set by the sensor before ``measure``; a pipeline that takes
+        #: long (one frame at a time) calls it, a quick one may ignore it
+        self.progress: Callable[[int, int], None] | None = None
 
     def measure(
         self, sensor: Sensor, truth: Truth, idx: np.ndarray, rng: np.random.Generator

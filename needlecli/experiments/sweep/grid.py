@@ -220,7 +220,7 @@ def load_grid(path: str | Path) -> Grid:
     try:
         return Grid.model_validate(data)
     except ValidationError as e:
-        raise validation_error(e, data, source) from None
+        raise validation_error(e, data, source, schema=Grid) from None
 
 
 def grid_overrides(grid: Grid) -> list[dict]:

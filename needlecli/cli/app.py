@@ -79,9 +79,30 @@ def _quiet_exit(signum, frame) -> None:  # noqa: ARG001
     os._exit(128 + signum)
 
 
+def _small_pages() -> None:
+    """No transparent huge pages for numpy's large arrays, unless ``NUMPY_MADVISE_HUGEPAGE`` says so.
+
+    numpy asks the kernel for huge pages (madvise) for every large array; where memory is fragmented (a
+    virtual machine shared with other jobs, as the benchmark machine) the first touch of each 2 MB page
+    then waits for the kernel to compact memory: 0.05 to 1.8 s of system time for a 300 MB array, varying
+    from run to run, against 0.12 to 0.16 s with 4 KB pages (benchmarks/bench_kernels.py, measured
+    alternately in fresh processes). The results file of 1,000 insertions holds 700 MB of such arrays.
+    Set before numpy is imported (it reads the variable then); the same for the processes a command
+    starts. The same numbers either way: only how memory is mapped changes."""
+    import os
+    import sys
+
+    os.environ.setdefault("NUMPY_MADVISE_HUGEPAGE", "0")
+    if "numpy" in sys.modules and os.environ["NUMPY_MADVISE_HUGEPAGE"] == "0":  # imported before run()
+        setter = getattr(sys.modules["numpy"]._core.multiarray, "_set_madvise_hugepage", None)
+        if setter is not None:
+            setter(False)
+
+
 def run() -> None:
     import signal
 
+    _small_pages()
     for s in (signal.SIGINT, signal.SIGTERM):
         signal.signal(s, _quiet_exit)
     app()

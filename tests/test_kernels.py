@@ -396,7 +396,7 @@ def test_em_passes_equal_numpy(name, seed004_system, numpy_path):
     """Linearisation (RK4 Jacobians, measurement Jacobians in tangent planes), the affine filter, the RTS
     smoother and the M-step sums, compiled against numpy on the same random trajectory, to 1e-10
     relative (an entry's difference to the largest entry of its array). Missing samples included."""
-    from needlecli.fitting.smoother import affine_pass, linearise
+    from needlecli.fitting.smoother import affine_loglik, affine_pass, linearise
     from needlecli.numerics.kalman import em_measurement_noise, em_process_noise
 
     S = seed004_system[name]
@@ -434,6 +434,11 @@ def test_em_passes_equal_numpy(name, seed004_system, numpy_path):
         assert _rel(getattr(ra.sm, k), getattr(rb.sm, k)) < 1e-10, k
     assert _rel(qa, qb) < 1e-10 and all(_rel(x, y) < 1e-10 for x, y in zip(Ra, Rb))
     np.testing.assert_array_equal(ra.fwd.repairs + ra.sm.repairs, rb.fwd.repairs + rb.sm.repairs)
+    # the log-likelihood alone (identifiability's evaluation points): the full pass's, bit for bit
+    ll = affine_loglik(lb, dm, meas, S.m0, P0, Q, R)
+    np.testing.assert_array_equal(ll, rb.fwd.loglik)
+    with numpy_path:
+        assert _rel(affine_loglik(la, dm, meas, S.m0, P0, Q, R), ll) < 1e-10
 
 
 def test_fit_em_iterations_equal_numpy(numpy_path):

@@ -79,7 +79,7 @@ def _quiet_exit(signum, frame) -> None:  # noqa: ARG001
     os._exit(128 + signum)
 
 
-def _memory_policy() -> None:
+def memory_policy() -> None:
     """How this process gets memory: first-touched memory is the slow part of the machines needlecli is
     measured on (virtual, shared), so it asks for fresh memory less often. The same numbers either way:
     only how memory is mapped changes. Set before numpy is imported; inherited by the processes a
@@ -118,7 +118,7 @@ def _memory_policy() -> None:
 def run() -> None:
     import signal
 
-    _memory_policy()
+    memory_policy()
     for s in (signal.SIGINT, signal.SIGTERM):
         signal.signal(s, _quiet_exit)
     app()

@@ -577,3 +577,17 @@ def test_errors_equal_numpy(path, overrides, numpy_path):
                 np.testing.assert_allclose(g.values, qe.values, rtol=0, atol=1e-10 * 180 / np.pi, err_msg=q)
             else:
                 np.testing.assert_array_equal(g.values, qe.values, err_msg=q)
+
+
+def test_the_commands_memory_policy():
+    """``needle`` maps numpy's large arrays on ordinary pages unless the user asks for huge ones, and keeps
+    glibc's own behaviour when a MALLOC_ variable is set (needlecli.cli.app.memory_policy)."""
+    code = ("from needlecli.cli.app import memory_policy\nmemory_policy()\nimport numpy\n"
+            "print(numpy._core.multiarray._get_madvise_hugepage())")
+    env = {k: v for k, v in os.environ.items() if k != "NUMPY_MADVISE_HUGEPAGE" and not k.startswith("MALLOC_")}
+    env["PYTHONPATH"] = str(ROOT)
+    for extra, want in (({}, "False"), ({"NUMPY_MADVISE_HUGEPAGE": "1"}, "True"),
+                        ({"MALLOC_ARENA_MAX_": "2"}, "False")):
+        out = subprocess.run([sys.executable, "-c", code], env={**env, **extra}, capture_output=True, text=True,
+                             check=True).stdout.strip()
+        assert out == want, (extra, out)

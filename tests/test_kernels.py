@@ -580,8 +580,8 @@ def test_errors_equal_numpy(path, overrides, numpy_path):
 
 
 def test_the_commands_memory_policy():
-    """``needle`` maps numpy's large arrays on ordinary pages unless the user asks for huge ones, and keeps
-    glibc's own behaviour when a MALLOC_ variable is set (needlecli.cli.app.memory_policy)."""
+    """``needle`` maps numpy's large arrays on ordinary pages unless the user asks for huge ones, with or
+    without a glibc MALLOC_ variable set (then glibc's heap is left as it is; needlecli.cli.app.memory_policy)."""
     code = ("from needlecli.cli.app import memory_policy\nmemory_policy()\nimport numpy\n"
             "print(numpy._core.multiarray._get_madvise_hugepage())")
     env = {k: v for k, v in os.environ.items() if k != "NUMPY_MADVISE_HUGEPAGE" and not k.startswith("MALLOC_")}

@@ -25,10 +25,13 @@ from needlecli.experiments.truth import Truth
 from needlecli.fitting.em import EMOptions, EMResult, fit_em
 from needlecli.fitting.identify import Identifiability, IdentifyOptions, identify
 from needlecli.fitting.problem import System, build_system, fit_augment, own_model
+from needlecli.fitting.robust import RobustInfo, fit_em_robust
 from needlecli.fitting.settings import FitSettings
+from needlecli.fitting.statespace import param_unit
 from needlecli.io.fit import FIT_FORMAT, FIT_VERSION
 from needlecli.io.results import Group, root_attrs
 from needlecli.models import MODELS
+from needlecli.numerics.needle_frame import AXES
 
 CONFIG_SUFFIXES = (".yaml", ".yml")
 
@@ -126,6 +129,7 @@ def em_options(fit: FitSettings, system: System) -> EMOptions:
         max_iter=e.max_iter, tol=e.tol, estep_max=e.estep_max, estep_tol=e.estep_tol, update_x0=e.update_x0,
         q_index=system.q_index, q_floor=e.q_floor, r_floor=tuple(system.floors), ll_noise=e.ll_noise,
         accelerate=e.accelerate, relin_tol=e.relin_tol,
+        q_hold=tuple(i for i, s in enumerate(system.names) if s in fit.hold and i in system.q_index),
     )
 
 
@@ -136,6 +140,7 @@ class ModelFit:
     result: EMResult
     seconds: float = 0.0
     identifiability: Identifiability | None = None
+    robust: RobustInfo | None = None
 
 
 @dataclass
@@ -169,15 +174,23 @@ def fit_trials(
             raise DataError(f"unknown model {name!r}; known: {', '.join(MODELS.names())}")
         model = own_model(fit, trials.truth.model, name)
         try:
-            systems[name] = build_system(problem, fit, model, fit_augment(type(model)))
+            # a held constant stays a parameter of the model (not a state the smoother could move)
+            systems[name] = build_system(problem, fit, model, [c for c in fit_augment(type(model)) if c not in fit.hold])
         except ValueError as e:
             raise DataError(f"{trials.source}: [fit] {e}") from None
+        S = systems[name]  # a state held at zero process noise has none (not a block of Q that EM fits)
+        S.q_index = tuple(i for i in S.q_index if not (S.names[i] in fit.hold and S.Qc[i, i] == 0.0))
 
     def run(name, cb):
         S = systems[name]
         t0 = time.perf_counter()
-        res = fit_em(S.dm, S.meas, S.m0, S.P0, S.Qc, S.R, em_options(fit, S), progress=cb)
-        return res, assess(S, res, fit), time.perf_counter() - t0
+        dof = [fit.measurements[m.name].student_t if m.name in fit.measurements else None for m in S.meas]
+        if any(d is not None for d in dof):  # Student-t channels: iteratively reweighted EM
+            res, rob, meas = fit_em_robust(S.dm, S.meas, S.m0, S.P0, S.Qc, S.R, em_options(fit, S), dof,
+                                           max_passes=fit.em.reweight_max, tol=fit.em.reweight_tol, progress=cb)
+        else:
+            res, rob, meas = fit_em(S.dm, S.meas, S.m0, S.P0, S.Qc, S.R, em_options(fit, S), progress=cb), None, S.meas
+        return res, assess(S, res, fit, meas), time.perf_counter() - t0, rob
 
     # models are independent: all but the first go to child processes (forked, so nothing is pickled
     # but the results), the first runs here; the children report progress through a queue
@@ -187,13 +200,15 @@ def fit_trials(
     return out
 
 
-def assess(S: System, res: EMResult, fit: FitSettings) -> Identifiability | None:
-    """What the data identify in each trial's fit (None when ``fit.identify.enabled`` is off)."""
+def assess(S: System, res: EMResult, fit: FitSettings, meas=None) -> Identifiability | None:
+    """What the data identify in each trial's fit (None when ``fit.identify.enabled`` is off); ``meas``:
+    the channels as fitted (with their robust weights), default the system's."""
     s = fit.identify
     if not s.enabled:
         return None
     sd = np.sqrt(np.maximum(np.diagonal(res.P[:, 0], axis1=-2, axis2=-1), 0.0))[:, S.dm.nx:]
-    return identify(S.dm, S.meas, res.x0, S.P0, res.Qc, res.R, res.status == "ok", const_sd=sd,
+    return identify(S.dm, S.meas if meas is None else meas, res.x0, S.P0, res.Qc, res.R, res.status == "ok", const_sd=sd,
+                    held=tuple(fit.hold),
                     options=IdentifyOptions(rse_max=s.rse_max, nats=s.nats))
 
 
@@ -238,8 +253,8 @@ def _run_models(names, workers, run, systems, out, progress) -> None:
                 if progress is not None:
                     progress(f"EM {_m}", k, n)
                 drain()
-            res, idf, secs = run(name, cb)
-            out.fits[name] = ModelFit(name, systems[name], res, secs, idf)
+            res, idf, secs, rob = run(name, cb)
+            out.fits[name] = ModelFit(name, systems[name], res, secs, idf, rob)
         for name, (p, conn) in children.items():
             while not conn.poll(0.2):
                 drain()
@@ -250,8 +265,8 @@ def _run_models(names, workers, run, systems, out, progress) -> None:
             drain()
             if kind != "ok":
                 raise RuntimeError(f"the EM of model {name!r} failed: {payload}")
-            res, idf, secs = payload
-            out.fits[name] = ModelFit(name, systems[name], res, secs, idf)
+            res, idf, secs, rob = payload
+            out.fits[name] = ModelFit(name, systems[name], res, secs, idf, rob)
     finally:
         for p, _ in children.values():
             if p.is_alive():
@@ -315,15 +330,22 @@ def fit_tree(out: FitOutput) -> Group:
 def _model_group(mf: ModelFit, fit: FitSettings) -> Group:
     S, r = mf.system, mf.result
     dm = S.dm
-    consts = dm.augment
+    held = [c for c in fit_augment(type(dm.model)) if c in fit.hold]  # constants held at their initial value
+    consts = dm.augment + tuple(held)
     g = Group(attrs={
         "model": mf.name, "names": dm.names, "units": dm.units, "constants": consts,
         "q_states": [dm.names[i] for i in S.q_index], "channels": [m.name for m in S.meas],
+        "held": [h for h in fit.hold if h in dm.names or h in fit_augment(type(dm.model))],
         "max_iter": fit.em.max_iter, "tol": fit.em.tol, "seconds": mf.seconds,
         "singular_reason": dm.model.singular_reason,
+        "sensor_states": list(dm.sensor_states), "sensor_state_channels": [m.name for m in S.meas if m.offset_index is not None],
+        "sensor_state_tau": [float(1.0 / d) if d > 0 else float("inf") for d in dm.decay],
     })
     g.data["ticks"] = dm.ticks
-    g.data["constant"] = Group(data={c: r.x0[:, dm.nx + i] for i, c in enumerate(consts)})
+    g.data["constant"] = Group(data={
+        **{c: r.x0[:, dm.nx + i] for i, c in enumerate(dm.augment)},
+        **{c: np.broadcast_to(np.asarray(dm.params[c], dtype=float), (r.x0.shape[0],)).copy() for c in held}})
+    g.attrs["constant_units"] = [dm.units[dm.nx + i] for i in range(len(dm.augment))] + [param_unit(dm.model, c) for c in held]
     g.data["x0"] = r.x0
     g.data["x0_guess"] = S.m0
     g.data["Q"] = r.Qc
@@ -332,8 +354,11 @@ def _model_group(mf: ModelFit, fit: FitSettings) -> Group:
     for mm, Rj, R0 in zip(S.meas, r.R, S.R):
         Rg.data[mm.name] = Rj
         Rg.data[f"{mm.name}_guess"] = R0
-        Rg.dataset_attrs[mm.name] = {"coordinates": "tangent plane (2 components across the direction)"
-                                     if mm.tangent else "components " + ", ".join(mm.names)}
+        Rg.dataset_attrs[mm.name] = {"coordinates": channel_coordinates(mm)}
+    needle = [mm for mm in S.meas if mm.frame == "needle"]
+    if needle:  # group attributes (what from_fit reads): channels in needle coordinates, their across axes
+        Rg.attrs["needle_frame"] = [mm.name for mm in needle]
+        Rg.attrs["needle_axis"] = [AXES[mm.frame_axis] for mm in needle]
     g.data["R"] = Rg
     g.data["state"] = r.m
     g.data["var" if fit.store == "diag" else "cov"] = (np.diagonal(r.P, axis1=-2, axis2=-1).copy()
@@ -346,9 +371,27 @@ def _model_group(mf: ModelFit, fit: FitSettings) -> Group:
         if v is not None:
             g.data[k] = v
     g.data["history"] = Group(data={k.replace("/", "_"): v for k, v in r.history.items()})
+    if mf.robust is not None:  # Student-t channels: the samples' final weights
+        rb = mf.robust
+        g.data["weights"] = Group(
+            data={mm.name: w for mm, w in zip(S.meas, rb.weights) if w is not None},
+            attrs={"student_t": [mm.name for mm, w in zip(S.meas, rb.weights) if w is not None],
+                   "dof": [float(d) for d in rb.dof if d is not None], "reweight_tol": fit.em.reweight_tol})
+        g.data["reweight_passes"] = rb.passes
+        g.data["reweight_change"] = rb.last_change
     if mf.identifiability is not None:
         g.data["identifiability"] = identifiability_group(mf.identifiability, fit)
     return g
+
+
+def channel_coordinates(mm) -> str:
+    """What the components of a channel's R are (the fit file's ``R/<channel>`` attribute ``coordinates``;
+    ``from_fit`` reads it back)."""
+    if mm.tangent:
+        return "tangent plane (2 components across the direction)"
+    if mm.frame == "needle":
+        return f"needle frame (along the tangent, across_1, across_2; across axis {AXES[mm.frame_axis]})"
+    return "components " + ", ".join(mm.names)
 
 
 def identifiability_group(idf: Identifiability, fit: FitSettings) -> Group:

@@ -49,6 +49,9 @@ class FromFit(Strict):
     model: str = Field(description="the fitted model to take (a model the fit file fitted)")
     pick: Literal["median", "mean", "trial"] = Field("median", description="over the trials whose fit is ok, or one trial")
     trial: int | str | None = Field(None, description="with pick: trial, its index or its trial id")
+    trials: list[int | str] | None = Field(
+        None, min_length=1, description="with pick: median or mean, over these trials only (indices or ids; e.g. "
+                                        "the trials recorded at the same insertion speed)")
 
 
 def _strs(v) -> list[str]:
@@ -59,10 +62,13 @@ def expand_from_fit(data: dict, source: str, base_dir: Path) -> list[str]:
     """Replace every observer's ``from_fit`` in a parsed config by the values it takes (in place).
     Returns one line per observer saying what came from where (the results file keeps them as comments
     above the expanded config)."""
+    changed = []
+    fit = data.get("fit") if isinstance(data, dict) else None
+    if isinstance(fit, dict) and "from_fit" in fit:
+        changed.append(_apply_to_fit(fit, source, base_dir))
     observers = data.get("observers") if isinstance(data, dict) else None
     if not isinstance(observers, list):
-        return []
-    changed = []
+        return changed
     for i, obs in enumerate(observers):
         if not isinstance(obs, dict) or "from_fit" not in obs:
             continue
@@ -79,6 +85,41 @@ def expand_from_fit(data: dict, source: str, base_dir: Path) -> list[str]:
         changed.append(_apply(obs, values, data, source, ("observers", i)))
         del obs["from_fit"]
     return changed
+
+
+def _apply_to_fit(fit: dict, source: str, base_dir: Path) -> str:
+    """A ``fit:`` section's ``from_fit``: its initial guesses of the process noise (``q``, per square-root
+    second) and of the constants (``params``) from another fit, e.g. to hold them (``hold``) while EM fits
+    a sensor's noise. Keys the section sets itself are kept; R is not taken (the section fits its own)."""
+    loc = ("fit", "from_fit")
+    try:
+        spec = FromFit.model_validate(fit["from_fit"])
+    except ValidationError as e:
+        raise validation_error(e, fit["from_fit"], source, prefix=loc) from None
+    models = fit.get("models") or []
+    if models and spec.model not in models:
+        raise ConfigError(source, loc + ("model",), f"the fit section fits {', '.join(map(str, models))}, not {spec.model!r}")
+    v = fitted_values(spec, base_dir, source, loc)
+    q = fit.setdefault("q", {})
+    if not isinstance(q, dict):
+        raise ConfigError(source, ("fit", "q"), "should be a mapping")
+    taken = [k for k in v["q_var"] if k not in q]
+    for k in taken:
+        q[k] = float(np.sqrt(max(v["q_var"][k], 0.0)))
+    params = fit.setdefault("params", {})
+    for c, val in v["params"].items():
+        if c in params:
+            raise ConfigError(source, ("fit", "params", c), "from_fit sets it: give one of them")
+        if c in ((fit.get("init") or {}).get("values") or {}):
+            raise ConfigError(source, ("fit", "init", "values", c), "from_fit sets the constant's initial value: give one of them")
+        params[c] = val
+    del fit["from_fit"]
+    what = (f"fit: q of {', '.join(taken) or 'no state'}; params {', '.join(v['params']) or 'none'} from_fit {v['path']} "
+            f"(model {v['model']}, {v['pick']} of {v['trials']} trial(s))")
+    log.info(what)
+    if v["weak"]:
+        log.warning("fit: from_fit takes quantities the fit did not identify: %s", "; ".join(f"{q} ({w})" for q, w in v["weak"].items()))
+    return what
 
 
 def fitted_values(spec: FromFit, base_dir: Path, source: str, loc: tuple) -> dict[str, Any]:
@@ -98,6 +139,8 @@ def fitted_values(spec: FromFit, base_dir: Path, source: str, loc: tuple) -> dic
     g = fits[spec.model]
     status = np.asarray(_strs(g.data["status"]))
     N = len(status)
+    if spec.trials is not None and spec.pick == "trial":
+        raise ConfigError(source, loc + ("trials",), "is used with pick: median or mean (pick: trial takes trial)")
     if spec.pick == "trial":
         if spec.trial is None:
             raise ConfigError(source, loc + ("trial",), "required key is missing (pick: trial)")
@@ -112,27 +155,57 @@ def fitted_values(spec: FromFit, base_dir: Path, source: str, loc: tuple) -> dic
         sel[k] = True
     else:
         sel = status == "ok"
+        if spec.trials is not None:
+            ids = _strs(res.data["truth"].data.get("trial_id", np.arange(N)))
+            chosen = np.zeros(N, dtype=bool)
+            for i, t in enumerate(spec.trials):
+                k = t if isinstance(t, int) else (ids.index(t) if t in ids else -1)
+                if not 0 <= k < N:
+                    raise ConfigError(source, loc + ("trials", i), f"no trial {t!r}; the fit has {N} (ids {', '.join(ids[:5])}"
+                                      + (", ..." if N > 5 else "") + ")")
+                chosen[k] = True
+            sel &= chosen
         if not sel.any():
-            raise ConfigError(source, loc + ("file",), f"no trial of {spec.model!r} in {path} was fitted ok")
+            raise ConfigError(source, loc + ("file",), f"no trial of {spec.model!r} in {path} was fitted ok"
+                              + (" among the trials listed" if spec.trials is not None else ""))
     reduce = np.median if spec.pick == "median" else np.mean
     names = _strs(g.attrs["names"])
     consts = _strs(g.attrs.get("constants", []))
     Q = reduce(np.asarray(g.data["Q"], dtype=float)[sel], axis=0)
     q_states = set(_strs(g.attrs.get("q_states", names)))
-    q_var = {s: float(Q[j, j]) for j, s in enumerate(names) if s in q_states and s not in consts}
+    sensor = _strs(g.attrs.get("sensor_states", []))
+    q_var = {s: float(Q[j, j]) for j, s in enumerate(names) if s in q_states and s not in consts and s not in sensor}
+    # a sensor's offset along the needle (an Ornstein-Uhlenbeck state of the fit): these observers have no
+    # such state, so its stationary variance q^2 tau / 2 joins the channel's noise along the needle
+    offset_var = {}
+    for s_name, ch, tau in zip(sensor, _strs(g.attrs.get("sensor_state_channels", [])), np.atleast_1d(g.attrs.get("sensor_state_tau", []))):
+        j = names.index(s_name)
+        offset_var[ch] = float(Q[j, j]) * float(tau) / 2.0 if np.isfinite(tau) else 0.0
     r_var = {}
-    for ch, R in g.data["R"].data.items():
+    wg = g.data.get("weights")  # Student-t channels: R is the scale; its variance is nu / (nu - 2) R
+    dof = dict(zip(_strs(wg.attrs.get("student_t", [])), np.atleast_1d(wg.attrs.get("dof", [])))) if wg is not None else {}
+    Rg = g.data["R"]
+    frames = dict(zip(_strs(Rg.attrs.get("needle_frame", [])), _strs(Rg.attrs.get("needle_axis", []))))
+    for ch, R in Rg.data.items():
         if ch.endswith("_guess"):
             continue
         Rm = reduce(np.asarray(R, dtype=float)[sel], axis=0)
         meas = res.data["measurements"].data.get(ch)
         m_raw = np.asarray(meas.data["value"]).shape[-1] if meas is not None else Rm.shape[-1]
         r_var[ch] = None if m_raw != Rm.shape[-1] else np.diag(Rm).copy()  # a direction: R in its tangent plane
+        if ch in dof and r_var[ch] is not None:  # the Gaussian of the Student-t's variance (infinite for nu <= 2)
+            nu = float(dof[ch])
+            r_var[ch] = r_var[ch] * (nu / (nu - 2.0) if nu > 2.0 else np.inf)
+        if ch in offset_var and r_var[ch] is not None:
+            if ch not in frames:
+                raise ConfigError(source, loc + ("file",), f"the fit's offset of {ch!r} along the needle needs its R "
+                                  "in needle coordinates (frame: needle) to be taken")
+            r_var[ch][0] += offset_var[ch]
     params = {c: float(reduce(np.asarray(g.data["constant"].data[c], dtype=float)[sel])) for c in consts}
     from needlecli.reports.identify import weak_quantities
 
     weak = weak_quantities(res, spec.model)
-    return {"model": spec.model, "names": names, "q_var": q_var, "r_var": r_var, "params": params,
+    return {"model": spec.model, "names": names, "q_var": q_var, "r_var": r_var, "needle": frames, "params": params,
             "trials": int(sel.sum()), "weak": weak, "path": str(path), "pick": spec.pick}
 
 
@@ -172,6 +245,16 @@ def _apply(obs: dict, v: dict, data: dict, source: str, loc: tuple) -> str:
             if "sigma" in spec:
                 raise ConfigError(source, loc + ("measurements", ch, "sigma"), "from_fit sets it: give one of them")
             spec["sigma"] = [float(np.sqrt(max(x, 0.0))) for x in var]
+            if ch in v.get("needle", {}):  # R fitted along and across the needle: the same coordinates here
+                for key, want in (("frame", "needle"), ("across_axis", v["needle"][ch])):
+                    if spec.get(key, want) != want:
+                        raise ConfigError(source, loc + ("measurements", ch, key),
+                                          f"the fit's R of {ch!r} is in needle coordinates ({key} {want}): "
+                                          f"from_fit sets it")
+                    spec[key] = want
+            elif spec.get("frame", "world") != "world":
+                raise ConfigError(source, loc + ("measurements", ch, "frame"),
+                                  f"the fit's R of {ch!r} is in world axes; its sigma does not apply to frame {spec['frame']}")
         taken.append("R of " + ", ".join(ch for ch, var in v["r_var"].items() if var is not None))
     what = (f"observer {obs.get('name') or kind}: {'; '.join(taken)} from_fit {v['path']} (model {v['model']}, "
             f"{v['pick']} of {v['trials']} trial(s))")

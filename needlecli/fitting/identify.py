@@ -65,7 +65,8 @@ class IdentifyOptions:
 @dataclass
 class Quantity:
     """One reported quantity: ``kind`` constant | Q | R; ``index`` the state index (constant), the state
-    indices of the block (Q) or the channel's position (R)."""
+    indices of the block (Q), the channel's position (R), or ``(channel, components)`` for a block of a
+    channel's R (a needle-frame channel: along, across)."""
 
     name: str
     kind: str
@@ -106,16 +107,25 @@ class Identifiability:
         return [q.name for q in self.quantities]
 
 
-def fit_quantities(dm: DiscreteModel, meas: Sequence[MeasurementModel], Q: np.ndarray) -> list[Quantity]:
-    """The quantities of a fit: constants, the Q blocks with process noise (in any trial), each R_j."""
-    out = [Quantity(c, "constant", dm.nx + i, dm.units[dm.nx + i]) for i, c in enumerate(dm.augment)]
+def fit_quantities(dm: DiscreteModel, meas: Sequence[MeasurementModel], Q: np.ndarray,
+                   held: Sequence[str] = ()) -> list[Quantity]:
+    """The quantities of a fit: constants, the Q blocks with process noise (in any trial), each R_j;
+    not those ``held`` at their initial guess (constants by name, a Q block when all its states are)."""
+    out = [Quantity(c, "constant", dm.nx + i, dm.units[dm.nx + i]) for i, c in enumerate(dm.augment) if c not in held]
     for b, idx in state_blocks(dm.names, skip=dm.augment).items():
+        if all(dm.names[i] in held for i in idx):
+            continue
         if np.any(Q[:, idx][:, :, idx]):
             unit = dm.units[idx[0]]
             out.append(Quantity(f"tr(Q_{b})", "Q", idx, f"{unit}^2/s" if unit not in ("", "1") else "1/s"))
     for j, mm in enumerate(meas):
         unit = mm.units[0] if getattr(mm, "units", None) else ""
-        out.append(Quantity(f"tr(R_{mm.name})", "R", j, f"{unit}^2" if unit not in ("", "1") else "1"))
+        unit = f"{unit}^2" if unit not in ("", "1") else "1"
+        if getattr(mm, "frame", "world") == "needle":  # along and across the needle: what the sensor's geometry separates
+            out.append(Quantity(f"tr(R_{mm.name}_along)", "R", (j, [0]), unit))
+            out.append(Quantity(f"tr(R_{mm.name}_across)", "R", (j, [1, 2]), unit))
+        else:
+            out.append(Quantity(f"tr(R_{mm.name})", "R", j, unit))
     return out
 
 
@@ -132,6 +142,11 @@ def _loglik(dm, meas, x0, P0, Q, R, qs: list[Quantity], theta: np.ndarray, trial
             d = np.ones((M, Qe.shape[-1]))
             d[:, q.index] = np.exp(0.5 * theta[:, k])[:, None]
             Qe = d[:, :, None] * Qe * d[:, None, :]
+        elif isinstance(q.index, tuple):  # a block of components of R_j: D R_j D, D = e^(r/2) on the block
+            j, comps = q.index
+            d = np.ones((M, Re[j].shape[-1]))
+            d[:, comps] = np.exp(0.5 * theta[:, k])[:, None]
+            Re[j] = d[:, :, None] * Re[j] * d[:, None, :]
         else:
             Re[q.index] = Re[q.index] * np.exp(theta[:, k])[:, None, None]
     with np.errstate(all="ignore"):
@@ -149,6 +164,7 @@ def identify(
     ok: np.ndarray,
     const_sd: np.ndarray | None = None,
     options: IdentifyOptions = IdentifyOptions(),
+    held: Sequence[str] = (),
 ) -> Identifiability:
     """Standard errors and verdicts of every quantity of a fit (module docstring).
 
@@ -159,14 +175,15 @@ def identify(
     Q : (N, n, n) fitted process noise per second; R : per channel (N, m, m) fitted measurement noise
     ok : (N,) trials to assess (the others get NaN and are left out of the pooled figures)
     const_sd : (N, p) a scale for the finite-difference step of each constant (e.g. its smoothed SD)
+    held : names of constants and states held at their initial guess (not fitted: not assessed)
     """
     o = options
     N, n = x0.shape
     P0 = np.array(np.broadcast_to(P0, (N, n, n)), dtype=float)
-    for i in range(dm.nx, n):  # the constants are parameters here: fixed in the filter
+    for i in range(dm.nx, dm.nx + len(dm.augment)):  # the constants are parameters here: fixed in the filter
         P0[:, i, :] = 0.0
         P0[:, :, i] = 0.0
-    qs = fit_quantities(dm, meas, Q)
+    qs = fit_quantities(dm, meas, Q, held)
     d = len(qs)
     est = np.full((N, d), np.nan)
     h = np.full((N, d), o.step_log)
@@ -179,6 +196,9 @@ def identify(
             h[:, k] = np.where(np.isfinite(scale) & (scale > 0), 0.5 * scale, np.maximum(1e-3 * np.abs(c), 1e-9))
         elif q.kind == "Q":
             est[:, k] = np.trace(Q[:, q.index][:, :, q.index], axis1=-2, axis2=-1)
+        elif isinstance(q.index, tuple):
+            j, comps = q.index
+            est[:, k] = np.trace(R[j][:, comps][:, :, comps], axis1=-2, axis2=-1)
         else:
             est[:, k] = np.trace(R[q.index], axis1=-2, axis2=-1)
     # evaluation points: the estimate, +-h_i, +-(h_i + h_j) (i < j), and a decade either way of each noise level

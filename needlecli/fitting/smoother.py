@@ -67,7 +67,7 @@ def ekf(
     def measure(j, i, m):
         mm = meas[j]
         y = np.where(mm.valid[:, i, None], mm.y[:, i], 0.0)
-        yh, H, _, yo = mm.linearise(m, y)
+        yh, H, _, yo = mm.linearise(m, y, sample=i)
         return yh, H, yo
 
     return kalman_forward(m0, P0, Qc, dm.dt, transition, measure, _channels(meas, R),

@@ -24,6 +24,7 @@ from needlecli.experiments.schema import all_tags, experiment_schema, used_types
 from needlecli.io.yamlfile import parse_yaml
 from needlecli.models import MODELS, Model
 from needlecli.observers import OBSERVERS
+from needlecli.observers.base import Observer
 from needlecli.registry import PluginError
 from needlecli.schema import validation_error
 from needlecli.sensors import PIPELINES, SENSORS
@@ -193,6 +194,20 @@ def check_consistency(cfg, source: str) -> None:
         obs_names.add(name)
         for loc, msg in cls.check(o, model, names):
             raise ConfigError(source, ("observers", i) + tuple(loc), msg)
+    cs = cfg.runs.common_start
+    if cs is not None:
+        by_name = {o.name or o.type: o for o in cfg.observers}
+        for loc, name in [(("runs", "common_start", "observer"), cs.observer)] + [
+                (("runs", "common_start", "observers", i), n) for i, n in enumerate(cs.observers)]:
+            if name not in by_name:
+                raise ConfigError(source, loc, f"no observer named {name!r}; observers: {', '.join(by_name)}")
+        if OBSERVERS.get(by_name[cs.observer].type).initial_estimate.__func__ is Observer.initial_estimate.__func__:
+            raise ConfigError(source, ("runs", "common_start", "observer"),
+                              f"observer {cs.observer!r} ({by_name[cs.observer].type}) gives no initial estimate to share")
+        for i, n in enumerate(cs.observers):
+            if not OBSERVERS.get(by_name[n].type).takes_common_start:
+                raise ConfigError(source, ("runs", "common_start", "observers", i),
+                                  f"observer {n!r} ({by_name[n].type}) cannot start from another's estimate")
     # control: closed loops through a sensor measured while the truth is simulated
     check_control(cfg, model, names, source)
     # the fit section (needle fit-em)

@@ -19,6 +19,7 @@ _TABLE_MODULES = {
     "needlecli.reports.identify": ("identifiability",),
     "needlecli.reports.real": ("real_tip_error", "measurement_use", "real_error_vs_depth", "per_trial",
                                "em_per_trial", "em_per_speed", "em_loglik"),
+    "needlecli.reports.along_across": ("real_error_along_across",),
 }
 _PLOT_MODULES = {
     "needlecli.reports.plots": ("error_vs_depth", "trajectories"),
@@ -27,6 +28,7 @@ _PLOT_MODULES = {
     "needlecli.reports.seed004": ("seed004_fig5", "seed004_fig10"),
     "needlecli.reports.imaging": ("imaging_frames",),
     "needlecli.reports.consistency": ("nees_vs_depth",),
+    "needlecli.reports.along_across": ("error_along_across",),
 }
 
 #: table functions ``(results, errors) -> DataFrame``

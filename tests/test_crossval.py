@@ -61,6 +61,18 @@ def test_crossval_tunes_a_wrong_constant_on_held_out_trials(tmp_path):
         held = yaml.safe_load((out / "folds" / f"fold{k}.yaml").read_text()) if (out / "folds" / f"fold{k}.yaml").exists() else None
         assert held is None or not set(fit["source"]["trials"]) & set(held["source"]["trials"])
     assert (out / "crossval_by_depth.md").exists() and (out / "folds" / "fold0.h5").exists()
+    # each fold takes its training trials' fits from one EM over all of them: the same as fitting the fold
+    r = CliRunner().invoke(app, ["fit-em", str(out / "folds" / "fold0_train.yaml"), "--out", str(tmp_path / "direct.h5"),
+                                 "--quiet"])
+    assert r.exit_code == 0, r.output
+    import h5py
+
+    with h5py.File(out / "folds" / "fold0_fit.h5") as a, h5py.File(tmp_path / "direct.h5") as b:
+        ga, gb = a["fit/mnm"], b["fit/mnm"]
+        assert list(a["truth/trial_id"][()]) == list(b["truth/trial_id"][()])  # the fold's trials, in order
+        np.testing.assert_allclose(ga["constant/c"][()], gb["constant/c"][()], rtol=2e-3)
+        np.testing.assert_allclose(ga["identifiability/pooled_se"][()], gb["identifiability/pooled_se"][()], rtol=0.05)
+        assert list(ga["status"][()]) == list(gb["status"][()])
 
 
 def test_crossval_user_errors(tmp_path):

@@ -45,7 +45,8 @@ def crossval(
         "summary": f"Held-out trials ({how}): position error of each observer over every held-out trial and time "
                    f"step after the first; <name>_em: the observer with Q, R and constants fitted by EM ({result.model}) "
                    "on the training trials only (measurements, never the truth); all from one common start.",
-        "by_depth": f"Held-out trials ({how}): mean position error per inserted depth.",
+        "by_depth": f"Held-out trials ({how}): mean position error per inserted depth"
+                    + (", over all of them and per group of the held-out trials." if group_by else "."),
         "constants": f"Constants fitted by EM ({result.model}) on each fold's training trials: median over its trials "
                      "fitted ok and the pooled standard error (identifiability).",
     }

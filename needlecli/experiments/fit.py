@@ -23,7 +23,7 @@ from needlecli.experiments.config import load_config
 from needlecli.experiments.runner import build_problem, simulate_and_measure
 from needlecli.experiments.truth import Truth
 from needlecli.fitting.em import EMOptions, EMResult, fit_em
-from needlecli.fitting.identify import Identifiability, IdentifyOptions, identify
+from needlecli.fitting.identify import Identifiability, IdentifyOptions, identify, take_trials
 from needlecli.fitting.problem import System, build_system, fit_augment, own_model
 from needlecli.fitting.robust import RobustInfo, fit_em_robust
 from needlecli.fitting.settings import FitSettings
@@ -271,6 +271,39 @@ def _run_models(names, workers, run, systems, out, progress) -> None:
         for p, _ in children.values():
             if p.is_alive():
                 p.terminate()
+
+
+def take_fit(out: FitOutput, trials: Trials, idx) -> FitOutput:
+    """The fits of the trials ``idx`` of ``out`` as the fit of ``trials`` (those trials, in that order):
+    every trial's EM is its own (no parameter is shared between trials), so a subset of one fit over all
+    trials is the fit of the subset, up to when the shared E-step re-linearised (below EM's tolerance);
+    the pooled identifiability is recomputed from the subset's information. ``needle crossval`` fits every
+    trial once this way instead of once per fold."""
+    import dataclasses as dc
+
+    idx = np.asarray(idx, dtype=np.int64)
+    sub = FitOutput(trials)
+    for name, mf in out.fits.items():
+        S, r = mf.system, mf.result
+        system = dc.replace(S, dm=S.dm.take(idx), meas=[m.take(idx) for m in S.meas], m0=S.m0[idx])
+        res = dc.replace(r, **{f.name: _rows(getattr(r, f.name), idx, r.x0.shape[0]) for f in dc.fields(r)
+                               if f.name not in ("R", "history")},
+                         R=[x[idx] for x in r.R], history={k: v[idx] for k, v in r.history.items()})
+        idf = None
+        if mf.identifiability is not None:
+            s = trials.cfg.fit.identify
+            idf = take_trials(mf.identifiability, idx, IdentifyOptions(rse_max=s.rse_max, nats=s.nats))
+        rob = None
+        if mf.robust is not None:
+            rb = mf.robust
+            rob = RobustInfo([None if w is None else w[idx] for w in rb.weights], rb.dof, rb.passes[idx], rb.last_change[idx])
+        sub.fits[name] = ModelFit(name, system, res, mf.seconds, idf, rob)
+    return sub
+
+
+def _rows(v, idx: np.ndarray, N: int):
+    """Rows ``idx`` of a per-trial array ``(N, ...)``; anything else as it is."""
+    return v[idx] if isinstance(v, np.ndarray) and v.ndim and v.shape[0] == N else v
 
 
 # ---------------------------------------------------------------------------------------------- the file

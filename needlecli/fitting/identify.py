@@ -258,6 +258,13 @@ def identify(
     verdict, reason = _verdicts(qs, rse, decade, bad, o)
     verdict[~ok], reason[~ok] = "", "trial not assessed (the fit failed)"
     used = ok & np.isfinite(H).all((-1, -2))
+    pse, prse, pverdict, preason = _pooled(qs, est, H, decade, used, o)
+    return Identifiability(qs, est, h, H, se, rse, decade, verdict, reason, used, pse, prse, pverdict, preason, l0)
+
+
+def _pooled(qs, est, H, decade, used, o: IdentifyOptions):
+    """Pooled SE, relative SE, verdict and reason ``(d,)`` from the summed information of the ``used`` trials."""
+    d = len(qs)
     info = -np.nansum(np.where(used[:, None, None], H, 0.0), axis=0)
     pse_theta, pbad = _standard_errors(info[None])
     pest = np.nanmedian(np.where(used[:, None], est, np.nan), axis=0) if used.any() else np.full(d, np.nan)
@@ -266,7 +273,20 @@ def identify(
         prse = np.abs(pse / pest)
     pdec = np.nansum(np.where(used[:, None, None], decade, 0.0), axis=0)[None] if used.any() else np.full((1, d, 2), np.nan)
     pverdict, preason = _verdicts(qs, prse[None], pdec, pbad, o)
-    return Identifiability(qs, est, h, H, se, rse, decade, verdict, reason, used, pse, prse, pverdict[0], preason[0], l0)
+    return pse, prse, pverdict[0], preason[0]
+
+
+def take_trials(idf: Identifiability, idx: np.ndarray, options: IdentifyOptions = IdentifyOptions()) -> Identifiability:
+    """The assessment of the trials ``idx`` only: their rows, and the pooled figures from their summed
+    information (what :func:`identify` gives on those trials alone: each trial's information is its own)."""
+    idx = np.asarray(idx)
+    rows = {k: getattr(idf, k)[idx] for k in ("estimate", "theta_step", "hessian", "se", "rse", "decade", "verdict",
+                                              "reason", "used", "loglik")}
+    pse, prse, pverdict, preason = _pooled(idf.quantities, rows["estimate"], rows["hessian"], rows["decade"],
+                                           rows["used"], options)
+    return Identifiability(idf.quantities, rows["estimate"], rows["theta_step"], rows["hessian"], rows["se"], rows["rse"],
+                           rows["decade"], rows["verdict"], rows["reason"], rows["used"], pse, prse, pverdict, preason,
+                           rows["loglik"])
 
 
 def _is_scale(qs: list[Quantity]) -> np.ndarray:

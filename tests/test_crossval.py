@@ -34,7 +34,7 @@ def test_folds_keep_groups_together_and_leave_one_out_within_a_group():
         make_folds(ids, groups, k=4, leave_one_out=False, within=False)
 
 
-def test_crossval_tunes_a_wrong_constant_on_held_out_trials(tmp_path):
+def test_crossval_tunes_a_wrong_constant_on_held_out_trials(tmp_path, monkeypatch):
     data = yaml.safe_load((ROOT / "configs" / "seed004" / "study.yaml").read_text())
     data["model"].pop("param_cases")
     data["runs"]["count"] = 4
@@ -48,7 +48,8 @@ def test_crossval_tunes_a_wrong_constant_on_held_out_trials(tmp_path):
     cfg = tmp_path / "study.yaml"
     cfg.write_text(yaml.safe_dump(data, sort_keys=False))
     out = tmp_path / "cv"
-    r = CliRunner().invoke(app, ["crossval", str(cfg), "--observer", "model", "--folds", "2", "--out", str(out), "--quiet"])
+    monkeypatch.chdir(tmp_path)  # a relative --out (the folds' configs live elsewhere than the fit files' paths)
+    r = CliRunner().invoke(app, ["crossval", str(cfg), "--observer", "model", "--folds", "2", "--out", "cv", "--quiet"])
     assert r.exit_code == 0, r.output
     s = pd.read_csv(out / "crossval_summary.csv").set_index("Observer")
     assert set(s.index) == {"model", "model_em"} and (s["Held-out trials"] == 4).all()  # 2 folds of 2

@@ -62,6 +62,7 @@ def test_crossval_tunes_a_wrong_constant_on_held_out_trials(tmp_path, monkeypatc
         held = yaml.safe_load((out / "folds" / f"fold{k}.yaml").read_text()) if (out / "folds" / f"fold{k}.yaml").exists() else None
         assert held is None or not set(fit["source"]["trials"]) & set(held["source"]["trials"])
     assert (out / "crossval_by_depth.md").exists() and (out / "folds" / "fold0.h5").exists()
+    assert (out / "crossval_by_depth.png").stat().st_size > 10_000
     # each fold takes its training trials' fits from one EM over all of them: the same as fitting the fold
     r = CliRunner().invoke(app, ["fit-em", str(out / "folds" / "fold0_train.yaml"), "--out", str(tmp_path / "direct.h5"),
                                  "--quiet"])

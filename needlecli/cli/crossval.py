@@ -28,7 +28,7 @@ def crossval(
 
     Example: needle crossval configs/real/em_tracker.yaml --observer open_loop --leave-one-out --group-by 'id~^[^-]+' --within
     """
-    from needlecli.experiments.crossval import check_args, crossval_tables
+    from needlecli.experiments.crossval import check_args, crossval_plot, crossval_tables
     from needlecli.experiments.crossval import crossval as run_crossval
     from needlecli.reports.tables import to_markdown, write_table
 
@@ -56,4 +56,6 @@ def crossval(
             typer.echo(f"## {name}\n\n{captions[name]}\n")
             typer.echo(to_markdown(df) if not df.empty else "(empty)")
             typer.echo("")
+    crossval_plot(tables["by_depth"], result.out_dir / "crossval_by_depth.png",
+                  f"held-out trials ({how}): mean position error against depth")
     typer.echo(f"tables: {result.out_dir}")

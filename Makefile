@@ -3,22 +3,25 @@ PY ?= python
 
 STUDIES := results/studies
 
-.PHONY: help install demo test bench lint clean seed000 seed001 seed003 seed004 datasets regress real real-tau
+.PHONY: help install demo test bench lint docs clean seed000 seed001 seed003 seed004 datasets regress real real-tau owndata faults
 
 help:
 	@echo "make install  - install needlecli with test extras (editable)"
 	@echo "make demo     - run the bundled default experiment and write its tables"
 	@echo "make test     - run the test suite (what .ci/run runs)"
-	@echo "make bench    - speed benchmarks (figures also as ratios against an in-run reference)"
+	@echo "make bench    - speed benchmarks (figures also as ratios against an in-run reference; issue 14's targets first)"
 	@echo "make lint     - ruff"
+	@echo "make docs     - the documentation site in site/ (mkdocs build --strict; pip install -e '.[docs]')"
 	@echo "make seed000  - seed 000's simulation and experiment-like studies: Table I, the sweep of theta (in $(STUDIES))"
 	@echo "make seed001  - seed 001's helix studies: convergence, half turns, Fig. 3, the alternative reading (in $(STUDIES))"
 	@echo "make seed003  - seed 003's simulation study: Table 1 (and its variant), Figs. 6-8 (results and tables in $(STUDIES))"
 	@echo "make datasets - rebuild the synthetic logs in datasets/ from configs/datasets/"
 	@echo "make regress  - replay every bundled data set and check its tables against datasets/baselines/"
+	@echo "make faults   - kill needle simulate and needle sweep at 20 random points each and check what is on disk"
 	@echo "make real     - import the recorded ultrasteer insertions (../shared/real-data) and make their tables in $(REAL)"
 	@echo "make real-tau - after make real: the ultrasound's likelihood against the image plane offset's time constant"
 	@echo "make seed004  - seed 004's synthetic study and T2prelim: EM fits, Tables 1-3, Figs. 5, 10 (in $(STUDIES))"
+	@echo "make owndata  - a lab's exports made by needlecli, imported by a mapping, fitted with and without the slip (in $(OWN))"
 	@echo "make clean    - remove results/ and caches"
 
 install:
@@ -33,6 +36,7 @@ test:
 
 bench:
 	$(PY) benchmarks/bench_startup.py
+	$(PY) benchmarks/bench_kernels.py
 	$(PY) benchmarks/bench_simulate.py
 	$(PY) benchmarks/bench_ukf.py
 	$(PY) benchmarks/bench_sweep.py
@@ -43,8 +47,13 @@ bench:
 lint:
 	$(PY) -m ruff check needlecli tests benchmarks
 
+# The documentation site: warnings are errors; the reference pages (commands, config keys, tables and plots)
+# are generated at build time from the code (tools/docs_hooks.py), the Python API from the docstrings.
+docs:
+	NO_MKDOCS_2_WARNING=1 $(PY) -m mkdocs build --strict
+
 clean:
-	rm -rf results .pytest_cache .ruff_cache .hypothesis
+	rm -rf results site .pytest_cache .ruff_cache .hypothesis
 
 seed000:
 	@for c in simulation experiment_like; do \
@@ -92,6 +101,11 @@ regress:
 	  needle evaluate results/regress/$$n.h5 --out results/regress/$$n --no-plots --quiet --baseline datasets/baselines/$$n.yaml || exit 1; \
 	done
 
+# Fault injection (issue 16): SIGKILL, SIGTERM, SIGINT at random points of simulate and sweep (local
+# processes), what is on disk checked after each, sweep --resume to the same table (a few minutes).
+faults:
+	$(PY) tools/faults.py --points 20 --executor local --work results/faults
+
 # Recorded insertions (issue 8): the data stay outside the repository; not part of CI (about 7 minutes
 # on 2 cores, most of it EM). NEEDLECLI_REAL_DATA overrides where they are.
 REAL := results/real
@@ -133,3 +147,24 @@ real-tau:
 	  needle evaluate $(REAL)/tau/em_resultsorig_tau$$t.h5 --out $(REAL)/tau/$$t --tables em_per_trial --no-plots --quiet || exit 1; \
 	  echo "tau $$t s: $$(grep resultsOrig $(REAL)/tau/$$t/*em_per_trial.md)"; \
 	done
+
+# Bringing your own recorded data (issue 18, docs/tutorials/own-data.md): a synthetic study in
+# the shape of a lab's exports (step-indexed tracker poses with quaternions, zero rows, per-sample rms, a
+# command file per trial; kappa = 0.012 (1 - duty_cycle), 86-94 % slip), imported by the mapping the export
+# writes, fitted by EM with the speed scale and without it; tables and plots in $(OWN)/tables. OWN_RUNS
+# trials (the 12 combinations of duty cycle and slip, repeated; the test suite runs 12).
+OWN := results/owndata
+OWN_RUNS ?= 48
+
+owndata:
+	@mkdir -p $(OWN)
+	needle simulate configs/owndata/study.yaml --runs $(OWN_RUNS) --out $(OWN)/study.h5 --quiet > /dev/null
+	needle log from-results $(OWN)/study.h5 --out $(OWN)/study_log.h5
+	needle log export-csv $(OWN)/study_log.h5 --out $(OWN)/exports --tracker-pose 10,80,25,120,-40,15 --sensor-roll 35
+	needle log import-csv $(OWN)/exports/mapping.yaml --out $(OWN)/lab.h5
+	needle log info $(OWN)/lab.h5 > $(OWN)/lab_info.txt
+	needle fit-em configs/owndata/fit.yaml --out $(OWN)/fit.h5 --quiet
+	needle fit-em configs/owndata/fit_no_scale.yaml --out $(OWN)/fit_no_scale.h5 --quiet
+	needle evaluate $(OWN)/fit.h5 --out $(OWN)/tables --quiet
+	needle evaluate $(OWN)/fit_no_scale.h5 --out $(OWN)/tables --quiet
+	@echo "tables: $(OWN)/tables; what the import read and dropped: $(OWN)/lab_info.txt"

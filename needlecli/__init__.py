@@ -7,7 +7,7 @@ The package is laid out by role (see ``STYLE.md`` in the project's shared folder
 ``sensors``      emulated hardware: clock, noise, pipeline, registered by kind
 ``observers``    state estimators, registered by type
 ``experiments``  config schema, input schedules and the batch runner
-``io``           the results file (a public contract, see README)
+``io``           the results file (a public contract, see docs/reference/results-file.md)
 ``metrics``      error records computed from a results file
 ``reports``      paper-form tables and plots built from the metrics
 ``cli``          the ``needle`` command

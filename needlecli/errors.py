@@ -40,3 +40,40 @@ class DataError(NeedleError):
 class SweepError(NeedleError):
     """A sweep that cannot start: a bad grid, a cell whose config is invalid, an executor not available;
     or a sweep table asked for a metric or parameter it does not have."""
+
+
+class OutputError(NeedleError):
+    """An output that cannot be written: a folder given for a file, a read-only place, a name too long, a
+    full disk. Raised before the work where it can be seen then (the checks of :mod:`needlecli.io.atomic`)."""
+
+    def __init__(self, path, message: str) -> None:
+        self.path = path
+        self.message = message
+        super().__init__(f"{path}: {message}")
+
+
+class Interrupted(KeyboardInterrupt):
+    """SIGINT or SIGTERM while a command runs (both handled the same way). Exit code 128 + the signal:
+    130 for SIGINT, 143 for SIGTERM. ``hint`` may say how to carry on (``--resume``)."""
+
+    def __init__(self, signum: int, hint: str = "") -> None:
+        import signal
+
+        super().__init__(signum)
+        self.signum = int(signum)
+        self.name = signal.Signals(signum).name
+        self.exit_code = 128 + self.signum
+        self.hint = hint
+
+
+def did_you_mean(word: object, candidates) -> str:
+    """``"; did you mean 'rate'?"`` when ``word`` is a likely misspelling of one of ``candidates`` (difflib's
+    closest match, case-insensitive), else ``""``: appended to a message about an unknown key or name."""
+    import difflib
+
+    if not isinstance(word, str) or not word:
+        return ""
+    names = [str(c) for c in candidates if str(c) != word]
+    lower = {n.lower(): n for n in names}
+    hit = difflib.get_close_matches(word.lower(), list(lower), n=1, cutoff=0.6)
+    return f"; did you mean {lower[hit[0]]!r}?" if hit else ""

@@ -31,6 +31,8 @@ class Channel:
     h_for : ``h_for(model)`` gives the same measurement function for another model (an observer's own),
         or None where that model cannot predict the channel
     sigma : (m,) the sensor's nominal noise std (observers may use their own R instead)
+    sample_sigma : (N, M, m) each sample's noise std where the data give one (a recorded per-sample RMS
+        error), else None; filters that use it weigh sample ``i`` by ``sample_sigma_i / sigma``
     angle : (m,) bool, channels compared wrapped
     """
 
@@ -49,6 +51,7 @@ class Channel:
     h_for: Callable[[Model], Callable[[np.ndarray], np.ndarray] | None] = lambda model: None
     unit_vector: bool = False
     attrs: Mapping = field(default_factory=dict)
+    sample_sigma: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -67,6 +70,7 @@ class EstimationProblem:
     cov_stride: int = 1  # keep covariances every k-th step of the time grid
     cov_layout: str = "full"  # "full" (..., n, n), "diag" (..., n) or "none"
     start: CommonStart | None = None  # one initial estimate for every observer (needle compare), or None
+    kernels: str = "auto"  # compiled kernels or the numpy reference (needlecli.kernels.compiled)
 
     @property
     def n_runs(self) -> int:

@@ -137,10 +137,11 @@ class Registry(Generic[T]):
                 raise KeyError(f"unknown {self.what} {name!r}; known: {', '.join(self.names()) or 'none'}")
         return self._items[name]
 
-    def load_all(self) -> list[PluginError]:
-        """Import every component; returns the plug-ins that failed (built-ins must not fail)."""
+    def load_all(self, plugins_only: bool = False) -> list[PluginError]:
+        """Import every component (or every plug-in only); returns the plug-ins that failed (built-ins must
+        not fail)."""
         failed = []
-        for name in self.names():
+        for name in (self.plugins() if plugins_only else self.names()):
             try:
                 self.get(name)
             except PluginError as e:
@@ -163,3 +164,15 @@ class Registry(Generic[T]):
 
     def __iter__(self) -> Iterator[str]:
         return iter(self.names())
+
+
+def lazy_attributes(module: str, lazy: Mapping[str, str]) -> Callable[[str], Any]:
+    """A module ``__getattr__`` (PEP 562) that imports ``name`` from ``lazy[name]`` on first use: a package
+    keeps its front door light (its registry) and its contract one attribute away."""
+
+    def __getattr__(name: str):
+        if name in lazy:
+            return getattr(importlib.import_module(lazy[name]), name)
+        raise AttributeError(f"module {module!r} has no attribute {name!r}")
+
+    return __getattr__

@@ -105,7 +105,7 @@ def _system(model, y, inputs, ticks, dt, *, offset=None, kappa=0.012, frame="nee
                        sensor_states=sensor_states)
     N, M = y.shape[:2]
     mm = MeasurementModel("us", lambda x: x[..., :3], model.n, np.arange(M), y, np.ones((N, M), dtype=bool),
-                          np.zeros(3, dtype=bool), ("x", "y", "z"), ("mm",) * 3, False, frame, model.tangent, 0,
+                          np.zeros(3, dtype=bool), ("x", "y", "z"), ("mm",) * 3, False, frame=frame, tangent_fn=model.tangent, frame_axis=0,
                           offset_index=dm.names.index("us_offset") if offset is not None else None)
     return dm, mm
 

@@ -10,14 +10,29 @@ from __future__ import annotations
 
 import typer
 
-from needlecli.cli import characterize, compare, crossval, evaluate, fit_em, imports, listing, log, simulate, sweep, validate
+from needlecli.cli import (
+    characterize,
+    compare,
+    crossval,
+    evaluate,
+    explain,
+    fit_em,
+    imports,
+    listing,
+    log,
+    simulate,
+    sweep,
+    validate,
+)
 
 app = typer.Typer(
     name="needle",
-    help="Batch experiments with steerable-needle models, emulated sensors and observers.",
+    help="Batch experiments with steerable-needle models, emulated sensors and observers.\n\n"
+         "Example: needle simulate configs/default.yaml && needle evaluate results/default.h5",
     no_args_is_help=True,
     pretty_exceptions_enable=False,
-    add_completion=False,
+    add_completion=True,  # --install-completion / --show-completion for the user's shell
+    context_settings={"help_option_names": ["-h", "--help"]},
 )
 
 
@@ -40,6 +55,7 @@ app.command()(simulate.simulate)
 app.command()(evaluate.evaluate)
 app.command()(validate.validate)
 app.command("list")(listing.list_components)
+app.command()(explain.explain)
 app.command("fit-em")(fit_em.fit_em_cmd)
 app.command()(crossval.crossval)
 app.command()(compare.compare)
@@ -49,5 +65,23 @@ app.add_typer(log.log_app, name="log")
 app.add_typer(imports.import_app, name="import")
 
 
+def _quiet_exit(signum, frame) -> None:  # noqa: ARG001
+    """Before and after a command's own handling (needlecli.io.atomic.handle_signals) no file is open:
+    SIGINT and SIGTERM end the process at once with 128 + the signal, the one line saying what is on disk
+    (what the command completed, if it ran), without a traceback."""
+    import os
+    import signal
+    import sys
+
+    journal = getattr(sys.modules.get("needlecli.io.atomic"), "JOURNAL", None)  # None: not (fully) imported yet
+    done = journal.summary() if journal is not None else "no file was written"
+    os.write(2, f"error: interrupted by {signal.Signals(signum).name}: {done}\n".encode())
+    os._exit(128 + signum)
+
+
 def run() -> None:
+    import signal
+
+    for s in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(s, _quiet_exit)
     app()

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import typer
 
-from needlecli.cli.common import fail, setup_logging, user_errors
+from needlecli.cli.common import fail, progress_bar, setup_logging, user_errors
 
 
 @user_errors
@@ -18,13 +18,16 @@ def characterize_sensor(
     seed: int = typer.Option(0, "--seed", "-s", min=0, help="Seed of the frames' noise."),
     outlier: float = typer.Option(None, "--outlier", min=0.0, help="Error (mm) counted as an outlier (default: 5 pixels)."),
     mode: str = typer.Option("tracking", "--mode", help="3D ultrasound region: tracking (around a prediction) or search."),
-    out: Path = typer.Option(None, "--out", "-o", help="Folder for the tables (default: <config>_characterization/ beside it)."),
+    out: Path = typer.Option(None, "--out", "-o", help="Folder for the tables (default: CONFIG_characterization/ beside the config)."),
     format_: str = typer.Option("md,csv", "--format", "-f", help="Table formats: md, csv, tex."),
     set_: list[str] = typer.Option([], "--set", help="Override a config key: --set sensors.0.image.voxel=0.5"),
-    quiet: bool = typer.Option(False, "--quiet", "-q", help="Print nothing but errors."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar; print nothing but errors."),
 ) -> None:
     """Measure each image pipeline's bias, spread, outlier and lost-frame rates against what its quality
-    depends on, and print the Gaussian sensor settings that match it."""
+    depends on, and print the Gaussian sensor settings that match it.
+
+    Example: needle characterize-sensor configs/examples/imaging_us2d.yaml --repeats 10
+    """
     import yaml
 
     from needlecli.experiments.config import load_config
@@ -38,10 +41,14 @@ def characterize_sensor(
     for f in formats:
         if f not in ("md", "csv", "tex"):
             fail(f"--format: unknown format {f!r}; use md, csv, tex")
-    cfg, _ = load_config(config, overrides=set_)
-    results = characterize_sensors(cfg, sensor=sensor, repeats=repeats, seed=seed, outlier=outlier, mode=mode,
-                                   source=str(config))
+    from needlecli.io.atomic import check_output_dir
+
+    cfg, _ = load_config(config, overrides=set_, memory=False)  # frames of chosen poses, not the experiment
     out_dir = out if out is not None else config.parent / f"{config.stem}_characterization"
+    check_output_dir(out_dir, what="the characterization tables")
+    with progress_bar(not quiet) as bar:
+        results = characterize_sensors(cfg, sensor=sensor, repeats=repeats, seed=seed, outlier=outlier, mode=mode,
+                                       source=str(config), progress=bar)
     for r in results:
         caption = (f"{r.sensor} ({r.device}): error of the image pipeline over {repeats} frames per pose "
                    f"({mode}); bias and std over the frames that are not outliers")

@@ -16,13 +16,16 @@ def compare(
     runs: int = typer.Option(None, "--runs", "-n", min=1, help="Runs (a config) or first trials (a log)."),
     seed: int = typer.Option(None, "--seed", "-s", min=0, help="Seed (overrides runs.seed)."),
     model: str = typer.Option(None, "--model", "-m", help="Model to replay a log with (logs only)."),
-    out: Path = typer.Option(None, "--out", "-o", help="Folder for the results file and tables (default: results/<name>_compare)."),
+    out: Path = typer.Option(None, "--out", "-o", help="Folder for the results file and tables (default: results/NAME_compare)."),
     set_: list[str] = typer.Option([], "--set", help="Override a config key: --set sensors.0.rate=2"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar or log lines."),
 ) -> None:
     """Simulate (or replay) once and run every registered observer that can run on the experiment's
     sensors on the same insertions and measurements; print the table in the form of seed 003's
-    appendix A and write it (compare.md, compare.csv) with the results file."""
+    appendix A and write it (compare.md, compare.csv) with the results file.
+
+    Example: needle compare configs/seed003/table1.yaml --runs 20 --observers ukf,ekf,open_loop
+    """
     import textwrap
 
     from needlecli.experiments.compare import FOOTNOTE, appendix_form, compare_observers, compare_table, terminal_form

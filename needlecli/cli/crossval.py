@@ -18,12 +18,12 @@ def crossval(
     leave_one_out: bool = typer.Option(False, "--leave-one-out", help="Hold out one trial at a time."),
     group_by: str = typer.Option(None, "--group-by", help="Group trials by a metadata key, or id~REGEX on their ids (e.g. 'id~^[^-]+')."),
     within: bool = typer.Option(False, "--within", help="With --leave-one-out: fit on the other trials of the held-out one's group only."),
-    out: Path = typer.Option(None, "--out", "-o", help="Folder for folds, fits and tables (default: results/<name>_crossval)."),
+    out: Path = typer.Option(None, "--out", "-o", help="Folder for folds, fits and tables (default: results/NAME_crossval)."),
     set_: list[str] = typer.Option([], "--set", help="Override a config key: --set fit.em.max_iter=50"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar or log lines."),
 ) -> None:
     """Fit the config's fit: section by EM on the training trials of each fold and run the held-out trials
-    through the hand-tuned observers and their EM-tuned copies (<name>_em), from one common start; print
+    through the hand-tuned observers and their EM-tuned copies (NAME_em), from one common start; print
     and write the held-out errors (summary, by depth) and each fold's fitted constants.
 
     Example: needle crossval configs/real/em_tracker.yaml --observer open_loop --leave-one-out --group-by 'id~^[^-]+' --within

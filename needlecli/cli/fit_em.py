@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from needlecli.cli.common import fail, log, progress_bar, setup_logging, user_errors
+from needlecli.cli.common import check_results_target, fail, log, progress_bar, setup_logging, user_errors
 
 
 @user_errors
@@ -14,16 +14,19 @@ def fit_em_cmd(
     sources: list[Path] = typer.Argument(..., metavar="CONFIG_OR_LOG...", help="Experiment configs (.yaml); "
                                          "recorded trials through a config with `source: {logs: [...]}`."),
     model: str = typer.Option(None, "--model", "-m", help="mnm, binm or both (default: the config's fit.models)."),
-    out: Path = typer.Option(None, "--out", "-o", help="Fit file (default: results/<name>_fit.h5; one source only)."),
+    out: Path = typer.Option(None, "--out", "-o", help="Fit file (default: results/NAME_fit.h5; one source only)."),
     set_: list[str] = typer.Option([], "--set", help="Override a config key: --set fit.em.max_iter=50"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar or log lines."),
 ) -> None:
     """Fit the process noise Q, each measurement noise R_j and the model's constant (c of the MNM,
     l_inv of the BiNM) to every trial by EM with the iterated extended Kalman smoother, and write the
-    fits, smoothed trajectories and convergence histories to one HDF5 file per config."""
+    fits, smoothed trajectories and convergence histories to one HDF5 file per config.
+
+    Example: needle fit-em configs/seed004/study.yaml --model both --out results/seed004_fit.h5
+    """
     import numpy as np
 
-    from needlecli.experiments.fit import default_fit_output, fit_tree, fit_trials, load_trials
+    from needlecli.experiments.fit import default_fit_output, fit_tree, fit_trials, load_fit_config, load_trials
     from needlecli.io.results import write_atomic
 
     setup_logging(quiet)
@@ -35,6 +38,9 @@ def fit_em_cmd(
         if choice not in ("mnm", "binm", "both"):
             fail(f"--model: {model!r} is not one of mnm, binm, both")
         models = ["mnm", "binm"] if choice == "both" else [choice]
+    for src in sources:  # every config and output checked before the first fit
+        cfg, _ = load_fit_config(src, overrides=set_)
+        check_results_target(cfg, out if out is not None else default_fit_output(cfg), src.parent, what="the fit file")
     for src in sources:
         trials = load_trials(src, overrides=set_)
         cfg = trials.cfg
@@ -43,7 +49,9 @@ def fit_em_cmd(
         log.info("fitting %d trial(s) of %s (%s)", n, cfg.name, "simulated" if trials.simulated else "recorded")
         with progress_bar(not quiet) as bar:
             result = fit_trials(trials, models=models, progress=bar)
-        write_atomic(target, fit_tree(result))
+            tree = fit_tree(result)
+            write_atomic(target, tree, progress=(lambda k, n: bar("fit file", k, n)) if bar else None)
+        ids = trials.truth.trial_ids or [f"run {i}" for i in range(n)]
         if not quiet:
             for name, mf in result.fits.items():
                 r = mf.result
@@ -55,9 +63,13 @@ def fit_em_cmd(
                            f"max {int(r.iterations.max())}; {consts}; {mf.seconds:.1f} s")
                 for s in ("singular", "diverged"):
                     for i in np.nonzero(r.status == s)[0][:5]:
-                        typer.echo(f"  trial {i}: {s}: {r.reason[i]}")
+                        typer.echo(f"  trial {ids[i]}: {s}: {r.reason[i]}")
                 dec = np.nonzero(r.ll_decreases > 0)[0]
                 if dec.size:
                     typer.echo(f"  the log-likelihood decreased beyond numerical noise in {int(r.ll_decreases.sum())} "
                                f"iteration(s) of {dec.size} trial(s) (largest drop {r.ll_worst_drop.max():.3g})")
+            from needlecli.reports.design import warning_summary
+
+            for line in warning_summary(tree, statuses=False):  # R on its floor, Q nearly singular, kappa < 0
+                typer.echo(f"  warning: {line}")
         typer.echo(f"fit: {target}")

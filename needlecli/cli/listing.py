@@ -11,7 +11,10 @@ def list_components(
                                  "and unit (imports the models)."),
 ) -> None:
     """List what configs can name (and which installed package adds a plug-in). Nothing is imported to
-    print the names; --details loads the models."""
+    print the names; --details loads the models.
+
+    Example: needle list --details
+    """
     from needlecli.control import CONTROLLERS
     from needlecli.models import MODELS
     from needlecli.observers import OBSERVERS
@@ -26,6 +29,11 @@ def list_components(
                   ("controllers", CONTROLLERS), ("tables", TABLES), ("plots", PLOTS))
     for title, reg in registries:
         typer.echo(f"{title}: {', '.join(named(reg, n) for n in reg.names())}")
+    from needlecli import kernels  # what has a compiled path (imports neither numba nor a kernel)
+
+    typer.echo("")
+    for line in kernels.describe():
+        typer.echo(line)
     if not details:
         return
     typer.echo("")
@@ -39,19 +47,6 @@ def list_components(
             f"model {name}: state ({', '.join(m.state_names)}); inputs ({', '.join(m.input_names)}); "
             f"params ({', '.join(m.Params.model_fields)}); unit {m.length_unit}"
         )
-    broken = [e for _, reg in registries if reg is not MODELS for e in _plugin_failures(reg)]
+    broken = [e for _, reg in registries if reg is not MODELS for e in reg.load_all(plugins_only=True)]
     for e in broken:
         typer.echo(f"warning: {e}", err=True)
-
-
-def _plugin_failures(reg) -> list:
-    """The plug-ins of ``reg`` that cannot be loaded (built-ins are not imported here)."""
-    from needlecli.registry import PluginError
-
-    out = []
-    for name in reg.plugins():
-        try:
-            reg.get(name)
-        except PluginError as e:
-            out.append(e)
-    return out

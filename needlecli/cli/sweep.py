@@ -7,6 +7,7 @@ from pathlib import Path
 import typer
 
 from needlecli.cli.common import fail, log, progress_bar, setup_logging, user_errors
+from needlecli.errors import Interrupted
 
 
 @user_errors
@@ -16,7 +17,7 @@ def sweep(
     executor: str = typer.Option("local", "--executor", "-e", help="local (processes), dask (a distributed cluster) or inline."),
     scheduler: str = typer.Option(None, "--scheduler", help="Dask scheduler address, e.g. tcp://10.0.0.5:8786 (default: start a LocalCluster)."),
     workers: int = typer.Option(None, "--workers", "-w", min=1, help="Local worker processes (default: the CPU count)."),
-    out: Path = typer.Option(None, "--out", "-o", help="Sweep folder (default: results/sweeps/<config>_<grid>)."),
+    out: Path = typer.Option(None, "--out", "-o", help="Sweep folder (default: results/sweeps/CONFIG_GRID, the files' names)."),
     resume: bool = typer.Option(False, "--resume", help="Skip cells whose complete results already exist."),
     set_: list[str] = typer.Option([], "--set", help="Override a key in every cell: --set runs.count=10"),
     plot_metric: str = typer.Option(None, "--plot-metric", help="Metric column to plot (default: E_xyz_mean)."),
@@ -24,9 +25,12 @@ def sweep(
     dry_run: bool = typer.Option(False, "--dry-run", help="Validate every cell and list them; run nothing."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar or log lines; print only the paths."),
 ) -> None:
-    """Run one experiment per cell of a grid (each validated first), write DIR/cells/<id>.h5, the table
+    """Run one experiment per cell of a grid (each validated first), write DIR/cells/ID.h5, the table
     DIR/sweep.csv and DIR/sweep.md (one row per cell and observer) and a plot of a metric against a
-    parameter. Exit code 1 when a cell failed (the others still ran), 2 for a bad config or grid."""
+    parameter. Exit code 1 when a cell failed (the others still ran), 2 for a bad config or grid.
+
+    Example: needle sweep configs/seed003/table1.yaml --grid configs/sweeps/seed003_q_kappa.yaml --workers 2
+    """
     from needlecli.experiments.sweep import (
         default_plot_choice,
         load_grid,
@@ -42,9 +46,13 @@ def sweep(
         fail(f"--executor: unknown executor {executor!r}; use local, dask or inline")
     if scheduler and executor != "dask":
         fail("--scheduler needs --executor dask")
+    from needlecli.io.atomic import check_output_dir
+
     g = load_grid(grid)
     out_dir = out if out is not None else Path("results") / "sweeps" / f"{config.stem}_{grid.stem}"
+    check_output_dir(out_dir, what="the sweep")
     cells = plan_sweep(config, g, out_dir=out_dir, overrides=set_, grid_source=str(grid))
+    check_output_dir(out_dir, what="the sweep's results", size=sum(c.file_bytes for c in cells if not Path(c.path).exists()))
     if dry_run:
         typer.echo(f"{grid}: {len(cells)} valid cell(s) of {config} -> {out_dir}")
         for c in cells:
@@ -56,17 +64,17 @@ def sweep(
         with progress_bar(not quiet) as bar:
             result = run_sweep(cells, out_dir=out_dir, executor=executor, workers=workers, scheduler=scheduler,
                                resume=resume, progress=bar, manifest=manifest)
-    except KeyboardInterrupt:
-        typer.echo(f"interrupted: the complete cells are kept in {out_dir / 'cells'}; run again with --resume "
-                   "to finish the others", err=True)
-        raise typer.Exit(130) from None
-    table = result.table
-    metric, param = default_plot_choice(table, plot_metric, plot_param)
-    plot = None
-    if metric is not None and param is not None and (table["status"] == "ok").any():
-        plot = plot_sweep(table, metric=metric, param=param, path=out_dir / plot_name(metric, param),
-                          units=result.units, title=g.description or config.stem)
-    elif plot_metric or plot_param:
+        table = result.table
+        metric, param = default_plot_choice(table, plot_metric, plot_param)
+        plot = None
+        if metric is not None and param is not None and (table["status"] == "ok").any():
+            plot = plot_sweep(table, metric=metric, param=param, path=out_dir / plot_name(metric, param),
+                              units=result.units, title=g.description or config.stem)
+    except KeyboardInterrupt as e:  # SIGINT, SIGTERM: the message (needlecli.cli.common) says what is on disk
+        sig = e if isinstance(e, Interrupted) else Interrupted(2)
+        sig.hint = f"the complete cells are kept in {out_dir / 'cells'}; run again with --resume to finish the others"
+        raise sig from None
+    if plot is None and (plot_metric or plot_param):
         fail("nothing to plot: no cell succeeded" if not (table["status"] == "ok").any() else
              "nothing to plot: the sweep varies no parameter besides runs.seed")
     if not quiet:

@@ -6,24 +6,34 @@ from pathlib import Path
 
 import typer
 
-from needlecli.errors import NeedleError
-
 
 def validate(
-    configs: list[Path] = typer.Argument(..., help="Config files to check."),
-    set_: list[str] = typer.Option([], "--set", help="Override a key: --set sensors.0.rate=2"),
+    configs: list[Path] = typer.Argument(..., metavar="CONFIG...", help="Config files to check."),
+    set_: list[str] = typer.Option([], "--set", help="Override a key in every config: --set sensors.0.rate=2"),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="Print nothing but the problems (no ok lines, no warnings)."),
 ) -> None:
-    """Check experiment configs; one line per config, exit code 2 if any is invalid."""
-    from needlecli.experiments.config import load_config
+    """Check experiment configs: every problem of each, one line each naming the config and the key
+    (with a did-you-mean for a misspelt key or name), or "ok: CONFIG"; exit code 2 if any is invalid.
 
+    Example: needle validate configs/default.yaml configs/seed003/*.yaml
+    """
+    import logging
+
+    from needlecli.cli.common import setup_logging
+    from needlecli.experiments.config import config_problems
+
+    setup_logging(quiet, level=logging.WARNING)  # warnings (from_fit takes what a fit did not identify)
     bad = 0
     for path in configs:
-        try:
-            load_config(path, overrides=set_)
-        except NeedleError as e:  # a bad config, or a replay config whose logs are missing or bad
-            typer.echo(f"error: {e}", err=True)
+        problems = config_problems(path, overrides=set_)
+        for e in problems:  # a bad config, or a replay config whose logs are missing or bad
+            line = " ".join(str(e).split())
+            if not line.startswith(str(path)):  # a log's or a fit file's problem: say which config it is of
+                line = f"{path}: {line}"
+            typer.echo(f"error: {line}", err=True)
+        if problems:
             bad += 1
-        else:
+        elif not quiet:
             typer.echo(f"ok: {path}")
     if bad:
         raise typer.Exit(2)

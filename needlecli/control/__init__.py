@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from needlecli.registry import Registry
+from needlecli.registry import Registry, lazy_attributes
 
 if TYPE_CHECKING:
     from needlecli.control.base import Controller
@@ -21,12 +21,8 @@ CONTROLLERS: Registry[type[Controller]] = Registry("controller type", group="nee
 })
 
 
-def __getattr__(name: str):  # the contract, imported on first use (this package's import is light)
-    if name in ("Controller", "ControllerSettings"):
-        from needlecli.control import base
-
-        return getattr(base, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+#: the contract, imported on first use (this package's import is light)
+__getattr__ = lazy_attributes(__name__, {"Controller": "needlecli.control.base", "ControllerSettings": "needlecli.control.base"})
 
 
 __all__ = ["CONTROLLERS", "Controller", "ControllerSettings"]

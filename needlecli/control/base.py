@@ -22,14 +22,14 @@ from pydantic import Field
 
 from needlecli.control import CONTROLLERS  # noqa: F401  (the registry, at the package's front door)
 from needlecli.io.tree import Group
-from needlecli.schema import Strict
+from needlecli.schema import Name, Strict
 
 
 class ControllerSettings(Strict):
     """Settings every controller has."""
 
     type: str
-    name: str | None = Field(None, pattern=r"^[A-Za-z0-9_.\-]+$", description="name in the results file (default: the type)")
+    name: Name | None = Field(None, description="name in the results file (default: the type)")
     sensor: str = Field(description="the sensor whose samples the controller acts on (it is measured in the loop)")
 
 

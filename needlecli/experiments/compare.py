@@ -404,6 +404,7 @@ def compare_observers(
     from needlecli.experiments.replay import replay_truth
     from needlecli.experiments.runner import build_problem, results_tree, simulate_and_measure
     from needlecli.experiments.truth import stream
+    from needlecli.io.atomic import check_output_dir
     from needlecli.io.results import read_results, write_atomic
     from needlecli.io.yamlfile import parse_yaml
     from needlecli.metrics import compute_errors
@@ -411,6 +412,8 @@ def compare_observers(
     from needlecli.reports.seed003 import prediction_errors
 
     cfg, text, source = load_compare_config(config, model=model, runs=runs, seed=seed, overrides=overrides)
+    out = Path(out_dir) if out_dir is not None else Path("results") / f"{cfg.name}_compare"
+    check_output_dir(out, what="the comparison")
     base_dir = Path(source.split(" (replay config)")[0]).parent if cfg.source is not None else Path(config).parent
     if observers:  # names checked before the simulation
         known = {o.name or o.type for o in cfg.observers} | set(OBSERVERS.names()) | {f"{t}_defaults" for t in OBSERVERS.names()}
@@ -450,7 +453,6 @@ def compare_observers(
             r.error = f"{type(e).__name__}: {e}".splitlines()[0]
         r.seconds = time.perf_counter() - t0
         runs_out.append(r)
-    out = Path(out_dir) if out_dir is not None else Path("results") / f"{cfg.name}_compare"
     path = write_atomic(out / f"{cfg.name}_compare.h5", results_tree(cfg1, text1, truth, streams, estimates, sensors, control))
     res = read_results(path)
     errors = compute_errors(res)

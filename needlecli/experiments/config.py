@@ -16,17 +16,18 @@ import yaml
 from pydantic import ValidationError
 
 from needlecli.control import CONTROLLERS
-from needlecli.errors import ConfigError
+from needlecli.errors import ConfigError, NeedleError, did_you_mean
+from needlecli.experiments.budget import check_memory
 from needlecli.experiments.from_fit import expand_from_fit
 from needlecli.experiments.overrides import apply_overrides
 from needlecli.experiments.schedule import signal_size
 from needlecli.experiments.schema import all_tags, experiment_schema, used_types
-from needlecli.io.yamlfile import parse_yaml
+from needlecli.io.yamlfile import parse_yaml, read_text
 from needlecli.models import MODELS, Model
 from needlecli.observers import OBSERVERS
 from needlecli.observers.base import Observer
 from needlecli.registry import PluginError
-from needlecli.schema import validation_error
+from needlecli.schema import validation_error, validation_errors
 from needlecli.sensors import PIPELINES, SENSORS
 
 
@@ -37,22 +38,37 @@ def load_config(
     overrides: list[str] | None = None,
     runs: int | None = None,
     seed: int | None = None,
+    memory: bool = True,
 ):
-    """Read, override and validate a config. Returns ``(config, raw_text)``.
+    """Read, override and validate a config. Returns ``(config, raw_text)``. With ``memory`` (the
+    default), an experiment that needs more memory than is available is refused too
+    (:mod:`needlecli.experiments.budget`).
 
     Raises
     ------
     ConfigError
-        Anything wrong with the file, with the file name and key path.
+        Anything wrong with the file, with the file name and key path: the first problem
+        (:func:`config_problems` gives them all).
     """
+    return _load(path, text=text, overrides=overrides, runs=runs, seed=seed, memory=memory, problems=None)
+
+
+def config_problems(path: str | Path, overrides: list[str] | None = None) -> list[NeedleError]:
+    """Every problem of a config at once (``needle validate``): each key the schema refuses, then, when the
+    schema holds, every problem across sections; the memory check only when nothing else is wrong. A
+    file that cannot be read or parsed, or an override that cannot be applied, is one problem. Empty: valid."""
+    problems: list[NeedleError] = []
+    try:
+        _load(path, overrides=overrides, problems=problems)
+    except NeedleError as e:
+        problems.append(e)
+    return problems
+
+
+def _load(path, *, text=None, overrides=None, runs=None, seed=None, memory=True, problems=None):
     source = str(path) if path is not None else "<string>"
     if text is None:
-        try:
-            text = Path(path).read_text(encoding="utf-8")  # type: ignore[arg-type]
-        except FileNotFoundError:
-            raise ConfigError(source, (), "no such file") from None
-        except (OSError, UnicodeDecodeError) as e:
-            raise ConfigError(source, (), f"cannot read the file: {e}") from None
+        text = read_text(path)  # type: ignore[arg-type]
     data = copy.deepcopy(parse_yaml(text, source))
     changed = apply_overrides(data, overrides, source, runs=runs, seed=seed)
     fitted = expand_from_fit(data, source, Path(source).parent if path is not None else Path("."))
@@ -64,8 +80,15 @@ def load_config(
     try:
         cfg = schema.model_validate(data)
     except ValidationError as e:
-        raise validation_error(e, data, source, tags=all_tags()) from None
-    check_consistency(cfg, source)
+        if problems is None:
+            raise validation_error(e, data, source, tags=all_tags(), schema=schema) from None
+        problems.extend(validation_errors(e, data, source, tags=all_tags(), schema=schema))
+        return None
+    check_consistency(cfg, source, problems)
+    if problems:
+        return None
+    if memory:
+        check_memory(cfg, source, Path(source).parent if source != "<string>" else Path("."))
     if changed or fitted:  # the config as it ran: from_fit's values written out, where they came from above
         text = "".join(f"# {line}\n" for line in fitted) + yaml.safe_dump(data, sort_keys=False)
     return cfg, text
@@ -98,62 +121,77 @@ def _depth_reachable(sig, depth: float) -> bool:
     return True
 
 
-def check_consistency(cfg, source: str) -> None:
-    """Checks across sections: inputs against the model, sensors and observers against the model."""
+def check_consistency(cfg, source: str, problems: list | None = None) -> None:
+    """Checks across sections: inputs against the model, sensors and observers against the model. The
+    first problem is raised; with a ``problems`` list every problem is appended to it instead (a check
+    that needs an earlier section to be right is skipped when that section is not)."""
+
+    def report(loc: tuple, msg: str) -> None:
+        err = ConfigError(source, loc, msg)
+        if problems is None:
+            raise err
+        problems.append(err)
+
     model_cls = MODELS.get(cfg.model.type)
     model = model_cls(cfg.model.params)
     # inputs
+    inputs_ok = True
     for name, sig in cfg.inputs.items():
         if name not in model_cls.input_names:
-            raise ConfigError(
-                source, ("inputs", name), f"model {cfg.model.type!r} has no input {name!r}; inputs are "
-                + ", ".join(model_cls.input_names)
-            )
+            report(("inputs", name), f"model {cfg.model.type!r} has no input {name!r}; inputs are "
+                   + ", ".join(model_cls.input_names) + did_you_mean(name, model_cls.input_names))
+            inputs_ok = False
+            continue
         size = model_cls.input_sizes[name]
         if signal_size(sig) != size:
-            raise ConfigError(source, ("inputs", name), f"needs {size} value(s) per sample, got {signal_size(sig)}")
+            report(("inputs", name), f"needs {size} value(s) per sample, got {signal_size(sig)}")
+            inputs_ok = False
         if getattr(sig, "kind", "") == "flips" and sig.at_depths is not None and name == model_cls.insertion_input:
-            raise ConfigError(source, ("inputs", name), "the insertion input cannot be triggered by depth")
+            report(("inputs", name), "the insertion input cannot be triggered by depth")
+            inputs_ok = False
         if getattr(sig, "kind", "") == "cases" and name == model_cls.insertion_input:
-            raise ConfigError(source, ("inputs", name), "the insertion input cannot differ between runs (cases)")
+            report(("inputs", name), "the insertion input cannot differ between runs (cases)")
+            inputs_ok = False
     n_cases = {len(sig.cases) for sig in cfg.inputs.values() if getattr(sig, "kind", "") == "cases"}
     if len(n_cases) > 1:
-        raise ConfigError(source, ("inputs",), f"inputs given as cases must have the same number of cases, not {sorted(n_cases)}")
+        report(("inputs",), f"inputs given as cases must have the same number of cases, not {sorted(n_cases)}")
     if cfg.source is not None:
         for key in ("inputs", "sensors", "tissue", "stop"):
             if getattr(cfg, key):
-                raise ConfigError(source, (key,), "comes from the logs when the config has a source; remove it")
+                report((key,), "comes from the logs when the config has a source; remove it")
         if cfg.process_noise.std:
-            raise ConfigError(source, ("process_noise",), "comes from the logs when the config has a source; remove it")
+            report(("process_noise",), "comes from the logs when the config has a source; remove it")
         if cfg.model.param_cases is not None:
-            raise ConfigError(source, ("model", "param_cases"), "describes simulated runs; a config with a source has none")
+            report(("model", "param_cases"), "describes simulated runs; a config with a source has none")
         if cfg.control:
-            raise ConfigError(source, ("control",), "cannot close a loop on recorded logs (their inputs were applied "
-                              "when they were recorded); remove it, or simulate the experiment instead")
+            report(("control",), "cannot close a loop on recorded logs (their inputs were applied "
+                   "when they were recorded); remove it, or simulate the experiment instead")
     elif cfg.stop is None:
-        raise ConfigError(source, ("stop",), "required key is missing (or give a source of recorded logs)")
+        report(("stop",), "required key is missing (or give a source of recorded logs)")
     elif model_cls.insertion_input not in cfg.inputs:
-        raise ConfigError(source, ("inputs", model_cls.insertion_input), "required key is missing (insertion speed)")
-    if cfg.stop is not None and cfg.stop.depth is not None and cfg.source is None:
+        report(("inputs", model_cls.insertion_input), "required key is missing (insertion speed)")
+    elif cfg.stop.depth is not None and inputs_ok:
         v = np.asarray(cfg.inputs[model_cls.insertion_input].model_dump().get("value", 1.0), dtype=float)
         if getattr(cfg.inputs[model_cls.insertion_input], "kind", "") == "constant" and np.all(v <= 0):
-            raise ConfigError(source, ("stop", "depth"), "the insertion speed is not positive: the depth is never reached")
-        if not _depth_reachable(cfg.inputs[model_cls.insertion_input], cfg.stop.depth):
-            raise ConfigError(source, ("stop", "depth"), "the insertion schedule ends without reaching this depth")
+            report(("stop", "depth"), "the insertion speed is not positive: the depth is never reached")
+        elif not _depth_reachable(cfg.inputs[model_cls.insertion_input], cfg.stop.depth):
+            report(("stop", "depth"), "the insertion schedule ends without reaching this depth")
     # parameter cases: the curvature parameter cannot follow tissue layers and cases at once
     pc = cfg.model.param_cases
     if pc is not None and cfg.tissue is not None and any(model_cls.curvature_param in c for c in pc.cases):
-        raise ConfigError(source, ("model", "param_cases"),
-                          f"{model_cls.curvature_param!r} follows the tissue layers; it cannot also differ by case")
+        report(("model", "param_cases"),
+               f"{model_cls.curvature_param!r} follows the tissue layers; it cannot also differ by case")
     # process noise
     for k in cfg.process_noise.std:
         if k not in model_cls.state_names:
-            raise ConfigError(source, ("process_noise", "std", k), f"model {cfg.model.type!r} has no state {k!r}")
+            report(("process_noise", "std", k), f"model {cfg.model.type!r} has no state {k!r}"
+                   + did_you_mean(k, model_cls.state_names))
     # tissue
     if cfg.tissue is not None and model_cls.curvature_param is None:
-        raise ConfigError(source, ("tissue",), f"model {cfg.model.type!r} has no curvature parameter for tissue layers")
+        report(("tissue",), f"model {cfg.model.type!r} has no curvature parameter for tissue layers")
     # sensors
     names = {}
+    sensors_ok = True
     if cfg.source is not None:  # the logs' sensors; reading them checks the logs before any work
         from needlecli.experiments.replay import replay_sensors
 
@@ -162,65 +200,99 @@ def check_consistency(cfg, source: str) -> None:
         ref = cfg.source.reference
         if ref is not None and (ref.sensor not in names or names[ref.sensor].registered_name != "position"
                                 or "x" not in names[ref.sensor].channel_names):
-            raise ConfigError(source, ("source", "reference", "sensor"), f"needs a position sensor with x in the logs, not {ref.sensor!r}")
+            report(("source", "reference", "sensor"), f"needs a position sensor with x in the logs, not {ref.sensor!r}"
+                   + did_you_mean(ref.sensor, names))
     for i, s in enumerate(cfg.sensors):
         try:
             sensor = SENSORS.get(s.type)(s, model)
         except ValueError as e:  # settings that contradict each other, e.g. 2 sigmas for 3 axes
             key = str(e).split()[0] if str(e) else ""
             loc = ("sensors", i) + ((key,) if key in type(s).model_fields else ())
-            raise ConfigError(source, loc, str(e)) from None
+            report(loc, str(e))
+            sensors_ok = False
+            continue
         if sensor.name in names:
-            raise ConfigError(source, ("sensors", i, "name"), f"sensor name {sensor.name!r} is used twice")
+            report(("sensors", i, "name"), f"sensor name {sensor.name!r} is used twice")
+            sensors_ok = False
+            continue
         names[sensor.name] = sensor
         problem = sensor.check_model()
         if problem:
-            raise ConfigError(source, ("sensors", i, "type"), problem)
+            report(("sensors", i, "type"), problem)
         try:
             pipe = PIPELINES.get(s.pipeline)
         except KeyError as e:
-            raise ConfigError(source, ("sensors", i, "pipeline"), str(e.args[0])) from None
+            report(("sensors", i, "pipeline"), str(e.args[0]) + did_you_mean(s.pipeline, PIPELINES.names()))
+            continue
         if not pipe.accepts(s.type):
-            raise ConfigError(source, ("sensors", i, "pipeline"), f"pipeline {s.pipeline!r} cannot make {s.type!r} measurements")
+            report(("sensors", i, "pipeline"), f"pipeline {s.pipeline!r} cannot make {s.type!r} measurements")
+    if not sensors_ok:  # observers, controllers and the fit name sensors: not checked against a partial set
+        return
     # observers
     obs_names = set()
     for i, o in enumerate(cfg.observers):
         if isinstance(o, dict):  # no observer registered at all
-            raise ConfigError(source, ("observers", i), "no observers are available in this version")
+            report(("observers", i), "no observers are available in this version")
+            continue
         cls = OBSERVERS.get(o.type)
         name = o.name or o.type
         if name in obs_names:
-            raise ConfigError(source, ("observers", i, "name"), f"observer name {name!r} is used twice")
+            report(("observers", i, "name"), f"observer name {name!r} is used twice")
         obs_names.add(name)
         for loc, msg in cls.check(o, model, names):
-            raise ConfigError(source, ("observers", i) + tuple(loc), msg)
+            report(("observers", i) + tuple(loc), msg + _hint(msg, names))
     cs = cfg.runs.common_start
     if cs is not None:
-        by_name = {o.name or o.type: o for o in cfg.observers}
+        by_name = {o.name or o.type: o for o in cfg.observers if not isinstance(o, dict)}
+        known = True
         for loc, name in [(("runs", "common_start", "observer"), cs.observer)] + [
                 (("runs", "common_start", "observers", i), n) for i, n in enumerate(cs.observers)]:
             if name not in by_name:
-                raise ConfigError(source, loc, f"no observer named {name!r}; observers: {', '.join(by_name)}")
-        if OBSERVERS.get(by_name[cs.observer].type).initial_estimate.__func__ is Observer.initial_estimate.__func__:
-            raise ConfigError(source, ("runs", "common_start", "observer"),
-                              f"observer {cs.observer!r} ({by_name[cs.observer].type}) gives no initial estimate to share")
-        for i, n in enumerate(cs.observers):
-            if not OBSERVERS.get(by_name[n].type).takes_common_start:
-                raise ConfigError(source, ("runs", "common_start", "observers", i),
-                                  f"observer {n!r} ({by_name[n].type}) cannot start from another's estimate")
+                report(loc, f"no observer named {name!r}; observers: {', '.join(by_name)}" + did_you_mean(name, by_name))
+                known = False
+        if known:
+            if OBSERVERS.get(by_name[cs.observer].type).initial_estimate.__func__ is Observer.initial_estimate.__func__:
+                report(("runs", "common_start", "observer"),
+                       f"observer {cs.observer!r} ({by_name[cs.observer].type}) gives no initial estimate to share")
+            for i, n in enumerate(cs.observers):
+                if not OBSERVERS.get(by_name[n].type).takes_common_start:
+                    report(("runs", "common_start", "observers", i),
+                           f"observer {n!r} ({by_name[n].type}) cannot start from another's estimate")
     # control: closed loops through a sensor measured while the truth is simulated
-    check_control(cfg, model, names, source)
+    check_control(cfg, model, names, source, report)
     # the fit section (needle fit-em)
     if cfg.fit is not None:
         from needlecli.fitting.problem import check_fit
 
         for loc, msg in check_fit(cfg.fit, names):
-            raise ConfigError(source, ("fit",) + tuple(loc), msg)
+            report(("fit",) + tuple(loc), msg + _hint(msg, names))
 
 
-def check_control(cfg, model: Model, sensors: dict, source: str) -> None:
+def _hint(msg: str, sensors: dict) -> str:
+    """A did-you-mean for a check's message about an unknown name: "no sensor named 'x'" (the config's
+    sensors), "model 'm' has no state 'x'" or "... no parameter 'x'" (that model's states, parameters)."""
+    import re
+
+    if "did you mean" in msg:
+        return ""
+    hit = re.search(r"no sensor named '([^']*)'", msg)
+    if hit:
+        return did_you_mean(hit.group(1), sensors)
+    hit = re.search(r"model '([^']*)' has no (state|parameter) '([^']*)'", msg)
+    if hit and hit.group(1) in MODELS:
+        m = MODELS.get(hit.group(1))
+        return did_you_mean(hit.group(3), m.state_names if hit.group(2) == "state" else m.Params.model_fields)
+    return ""
+
+
+def check_control(cfg, model: Model, sensors: dict, source: str, report=None) -> None:
     """The ``control:`` entries: unique names, an existing sensor that can be measured in the loop, what
-    the controller type needs (its ``check``), one controller per thing it sets, one sensor in the loop."""
+    the controller type needs (its ``check``), one controller per thing it sets, one sensor in the loop.
+    ``report(loc, message)`` takes each problem (default: raise the first)."""
+    if report is None:
+        def report(loc: tuple, msg: str) -> None:
+            raise ConfigError(source, loc, msg)
+
     names: set[str] = set()
     acting: dict[str, int] = {}
     loop_sensor = None
@@ -228,22 +300,27 @@ def check_control(cfg, model: Model, sensors: dict, source: str) -> None:
         cls = CONTROLLERS.get(c.type)
         name = c.name or c.type
         if name in names:
-            raise ConfigError(source, ("control", i, "name"), f"controller name {name!r} is used twice")
+            report(("control", i, "name"), f"controller name {name!r} is used twice")
         names.add(name)
         if c.sensor not in sensors:
             known = ", ".join(sorted(sensors)) or "none"
-            raise ConfigError(source, ("control", i, "sensor"), f"no sensor named {c.sensor!r}; sensors are {known}")
-        for loc, msg in cls.check(c, model, sensors):
-            raise ConfigError(source, ("control", i) + tuple(loc), msg)
+            report(("control", i, "sensor"), f"no sensor named {c.sensor!r}; sensors are {known}"
+                   + did_you_mean(c.sensor, sensors))
+            continue
+        problems = list(cls.check(c, model, sensors))
+        for loc, msg in problems:
+            report(("control", i) + tuple(loc), msg)
+        if problems:
+            continue
         sensor = sensors[c.sensor]
         if not PIPELINES.get(sensor.settings.pipeline).live:
-            raise ConfigError(source, ("control", i, "sensor"), f"sensor {c.sensor!r} (pipeline "
-                              f"{sensor.settings.pipeline!r}) cannot be measured while the truth is simulated")
+            report(("control", i, "sensor"), f"sensor {c.sensor!r} (pipeline "
+                   f"{sensor.settings.pipeline!r}) cannot be measured while the truth is simulated")
         if cls.acts_on in acting:
-            raise ConfigError(source, ("control", i, "type"),
-                              f"sets {cls.acts_on}, as control entry {acting[cls.acts_on]} does; one controller each")
+            report(("control", i, "type"),
+                   f"sets {cls.acts_on}, as control entry {acting[cls.acts_on]} does; one controller each")
         acting[cls.acts_on] = i
         if loop_sensor is not None and c.sensor != loop_sensor:
-            raise ConfigError(source, ("control", i, "sensor"), f"every controller must read the same sensor "
-                              f"(one sensor is measured in the loop), here {loop_sensor!r}")
+            report(("control", i, "sensor"), f"every controller must read the same sensor "
+                   f"(one sensor is measured in the loop), here {loop_sensor!r}")
         loop_sensor = c.sensor

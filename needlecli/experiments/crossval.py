@@ -144,7 +144,7 @@ def _tuned_copy(obs: dict, fit_file: Path, model: str) -> dict:
     if isinstance(meas, dict):
         out["measurements"] = {ch: {k: v for k, v in (spec or {}).items() if k != "sigma"} for ch, spec in meas.items()}
     out["name"] = f"{obs.get('name') or obs['type']}_em"
-    out["from_fit"] = {"file": str(Path(fit_file).resolve()), "model": model, "pick": "median"}  # from any folder
+    out["from_fit"] = {"file": str(Path(fit_file).resolve()), "model": model, "pick": "median"}  # a relative --out too
     return out
 
 

@@ -18,10 +18,12 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from needlecli import kernels
 from needlecli.errors import DataError
 from needlecli.experiments.config import load_config
 from needlecli.experiments.runner import build_problem, simulate_and_measure
 from needlecli.experiments.truth import Truth
+from needlecli.fitting.canonical import flip_negative_curvature
 from needlecli.fitting.em import EMOptions, EMResult, fit_em
 from needlecli.fitting.identify import Identifiability, IdentifyOptions, identify, take_trials
 from needlecli.fitting.problem import System, build_system, fit_augment, own_model
@@ -49,6 +51,15 @@ class Trials:
     simulated: bool
 
 
+def load_fit_config(path: str | Path, *, overrides: list[str] | None = None):
+    """Read and check the config of a fit: ``(cfg, text)``. A file that is not a config is a DataError
+    saying what to do instead."""
+    path = Path(path)
+    if path.suffix.lower() not in CONFIG_SUFFIXES:
+        raise DataError(_not_a_config(path))
+    return load_config(path, overrides=overrides)
+
+
 def load_trials(path: str | Path, *, overrides: list[str] | None = None) -> Trials:
     """Read a config and simulate (or replay) its trials.
 
@@ -57,9 +68,7 @@ def load_trials(path: str | Path, *, overrides: list[str] | None = None) -> Tria
     ConfigError for a bad config; DataError for a file that is not a config (with what to do instead).
     """
     path = Path(path)
-    if path.suffix.lower() not in CONFIG_SUFFIXES:
-        raise DataError(_not_a_config(path))
-    cfg, text = load_config(path, overrides=overrides)
+    cfg, text = load_fit_config(path, overrides=overrides)
     if cfg.source is not None:  # recorded trials through the replay machinery
         from needlecli.experiments.replay import replay_truth
 
@@ -175,7 +184,8 @@ def fit_trials(
         model = own_model(fit, trials.truth.model, name)
         try:
             # a held constant stays a parameter of the model (not a state the smoother could move)
-            systems[name] = build_system(problem, fit, model, [c for c in fit_augment(type(model)) if c not in fit.hold])
+            systems[name] = build_system(problem, fit, model,
+                                         [c for c in fit_augment(type(model), fit.constants) if c not in fit.hold])
         except ValueError as e:
             raise DataError(f"{trials.source}: [fit] {e}") from None
         S = systems[name]  # a state held at zero process noise has none (not a block of Q that EM fits)
@@ -190,13 +200,18 @@ def fit_trials(
                                            max_passes=fit.em.reweight_max, tol=fit.em.reweight_tol, progress=cb)
         else:
             res, rob, meas = fit_em(S.dm, S.meas, S.m0, S.P0, S.Qc, S.R, em_options(fit, S), progress=cb), None, S.meas
+        res.roll_flipped = flip_negative_curvature(S.dm.names, type(S.dm.model), res)  # kappa < 0 = roll + pi
         return res, assess(S, res, fit, meas), time.perf_counter() - t0, rob
 
     # models are independent: all but the first go to child processes (forked, so nothing is pickled
     # but the results), the first runs here; the children report progress through a queue
-    with single_blas_thread() if workers > 1 and len(names) > 1 else contextlib.nullcontext():
+    parallel = workers > 1 and len(names) > 1
+    with single_blas_thread() if parallel else contextlib.nullcontext(), kernels.using(cfg.simulation.kernels), \
+            kernels.threads(1 if parallel else None):  # a process per model: one kernel thread each
         _run_models(names, workers, run, systems, out, progress)
     out.fits = {name: out.fits[name] for name in names}
+    for mf in out.fits.values():
+        add_data_hints(mf.result, problem)
     return out
 
 
@@ -207,9 +222,41 @@ def assess(S: System, res: EMResult, fit: FitSettings, meas=None) -> Identifiabi
     if not s.enabled:
         return None
     sd = np.sqrt(np.maximum(np.diagonal(res.P[:, 0], axis1=-2, axis2=-1), 0.0))[:, S.dm.nx:]
-    return identify(S.dm, S.meas if meas is None else meas, res.x0, S.P0, res.Qc, res.R, res.status == "ok", const_sd=sd,
-                    held=tuple(fit.hold),
-                    options=IdentifyOptions(rse_max=s.rse_max, nats=s.nats))
+    return identify(S.dm, S.meas if meas is None else meas, res.x0, S.P0, res.Qc, res.R, res.status == "ok",
+                    const_sd=sd, options=IdentifyOptions(rse_max=s.rse_max, nats=s.nats), zbar=res.m,
+                    held=tuple(fit.hold))
+
+
+def add_data_hints(result: EMResult, problem) -> None:
+    """Where a trial fails at the singularity in the first EM iterations, say what in the data is the likely
+    cause (in place, on its reason): position samples marked valid that are exactly zero (a tracker's rows
+    of zeros for a lost tip), or a path that runs far from the model's +z (an insertion along another
+    axis: the bevel-tip models are singular at beta = +-90 deg)."""
+    early = np.array([s == "singular" and (" (EM iteration 1)" in r or " (EM iteration 2)" in r)
+                      for s, r in zip(result.status, result.reason)])
+    if not early.any():
+        return
+    reasons = result.reason.tolist()
+    for ch in problem.channels.values():
+        if ch.sensor_type != "position" or not {"x", "y", "z"} <= set(ch.names):
+            continue
+        xyz = ch.value[..., [list(ch.names).index(a) for a in "xyz"]]
+        zero = (ch.valid & (xyz == 0).all(-1)).sum(1)
+        for i in np.nonzero(early)[0]:
+            ok = np.nonzero(ch.valid[i] & ~(xyz[i] == 0).all(-1))[0]
+            hints = []
+            if zero[i] > 1:
+                hints.append(f"{int(zero[i])} samples of {ch.name} are exactly zero and marked valid: lost samples? "
+                             "(a CSV mapping's missing: {zero_rows: true})")
+            if ok.size > 1:
+                d = xyz[i, ok[-1]] - xyz[i, ok[0]]
+                ang = float(np.degrees(np.arccos(np.clip(d[2] / max(np.linalg.norm(d), 1e-300), -1, 1))))
+                if ang > 60.0:
+                    hints.append(f"the {ch.name} path runs {ang:.0f} deg from the model's +z: express the trial in "
+                                 "its own frame (a CSV mapping's frame: {reference: ...})")
+            if hints:
+                reasons[i] = f"{reasons[i]}; in the data: {'; '.join(hints)}"
+    result.reason = np.array(reasons)
 
 
 def _run_models(names, workers, run, systems, out, progress) -> None:
@@ -289,6 +336,8 @@ def take_fit(out: FitOutput, trials: Trials, idx) -> FitOutput:
         res = dc.replace(r, **{f.name: _rows(getattr(r, f.name), idx, r.x0.shape[0]) for f in dc.fields(r)
                                if f.name not in ("R", "history")},
                          R=[x[idx] for x in r.R], history={k: v[idx] for k, v in r.history.items()})
+        if getattr(r, "roll_flipped", None) is not None:
+            res.roll_flipped = np.asarray(r.roll_flipped)[idx]
         idf = None
         if mf.identifiability is not None:
             s = trials.cfg.fit.identify
@@ -308,7 +357,7 @@ def _rows(v, idx: np.ndarray, N: int):
 
 # ---------------------------------------------------------------------------------------------- the file
 def fit_tree(out: FitOutput) -> Group:
-    """The fit file's content (README, "Fit file")."""
+    """The fit file's content (docs/reference/fit-file.md)."""
     tr = out.trials
     cfg, truth = tr.cfg, tr.truth
     fit = cfg.fit if cfg.fit is not None else FitSettings()
@@ -347,6 +396,9 @@ def fit_tree(out: FitOutput) -> Group:
         tg.attrs["param_case_labels"] = truth.param_case_labels
     if truth.trial_ids is not None:
         tg.data["trial_id"] = np.array(truth.trial_ids)
+    meta = design_columns(truth, cfg)
+    if meta is not None:  # an addition older readers ignore (no version bump)
+        tg.data["meta"] = Group(data=meta["columns"], attrs={"design_factors": meta["design_factors"]})
     root.data["truth"] = tg
     meas = Group()
     for name, st in tr.streams.items():
@@ -363,12 +415,12 @@ def fit_tree(out: FitOutput) -> Group:
 def _model_group(mf: ModelFit, fit: FitSettings) -> Group:
     S, r = mf.system, mf.result
     dm = S.dm
-    held = [c for c in fit_augment(type(dm.model)) if c in fit.hold]  # constants held at their initial value
+    held = [c for c in fit_augment(type(dm.model), fit.constants) if c in fit.hold]  # constants held at their initial value
     consts = dm.augment + tuple(held)
     g = Group(attrs={
         "model": mf.name, "names": dm.names, "units": dm.units, "constants": consts,
         "q_states": [dm.names[i] for i in S.q_index], "channels": [m.name for m in S.meas],
-        "held": [h for h in fit.hold if h in dm.names or h in fit_augment(type(dm.model))],
+        "held": [h for h in fit.hold if h in dm.names or h in fit_augment(type(dm.model), fit.constants)],
         "max_iter": fit.em.max_iter, "tol": fit.em.tol, "seconds": mf.seconds,
         "singular_reason": dm.model.singular_reason,
         "sensor_states": list(dm.sensor_states), "sensor_state_channels": [m.name for m in S.meas if m.offset_index is not None],
@@ -388,6 +440,12 @@ def _model_group(mf: ModelFit, fit: FitSettings) -> Group:
         Rg.data[mm.name] = Rj
         Rg.data[f"{mm.name}_guess"] = R0
         Rg.dataset_attrs[mm.name] = {"coordinates": channel_coordinates(mm)}
+        floor = S.floors[S.meas.index(mm)]
+        if floor is not None:  # additions older readers ignore (no version bump)
+            Rg.attrs[f"{mm.name}_floor"] = float(floor)
+        if mm.scale is not None:
+            Rg.attrs[f"{mm.name}_per_sample"] = ("sample i has diag(s_i) R diag(s_i), s_i its recorded sigma over "
+                                                 "the channel's nominal sigma")
     needle = [mm for mm in S.meas if mm.frame == "needle"]
     if needle:  # group attributes (what from_fit reads): channels in needle coordinates, their across axes
         Rg.attrs["needle_frame"] = [mm.name for mm in needle]
@@ -412,6 +470,10 @@ def _model_group(mf: ModelFit, fit: FitSettings) -> Group:
                    "dof": [float(d) for d in rb.dof if d is not None], "reweight_tol": fit.em.reweight_tol})
         g.data["reweight_passes"] = rb.passes
         g.data["reweight_change"] = rb.last_change
+    flipped = getattr(r, "roll_flipped", None)
+    if flipped is not None and dm.model.curvature_roll_state is not None and dm.model.curvature_param in consts:
+        g.data["roll_flipped"] = np.asarray(flipped, dtype=bool)
+        g.attrs["roll_state"] = dm.model.curvature_roll_state
     if mf.identifiability is not None:
         g.data["identifiability"] = identifiability_group(mf.identifiability, fit)
     return g
@@ -428,7 +490,7 @@ def channel_coordinates(mm) -> str:
 
 
 def identifiability_group(idf: Identifiability, fit: FitSettings) -> Group:
-    """``/fit/<model>/identifiability`` (README, "Fit file")."""
+    """``/fit/<model>/identifiability`` (docs/reference/fit-file.md)."""
     return Group(
         data={
             "estimate": idf.estimate, "se": idf.se, "rse": idf.rse, "hessian": idf.hessian, "step": idf.theta_step,
@@ -440,6 +502,28 @@ def identifiability_group(idf: Identifiability, fit: FitSettings) -> Group:
                "kinds": [q.kind for q in idf.quantities], "rse_max": fit.identify.rse_max, "nats": fit.identify.nats,
                "parameters": "constants as they are; Q blocks and R_j by a log scale (tr scales by exp)"},
     )
+
+
+def design_columns(truth: Truth, cfg) -> dict | None:
+    """The trials' metadata for the fit file's ``/truth/meta``: from the logs (replay), or for simulated
+    trials from parameter-case labels written ``name=value, ...`` (``duty_cycle=0.25``); None without."""
+    if truth.trial_meta is not None and truth.trial_meta.get("columns"):
+        return truth.trial_meta
+    pc = getattr(cfg.model, "param_cases", None)
+    if pc is None or pc.labels is None or truth.param_case is None:
+        return None
+    from needlecli.io.csv_layout import factors_from_label
+
+    per_case = [factors_from_label(lbl) for lbl in pc.labels]
+    keys = [k for k in per_case[0] if all(k in c for c in per_case)] if per_case else []
+    if not keys:
+        return None
+    cols = {}
+    for k in keys:
+        vals = [per_case[int(i)][k] for i in truth.param_case]
+        cols[k] = (np.array(vals, dtype=float) if all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in vals)
+                   else np.array([str(v) for v in vals]))
+    return {"columns": cols, "design_factors": keys}
 
 
 def default_fit_output(cfg) -> Path:

@@ -80,7 +80,7 @@ def expand_from_fit(data: dict, source: str, base_dir: Path) -> list[str]:
         try:
             spec = FromFit.model_validate(obs["from_fit"])
         except ValidationError as e:
-            raise validation_error(e, obs["from_fit"], source, prefix=loc) from None
+            raise validation_error(e, obs["from_fit"], source, prefix=loc, schema=FromFit) from None
         values = fitted_values(spec, base_dir, source, loc)
         changed.append(_apply(obs, values, data, source, ("observers", i)))
         del obs["from_fit"]

@@ -5,9 +5,8 @@ from __future__ import annotations
 
 from typing import Any
 
-import yaml
-
 from needlecli.errors import ConfigError
+from needlecli.io.yamlfile import parse_value
 
 
 def set_dotted(data: dict, dotted: str, value: Any, source: str) -> None:
@@ -30,15 +29,26 @@ def set_dotted(data: dict, dotted: str, value: Any, source: str) -> None:
             cur = cur[key]
 
 
+def parse_override(ov: str, source: str) -> tuple[str, Any]:
+    """``key.path=value`` as (key, value): the key a dotted path of names and list indices, the value read
+    as YAML by the reader of config files (``runs.count=[1`` is a syntax error naming the key)."""
+    if "=" not in ov:
+        raise ConfigError(source, (), f"override {ov!r} is not of the form key.path=value")
+    k, v = ov.split("=", 1)
+    k = k.strip()
+    parts = k.split(".")
+    if not k or any(not p.strip() for p in parts):
+        raise ConfigError(source, (), f"override {ov!r}: {k!r} is not a dotted key path like sensors.0.rate")
+    return k, parse_value(v, source, tuple(parts))
+
+
 def apply_overrides(data: dict, overrides: list[str] | None, source: str, *,
                     runs: int | None = None, seed: int | None = None) -> bool:
     """Apply ``key.path=value`` overrides (values read as YAML) and the ``--runs``/``--seed`` options to
     ``data`` in place; returns whether anything was overridden."""
     for ov in overrides or []:
-        if "=" not in ov:
-            raise ConfigError(source, (), f"override {ov!r} is not of the form key.path=value")
-        k, v = ov.split("=", 1)
-        set_dotted(data, k.strip(), yaml.safe_load(v), source)
+        k, v = parse_override(ov, source)
+        set_dotted(data, k, v, source)
     for key, value in (("count", runs), ("seed", seed)):
         if value is not None:
             data.setdefault("runs", {})

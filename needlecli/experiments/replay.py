@@ -10,6 +10,7 @@ sample hold NaN, so errors are computed only where the truth was recorded.
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -17,16 +18,30 @@ from pydantic import ValidationError
 
 from needlecli.errors import DataError
 from needlecli.experiments.truth import STATUS_OK, Truth
-from needlecli.io.logs import Trial, read_log
+from needlecli.io.logs import Trial, design_factors, read_log
 from needlecli.models import MODELS
 from needlecli.sensors import SENSORS, MeasurementStream
+
+
+@functools.lru_cache(maxsize=8)
+def _read_log_once(path: str, mtime_ns: int, size: int):
+    """A log read and checked once per version of the file (a config's checks and its run share it)."""
+    return read_log(path)
+
+
+def _read_log(path: Path):
+    try:
+        st = path.stat()
+    except OSError:
+        return read_log(path)  # says what is wrong with it
+    return _read_log_once(str(path), st.st_mtime_ns, st.st_size)
 
 
 def load_trials(cfg, base_dir: Path) -> list[Trial]:
     trials: list[Trial] = []
     for p in cfg.source.logs:
         path = Path(p) if Path(p).is_absolute() else base_dir / p
-        log = read_log(path)
+        log = _read_log(path)
         for tr in log.trials:
             tr.meta.setdefault("log", str(path))
         trials.extend(log.trials)
@@ -86,6 +101,8 @@ def replay_truth(cfg, base_dir: Path):
         value = np.full((N, len(idx), m), np.nan)
         valid = np.zeros((N, len(idx)), dtype=bool)
         t_orig = np.full((N, len(idx)), np.nan)
+        per_sample = any(tr.sensors[name].sigma is not None for tr in trials)
+        sample_sig = np.full((N, len(idx), m), np.nan) if per_sample else None
         n_invalid = 0
         for i, tr in enumerate(trials):  # placing each trial's samples: one vectorised assignment per trial
             s, g = tr.sensors[name], grid[i]
@@ -94,6 +111,8 @@ def replay_truth(cfg, base_dir: Path):
             value[i, pos] = s.value[keep]
             valid[i, pos] = s.valid[keep]
             t_orig[i, pos] = s.t[keep]
+            if per_sample and s.sigma is not None:
+                sample_sig[i, pos] = s.sigma[keep]
             n_invalid += int((~s.valid).sum())
         value[~valid] = np.nan
         sig = np.zeros(m)
@@ -101,12 +120,16 @@ def replay_truth(cfg, base_dir: Path):
             sig = np.broadcast_to(np.asarray(getattr(sensor.settings, "sigma", 0.0), dtype=float), (m,))
         except ValueError:
             pass
+        attrs = {"type": stype, "rate": sensor.settings.rate, "latency": sensor.settings.latency,
+                 "dropout": sensor.settings.dropout, "pipeline": "replay", "invalid_samples_skipped": n_invalid,
+                 "t_original": t_orig}
+        sigma = np.broadcast_to(sig, value.shape).copy()
+        if per_sample:  # the logs' per-sample sigmas (the nominal one where a trial has none)
+            sigma = np.where(np.isfinite(sample_sig), sample_sig, sigma)
+            attrs.update({"sigma_per_sample": True, "nominal_sigma": np.asarray(sig, dtype=float).copy()})
         streams[name] = MeasurementStream(
             t=time[idx], t_available=time[idx] + sensor.settings.latency, index=idx, value=value, valid=valid,
-            sigma=np.broadcast_to(sig, value.shape).copy(), names=sensor.channel_names, units=sensor.channel_units,
-            attrs={"type": stype, "rate": sensor.settings.rate, "latency": sensor.settings.latency,
-                   "dropout": sensor.settings.dropout, "pipeline": "replay", "invalid_samples_skipped": n_invalid,
-                   "t_original": t_orig},
+            sigma=sigma, names=sensor.channel_names, units=sensor.channel_units, attrs=attrs,
         )
         sensors.append(sensor)
 
@@ -136,9 +159,41 @@ def replay_truth(cfg, base_dir: Path):
         base_angle=np.zeros((N, T)), params=params,
         interfaces=np.zeros(0), status=np.full(N, STATUS_OK), reason=np.full(N, ""),
         event_time=np.full(N, np.nan), end_time=end,
-        trial_ids=[tr.id for tr in trials], truth_kind=truth_kind,
+        trial_ids=[tr.id for tr in trials], truth_kind=truth_kind, trial_meta=trial_metadata(trials),
     )
     return truth, sensors, streams
+
+
+#: metadata that describes how a trial was stored or imported rather than the experiment
+_NOT_DESIGN = {"import_report", "config", "log", "source", "folder", "alignment", "design_factors"}
+
+
+def trial_metadata(trials: list[Trial]) -> dict:
+    """The trials' scalar metadata as columns ``name -> (N,)`` (numbers as floats, NaN where a trial lacks
+    the key; otherwise strings, empty where missing), for grouping fits by them. Keys that say how the
+    data were stored (the import report, JSON, long text) are left out. ``"design_factors"``: the keys
+    any trial lists as its design factors."""
+    keys: dict[str, None] = {}
+    factors: dict[str, None] = {}
+    for tr in trials:
+        for k, v in tr.meta.items():
+            if k in _NOT_DESIGN or isinstance(v, (list, dict, tuple)):
+                continue
+            if isinstance(v, str) and (len(v) > 120 or v[:1] in "[{"):
+                continue
+            keys[k] = None
+        for k in design_factors(tr):
+            factors[k] = None
+    cols = {}
+    for k in keys:
+        vals = [tr.meta.get(k) for tr in trials]
+        present = [v for v in vals if v is not None]
+        if all(isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
+               for v in present):
+            cols[k] = np.array([np.nan if v is None else float(v) for v in vals])
+        else:
+            cols[k] = np.array(["" if v is None else str(v) for v in vals])
+    return {"columns": cols, "design_factors": [k for k in factors if k in cols]}
 
 
 def _sensors(trials: list[Trial], model) -> list:

@@ -28,6 +28,7 @@ class ExperimentResult:
     estimates: dict[str, Posterior]
     path: Path | None
     control: dict[str, Group] = field(default_factory=dict)  # what each controller did (closed loops)
+    tree: Group | None = None  # the results file's content, as written (tables need not read it back)
 
 
 def default_output(cfg) -> Path:
@@ -38,17 +39,22 @@ def build_sensors(cfg, model):
     return [SENSORS.get(s.type)(s, model) for s in cfg.sensors]
 
 
-def simulate_and_measure(cfg, *, progress: Callable[[int, int], None] | None = None):
+def simulate_and_measure(cfg, *, progress: Callable[[int, int], None] | None = None,
+                         measure_progress: Progress | None = None):
     """Simulate the truth of a config and measure it with every sensor: in open loop (the truth first,
     then each sensor from its own random stream) or, with a ``control:`` section, in closed loop
     (:func:`needlecli.experiments.closed_loop.simulate_closed_loop`). Returns ``(truth, sensors, streams, control)``,
-    ``control`` the results group of each controller (empty in open loop)."""
+    ``control`` the results group of each controller (empty in open loop). ``measure_progress(phase, done,
+    total)`` hears from sensors whose pipeline takes long (rendered frames)."""
     if cfg.control:
         from needlecli.experiments.closed_loop import simulate_closed_loop
 
         return simulate_closed_loop(cfg, progress=progress)
     truth = simulate_truth(cfg, progress=progress)
     sensors = build_sensors(cfg, truth.model)
+    for s in sensors:
+        if measure_progress is not None:
+            s.progress = lambda k, n, _n=s.name: measure_progress(f"sensor {_n}", k, n)
     streams = {s.name: s.measure(truth, stream(cfg.runs.seed, f"sensor/{s.name}")) for s in sensors}
     return truth, sensors, streams, {}
 
@@ -59,11 +65,15 @@ def build_problem(cfg, truth: Truth, sensors, streams: dict[str, MeasurementStre
         st = streams[sensor.name]
         h = measurement_function(sensor, truth.model)
         nominal = np.atleast_1d(np.asarray(st.sigma[0, 0] if st.sigma.size else np.zeros(len(st.names))))
+        per_sample = bool(st.attrs.get("sigma_per_sample", False))  # recorded per-sample sigmas (replay)
+        if per_sample:
+            nominal = np.broadcast_to(np.asarray(st.attrs["nominal_sigma"], dtype=float), (len(st.names),)).copy()
         channels[sensor.name] = Channel(
             name=sensor.name, sensor_type=sensor.registered_name, t=st.t, t_available=st.t_available,
             index=st.index, value=st.value, valid=st.valid, names=st.names, units=st.units,
             sigma=nominal, angle=sensor.angle_channels, h=h, attrs=st.attrs,
             h_for=lambda model, _s=sensor: measurement_function(_s, model), unit_vector=sensor.unit_vector,
+            sample_sigma=st.sigma if per_sample else None,
         )
     n_runs = truth.states.shape[0]
     return EstimationProblem(
@@ -78,6 +88,7 @@ def build_problem(cfg, truth: Truth, sensors, streams: dict[str, MeasurementStre
         initial_truth=truth.states[:, 0].copy(),
         cov_stride=cfg.output.store_every,
         cov_layout=cfg.output.covariance,
+        kernels=cfg.simulation.kernels,
     )
 
 
@@ -98,7 +109,7 @@ def run_experiment(
         truth, sensors, streams = replay_truth(cfg, Path(base_dir or "."))
     else:
         truth, sensors, streams, control = simulate_and_measure(
-            cfg, progress=(lambda k, n: progress("truth", k, n)) if progress else None)
+            cfg, progress=(lambda k, n: progress("truth", k, n)) if progress else None, measure_progress=progress)
     problem = build_problem(cfg, truth, sensors, streams)
     shared = common_start_problem(cfg, problem)
     estimates: dict[str, Posterior] = {}
@@ -107,11 +118,14 @@ def run_experiment(
         cb = (lambda k, n, _name=obs.name: progress(f"observer {_name}", k, n)) if progress else None
         own = shared if shared is not None and obs.name in cfg.runs.common_start.observers else problem
         estimates[obs.name] = obs.run(own, stream(seed, f"observer/{obs.name}"), progress=cb)
-    path = None
+    path = tree = None
     if write:
         path = Path(out) if out is not None else default_output(cfg)
-        write_atomic(path, results_tree(cfg, config_text, truth, streams, estimates, sensors, control))
-    return ExperimentResult(truth=truth, measurements=streams, estimates=estimates, path=path, control=control)
+        tree = results_tree(cfg, config_text, truth, streams, estimates, sensors, control)
+        write_atomic(path, tree, compression=cfg.output.compression,
+                     progress=(lambda k, n: progress("results file", k, n)) if progress else None)
+    return ExperimentResult(truth=truth, measurements=streams, estimates=estimates, path=path, control=control,
+                            tree=tree if write else None)
 
 
 def common_start_problem(cfg, problem):

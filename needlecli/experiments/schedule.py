@@ -18,17 +18,23 @@ Value = float | list[float]
 
 
 class ConstantSignal(Strict):
+    """The same value at every time (a number or a list given for an input is one)."""
+
     kind: Literal["constant"] = "constant"
-    value: Value
+    value: Value = Field(description="the input's value for the whole run, in the input's unit (a list for an input "
+                                     "of several components); `inputs.<name>: 1.5` is short for this")
 
 
 class PiecewiseSignal(Strict):
     """Values at given times, held (``interp: step``) or interpolated (``linear``) in between."""
 
     kind: Literal["piecewise"]
-    times: list[NonNeg] = Field(min_length=1)
-    values: list[Value] = Field(min_length=1)
-    interp: Literal["step", "linear"] = "step"
+    times: list[NonNeg] = Field(min_length=1, description="knot times, s, strictly increasing (the first value also "
+                                                       "holds before the first time)")
+    values: list[Value] = Field(min_length=1, description="the input's value at each knot, in the input's unit (one "
+                                                        "entry per time; a list per entry for a vector input)")
+    interp: Literal["step", "linear"] = Field("step", description="step: hold each value until the next time; "
+                                                                  "linear: interpolate between knots")
 
     @model_validator(mode="after")
     def _check(self):
@@ -47,8 +53,10 @@ class FlipSignal(Strict):
     a constant ``base`` rate. Seed 000 flips at chosen depths; seed 003 (fig. 7) turns once at 25 s."""
 
     kind: Literal["flips"]
-    at_depths: list[NonNeg] | None = None
-    at_times: list[NonNeg] | None = None
+    at_depths: list[NonNeg] | None = Field(None, description="inserted depths at which a flip starts, model length "
+                                                         "unit, increasing (give this or at_times)")
+    at_times: list[NonNeg] | None = Field(None, description="times at which a flip starts, s, increasing (give this "
+                                                        "or at_depths)")
     angle: float = Field(np.pi, description="rotation per flip, rad (sign gives the direction)")
     rate: Positive = Field(np.pi, description="rotation speed during a flip, rad/s")
     base: float = Field(0.0, description="rotation speed outside flips, rad/s")
@@ -81,8 +89,11 @@ class CasesSignal(Strict):
     depth shared by all runs."""
 
     kind: Literal["cases"]
-    cases: list[PlainSignal] = Field(min_length=1)
-    labels: list[str] | None = None
+    cases: list[PlainSignal] = Field(min_length=1, description="one schedule per case (a number, a list, or a "
+                                                             "constant, piecewise or flips signal); run i follows "
+                                                             "case i mod len(cases)")
+    labels: list[str] | None = Field(None, description="a name per case for tables and legends (default: a "
+                                                       "description of each schedule)")
 
     @model_validator(mode="after")
     def _check(self):

@@ -13,12 +13,14 @@ from typing import Annotated, Any, Literal, Union
 from pydantic import Field, ValidationError, create_model, field_validator, model_validator
 
 from needlecli.control import CONTROLLERS
+from needlecli.errors import did_you_mean
 from needlecli.experiments.schedule import Signal, as_signal
 from needlecli.fitting.settings import FitSettings
 from needlecli.models import MODELS, Model
 from needlecli.observers import OBSERVERS
 from needlecli.registry import Registry
-from needlecli.schema import NonNeg, Positive, Strict, error_message
+from needlecli.reports import TABLES
+from needlecli.schema import MAX_SEED, NAME_PATTERN, NonNeg, Positive, Strict, error_message
 from needlecli.sensors import SENSORS
 
 
@@ -30,7 +32,8 @@ class TissueLayer(Strict):
 class Tissue(Strict):
     """Layers along the insertion; the model's curvature parameter follows the layer of the tip."""
 
-    layers: list[TissueLayer] = Field(min_length=1)
+    layers: list[TissueLayer] = Field(min_length=1, description="the layers in order of depth, the first at depth 0, "
+                                                              "each with the curvature parameter's value in it")
 
     @field_validator("layers")
     @classmethod
@@ -46,7 +49,8 @@ class ProcessNoise(Strict):
     """Process noise added to the truth after each step: std per state in unit/sqrt(s) (scaled by
     sqrt(dt), so results do not depend on the step). Off unless given."""
 
-    std: dict[str, NonNeg] = Field(default_factory=dict)
+    std: dict[str, NonNeg] = Field(default_factory=dict, description="std per state, unit/sqrt(s) (the state's "
+                                                              "unit per square-root second, by state name)")
 
 
 class CommonStartSettings(Strict):
@@ -59,7 +63,8 @@ class CommonStartSettings(Strict):
 
 class Runs(Strict):
     count: int = Field(1, ge=1, le=1_000_000, description="number of Monte-Carlo runs")
-    seed: int = Field(0, ge=0, description="seed of every random stream of the experiment")
+    seed: int = Field(0, ge=0, le=MAX_SEED, description="seed of every random stream of the experiment (stored "
+                      "in the results file as a 64-bit integer)")
     common_start: CommonStartSettings | None = Field(
         None, description="observers that start from the same initial estimate as another (default: each its own)")
 
@@ -82,17 +87,18 @@ class PolynomialReference(Strict):
     to a position sensor's samples; x, y from the fits, beta = asin(dx/ds) and alpha = asin(-dy/ds / cos
     beta) from their slopes (s the depth, an arc length)."""
 
-    kind: Literal["polynomial"]
+    kind: Literal["polynomial"] = Field(description="the reference: polynomial (fits in the depth), the only kind")
     sensor: str = Field(description="position sensor whose x (and y) samples are fitted")
-    degree: int = Field(3, ge=1, le=12)
+    degree: int = Field(3, ge=1, le=12, description="degree of the polynomials in the depth (seed 000: 5)")
 
 
 class Source(Strict):
     """Take the insertions from recorded logs instead of simulating them (paths relative to the config
     file). Inputs, sensor streams and (where recorded) the truth come from the logs."""
 
-    logs: list[str] = Field(min_length=1)
-    trials: list[str] | None = Field(None, description="trial ids to use (default: all)")
+    logs: list[str] = Field(min_length=1, description="log files (needlecli-log HDF5), paths relative to the config "
+                                                  "file; their trials become the runs")
+    trials: list[str] | None = Field(None, min_length=1, description="trial ids to use (default: all)")
     reference: PolynomialReference | None = Field(
         None, description="what errors are computed against when the logs have no truth (default: the logs' truth)"
     )
@@ -100,14 +106,33 @@ class Source(Strict):
 
 class Simulation(Strict):
     dt: Positive = Field(0.01, le=1.0, description="integration step of the truth, s")
+    kernels: Literal["auto", "numba", "numpy"] = Field(
+        "auto", description="compiled kernels where a component has them (auto, numba) or the numpy reference "
+                            "(numpy); the environment variable NEEDLECLI_KERNELS overrides")
 
 
 class Output(Strict):
     path: str | None = Field(None, description="results file (default results/<name>.h5)")
     store_every: int = Field(1, ge=1, description="store covariances every k-th step")
-    covariance: Literal["full", "diag", "none"] = "full"
+    covariance: Literal["full", "diag", "none"] = Field("full", description="observer covariances kept: full (n x n), "
+                                                        "diag (the variances: n per step), none (tables consistency "
+                                                        "and nees_vs_depth need one)")
+    compression: Literal["auto", "gzip", "none"] = Field(
+        "auto", description="auto: gzip the arrays that repeat along an axis, store the others as they are; "
+                            "gzip: every large array (smallest file, 10x the writing time); none")
     tables: list[str] = Field(default_factory=lambda: ["summary"], description="tables of needle evaluate")
-    formats: list[Literal["md", "csv", "tex"]] = Field(default_factory=lambda: ["md", "csv", "tex"])
+    formats: list[Literal["md", "csv", "tex"]] = Field(default_factory=lambda: ["md", "csv", "tex"],
+                                                       description="formats of the tables of needle evaluate: md "
+                                                                   "(Markdown), csv, tex (LaTeX, booktabs)")
+
+    @field_validator("tables")
+    @classmethod
+    def _known_tables(cls, v):
+        known = TABLES.names()
+        for name in v:
+            if name not in known:
+                raise ValueError(f"unknown table {name!r}; known: {', '.join(known)}" + did_you_mean(name, known))
+        return v
 
 
 class ParamCases(Strict):
@@ -117,8 +142,12 @@ class ParamCases(Strict):
     cases), so every combination occurs once in each block of ``K_in * K_p`` runs. A case sets some of
     the model's parameters; the others keep ``params``; ``param_std`` adds its spread on top."""
 
-    cases: list[dict[str, float]] = Field(min_length=1)
-    labels: list[str] | None = None
+    cases: list[dict[str, float]] = Field(min_length=1, description="one mapping per case of parameter name to "
+                                                                  "value (the parameter's unit); unnamed parameters "
+                                                                  "keep params")
+    labels: list[str] | None = Field(None, description="a name per case for tables and legends (default: its values); "
+                                                       "labels written name=value (duty_cycle=0.2) become design "
+                                                       "factors of a log made by needle log from-results")
 
     @model_validator(mode="after")
     def _check(self):
@@ -140,14 +169,17 @@ def _model_spec(name: str, cls: type[Model]):
     def _states(v: dict[str, float], what: str) -> dict[str, float]:
         unknown = [k for k in v if k not in state_names]
         if unknown:
-            raise ValueError(f"unknown state {unknown[0]!r} in {what}; states are {', '.join(state_names)}")
+            raise ValueError(f"unknown state {unknown[0]!r} in {what}; states are {', '.join(state_names)}"
+                             + did_you_mean(unknown[0], state_names))
         return v
 
     class Spec(Strict):
         type: Literal[name]  # type: ignore[valid-type]
-        params: cls.Params = Field(default_factory=cls.Params)  # type: ignore[name-defined]
+        params: cls.Params = Field(default_factory=cls.Params, description="the model's parameters, lengths "  # type: ignore[name-defined]
+                                   f"in {cls.length_unit} (needle explain model.{name}.params)")
         param_std: dict[str, NonNeg] = Field(default_factory=dict, description="per-run spread of params")
-        initial_state: dict[str, float] = Field(default_factory=dict)
+        initial_state: dict[str, float] = Field(default_factory=dict, description="initial true state by state name, "
+                                                "in the state's unit (the others: the model's default pose)")
         initial_std: dict[str, NonNeg] = Field(default_factory=dict, description="per-run spread, truth")
         param_cases: ParamCases | None = Field(None, description="per-run parameter cases (design factor)")
 
@@ -160,7 +192,8 @@ def _model_spec(name: str, cls: type[Model]):
             for i, case in enumerate(v.cases):
                 for k in case:
                     if k not in known:
-                        raise ValueError(f"case {i}: unknown parameter {k!r}; parameters are {', '.join(known) or 'none'}")
+                        raise ValueError(f"case {i}: unknown parameter {k!r}; parameters are {', '.join(known) or 'none'}"
+                                         + did_you_mean(k, known))
                 try:
                     cls.Params(**case)
                 except ValidationError as e:
@@ -189,7 +222,8 @@ def _model_spec(name: str, cls: type[Model]):
             known = list(cls.Params.model_fields)
             for k in v:
                 if k not in known:
-                    raise ValueError(f"unknown parameter {k!r}; parameters are {', '.join(known) or 'none'}")
+                    raise ValueError(f"unknown parameter {k!r}; parameters are {', '.join(known) or 'none'}"
+                                     + did_you_mean(k, known))
             return v
 
     Spec.__name__ = f"Model_{name}"
@@ -239,9 +273,9 @@ def _schema(types: tuple[tuple[str, tuple[str, ...]], ...]) -> type[Strict]:
     controller_t = union(controllers)
 
     class Base(Strict):
-        name: str = Field("experiment", pattern=r"^[A-Za-z0-9_.\-]+$", description="names the results file: results/<name>.h5")
+        name: str = Field("experiment", pattern=NAME_PATTERN, max_length=100, description="names the results file: results/<name>.h5")
         description: str = Field("", description="what the experiment is, in words")
-        model: model_t  # type: ignore[valid-type]
+        model: model_t = Field(description="the needle model: its type, parameters and initial state")  # type: ignore[valid-type]
         inputs: dict[str, Signal] = Field(default_factory=dict, description="one entry per model input; a number is a constant")
         tissue: Tissue | None = Field(None, description="tissue layers along the insertion (the curvature follows the tip's layer)")
         process_noise: ProcessNoise = Field(default_factory=ProcessNoise, description="process noise of the truth (off by default)")

@@ -50,6 +50,7 @@ class Truth:
     param_case_labels: list[str] | None = None
     end_time: np.ndarray | None = None  # (N,) end of each run (replayed trials differ)
     trial_ids: list[str] | None = None  # replayed trials' ids
+    trial_meta: dict | None = None  # replayed trials' metadata: {"columns": name -> (N,), "design_factors": [...]}
     truth_kind: str = "simulation"  # or what the logs recorded: ground truth, manual segmentation, none
 
     @property
@@ -215,6 +216,11 @@ class TruthSimulator:
         self.k = 0  # states[:, : k + 1] are filled
         self.acted = -1  # the last grid index before_step was applied at (states before it are final)
         self._every = max(1, (T - 1) // 200)
+        from needlecli import kernels
+
+        # the compiled stepper (needlecli.kernels.truth) serves runs without a before_step
+        self._compiled = kernels.compiled(cfg.simulation.kernels) and kernels.has_model(model.registered_name)
+        self._kernel = None
 
     def p_at(self, k: int) -> dict[str, np.ndarray]:
         """Parameters at grid index ``k`` (per run ``(N,)`` or scalars)."""
@@ -246,6 +252,13 @@ class TruthSimulator:
     def advance_to(self, k: int) -> None:
         """Simulate until ``states[:, : k + 1]`` are filled (nothing when they already are)."""
         k = min(int(k), self.T - 1)
+        if self._compiled and self.before_step is None:
+            if self._kernel is None:
+                from needlecli.kernels.truth import TruthKernel
+
+                self._kernel = TruthKernel(self)
+            self._kernel.advance_to(self, k)
+            return
         model, time, dt, u = self.model, self.time, self.dt, self.u
         status, reason, event = self.status, self.reason, self.event
         with np.errstate(all="ignore"):

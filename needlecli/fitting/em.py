@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from needlecli.fitting.smoother import Linearisation, SmootherResult, change, ieks
+from needlecli.fitting.smoother import SmootherResult, change, ieks, take_linearisation
 from needlecli.fitting.statespace import DiscreteModel, MeasurementModel
 from needlecli.numerics.kalman import (
     em_measurement_noise,
@@ -107,9 +107,7 @@ class EMResult:
         return self.status == STATUS_OK
 
 
-def _take_lin(lin: Linearisation, idx: np.ndarray) -> Linearisation:
-    return Linearisation(lin.A[idx], lin.b[idx], [h[idx] for h in lin.H], [d[idx] for d in lin.d],
-                         [y[idx] for y in lin.y])
+_take_lin = take_linearisation
 
 
 def relative_change(new: np.ndarray, old: np.ndarray) -> np.ndarray:

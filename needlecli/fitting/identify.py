@@ -12,9 +12,10 @@ each channel's ``R``. They are moved through one parameter each,
     R_j(r) = e^{r_j} \hat R_j,
 
 so that ``tr(Q_b)`` and ``tr(R_j)`` scale by ``e^{s_b}`` and ``e^{r_j}`` (correlations kept, every matrix
-stays positive definite), and :math:`\ell(\theta)` is the log-likelihood of the trial's measurements by
-the extended Kalman filter from the fit's settled initial state (the constants fixed at ``c``: zero
-initial variance). The observed information is ``-H``, the Hessian of :math:`\ell` at the estimate by
+stays positive definite), and :math:`\ell(\theta)` is the log-likelihood of the trial's measurements under
+the model linearised around the fit's smoothed trajectory (the affine model of EM's last E-step, whose
+likelihood EM maximises), from the fit's settled initial state (the constants fixed at ``c``: zero
+initial variance; their effect enters through the linearisation's Jacobians). The observed information is ``-H``, the Hessian of :math:`\ell` at the estimate by
 central finite differences, second order also in the cross terms (every trial and every evaluation
 point in one batched filter pass); the standard
 error of each parameter is ``sqrt(diag((-H)^{-1}))`` (correlations included), of a trace ``tr * SE(s)``
@@ -41,7 +42,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from needlecli.fitting.smoother import ekf
+from needlecli.fitting.smoother import affine_loglik, eks, linearise, take_linearisation
 from needlecli.fitting.statespace import DiscreteModel, MeasurementModel
 from needlecli.models.base import state_blocks
 
@@ -129,7 +130,7 @@ def fit_quantities(dm: DiscreteModel, meas: Sequence[MeasurementModel], Q: np.nd
     return out
 
 
-def _loglik(dm, meas, x0, P0, Q, R, qs: list[Quantity], theta: np.ndarray, trial: np.ndarray) -> np.ndarray:
+def _loglik(lin, dm, meas, x0, P0, Q, R, qs: list[Quantity], theta: np.ndarray, trial: np.ndarray) -> np.ndarray:
     """``l(theta)`` for evaluation points ``theta (M, d)`` of trials ``trial (M,)``, in one filter pass."""
     M = len(trial)
     m0 = x0[trial].copy()
@@ -150,8 +151,8 @@ def _loglik(dm, meas, x0, P0, Q, R, qs: list[Quantity], theta: np.ndarray, trial
         else:
             Re[q.index] = Re[q.index] * np.exp(theta[:, k])[:, None, None]
     with np.errstate(all="ignore"):
-        fwd = ekf(dm.take(trial), [mm.take(trial) for mm in meas], m0, P0[trial], Qe, Re)
-    return fwd.loglik
+        return affine_loglik(take_linearisation(lin, trial), dm.take(trial), [mm.take(trial) for mm in meas],
+                             m0, P0[trial], Qe, Re)
 
 
 def identify(
@@ -164,6 +165,7 @@ def identify(
     ok: np.ndarray,
     const_sd: np.ndarray | None = None,
     options: IdentifyOptions = IdentifyOptions(),
+    zbar: np.ndarray | None = None,
     held: Sequence[str] = (),
 ) -> Identifiability:
     """Standard errors and verdicts of every quantity of a fit (module docstring).
@@ -175,6 +177,8 @@ def identify(
     Q : (N, n, n) fitted process noise per second; R : per channel (N, m, m) fitted measurement noise
     ok : (N,) trials to assess (the others get NaN and are left out of the pooled figures)
     const_sd : (N, p) a scale for the finite-difference step of each constant (e.g. its smoothed SD)
+    zbar : (N, K+1, n) the trajectory the model is linearised around (the fit's smoothed one; default: an
+        extended Kalman smoother's at the estimate)
     held : names of constants and states held at their initial guess (not fitted: not assessed)
     """
     o = options
@@ -183,6 +187,11 @@ def identify(
     for i in range(dm.nx, dm.nx + len(dm.augment)):  # the constants are parameters here: fixed in the filter
         P0[:, i, :] = 0.0
         P0[:, :, i] = 0.0
+    if zbar is None:
+        with np.errstate(all="ignore"):
+            zbar = eks(dm, meas, x0, P0, Q, list(R)).sm.m
+    zbar = np.where(np.isfinite(zbar), zbar, 0.0)  # failed trials (not assessed) stay finite
+    lin = linearise(dm, meas, zbar)
     qs = fit_quantities(dm, meas, Q, held)
     d = len(qs)
     est = np.full((N, d), np.nan)
@@ -236,7 +245,7 @@ def identify(
             sl = slice(a, min(a + o.chunk, E))
             te = theta[:, sl]
             trial = np.repeat(idx, te.shape[1])
-            ll[idx, sl] = _loglik(dm, meas, x0, P0, Q, R, qs, te.reshape(-1, d), trial).reshape(len(idx), -1)
+            ll[idx, sl] = _loglik(lin, dm, meas, x0, P0, Q, R, qs, te.reshape(-1, d), trial).reshape(len(idx), -1)
     l0 = ll[:, 0]
     lp, lm = ll[:, 1 : 1 + 2 * d : 2], ll[:, 2 : 2 + 2 * d : 2]
     H = np.full((N, d, d), np.nan)

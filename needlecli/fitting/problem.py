@@ -107,8 +107,11 @@ def build_system(
         if frame == "needle" and (tuple(ch.names) != ("x", "y", "z") or not model.provides("tangent")):
             raise ValueError(f"channel {name!r}: frame needle needs a position with axes x, y, z and a model with a "
                              f"tangent (it has {', '.join(ch.names)}; model {model.registered_name!r})")
+        scale = sample_scale(ch)
+        if scale is not None and (frame == "needle" or name in offsets):  # per-axis sigmas of the world's axes
+            raise ValueError(f"channel {name!r}: per-sample sigmas cannot be used with frame needle or along_offset")
         mm = MeasurementModel(name, h, model.n, tick, ch.value, ch.valid, np.asarray(ch.angle, dtype=bool),
-                              tuple(ch.names), tuple(ch.units), bool(ch.unit_vector), frame,
+                              tuple(ch.names), tuple(ch.units), bool(ch.unit_vector), scale, frame,
                               model.tangent if frame == "needle" or name in offsets else None,
                               offset_index=dm.names.index(f"{name}_offset") if name in offsets else None)
         meas.append(mm)
@@ -144,6 +147,23 @@ def build_system(
         k = dm.names.index(f"{c}_offset")
         P0[k, k] = max(o.sigma**2, 1e-18)
     return System(dm, meas, m0, P0, Qc, R, floors, q_index)
+
+
+def sample_scale(ch) -> np.ndarray | None:
+    """Each sample's noise std over the channel's nominal one, ``(N, M, m_used)`` (1 where not valid), from
+    a channel's recorded per-sample sigmas; None without them. A measured direction is used in its tangent
+    plane (2 components): one scale per sample, the rms over its components."""
+    if getattr(ch, "sample_sigma", None) is None:
+        return None
+    s = np.asarray(ch.sample_sigma, dtype=float)
+    ref = np.broadcast_to(np.asarray(ch.sigma, dtype=float), (s.shape[-1],))
+    ok = ch.valid[..., None] & np.isfinite(s) & (s > 0)
+    if not (ref > 0).all():
+        ref = np.array([np.median(s[..., j][ok[..., j]]) if ok[..., j].any() else 1.0 for j in range(s.shape[-1])])
+    w = np.where(ok, s / ref, 1.0)
+    if ch.unit_vector and s.shape[-1] == 3:
+        w = np.repeat(np.sqrt(np.mean(w**2, axis=-1, keepdims=True)), 2, axis=-1)
+    return w
 
 
 def check_setup(setup: KalmanSetup, model_cls: type[Model], sensors: dict, augment: Sequence[str] = ()) -> list:
@@ -206,11 +226,14 @@ def check_channels(setup: KalmanSetup, model_cls: type[Model], sensors: dict) ->
     return out
 
 
-def fit_augment(model_cls: type[Model]) -> tuple[str, ...]:
-    """The constants EM estimates as augmented states: the model's curvature parameter (seed 004: ``c``
-    of the MNM, ``l_inv`` of the BiNM), unless the model already carries it as a state."""
-    c = model_cls.curvature_param
-    return (c,) if c is not None and c not in model_cls.state_names else ()
+def fit_augment(model_cls: type[Model], constants: Sequence[str] | None = None) -> tuple[str, ...]:
+    """The constants EM estimates as augmented states: ``constants`` (the fit's ``constants:``, e.g.
+    ``[kappa, speed_scale]``: those that are parameters of this model), by default the model's curvature
+    parameter (seed 004: ``c`` of the MNM, ``l_inv`` of the BiNM); never one the model carries as a state."""
+    if constants is None:
+        c = model_cls.curvature_param
+        return (c,) if c is not None and c not in model_cls.state_names else ()
+    return tuple(c for c in constants if c in model_cls.Params.model_fields and c not in model_cls.state_names)
 
 
 def check_fit(fit, sensors: dict) -> list:
@@ -230,9 +253,12 @@ def check_fit(fit, sensors: dict) -> list:
                     "unit/sqrt(s)); the states it lists have process noise"))
     if out:
         return out
+    for i, c in enumerate(fit.constants or []):
+        if not any(c in cls.Params.model_fields for cls in classes):
+            out.append((("constants", i), f"no fitted model ({', '.join(fit.models)}) has a parameter {c!r}"))
     known = set()
     for cls in classes:
-        known |= set(cls.state_names) | set(fit_augment(cls))
+        known |= set(cls.state_names) | set(fit_augment(cls, fit.constants))
     for where, keys in (("q", fit.q), ("p0", fit.p0), (("init", "std"), fit.init.std),
                         (("init", "values"), fit.init.values), (("init", "first_measurement"), fit.init.first_measurement)):
         for k in keys:

@@ -73,7 +73,9 @@ class KalmanSetup(Strict):
     p0: dict[str, NonNeg] = Field(default_factory=dict, description="initial variance per state (and constant)")
     measurements: dict[str, ChannelNoise] = Field(
         default_factory=dict, description="channels used (default: every channel the model can predict)")
-    init: KalmanInit = Field(default_factory=KalmanInit)
+    init: KalmanInit = Field(default_factory=KalmanInit, description="the initial estimate (needlecli.initial): from "
+                                                                     "the nominal state unless told otherwise, values, "
+                                                                     "first_measurement, std as the default P0")
 
 
 class EMSettings(Strict):
@@ -109,10 +111,26 @@ class IdentifySettings(Strict):
     nats: Positive = Field(2.0, description="log-likelihood a decade of a noise level must cost to be identified")
 
 
+class Regression(Strict):
+    """A regression of a fitted constant on a design factor (the fit file's ``fit_regression`` table)."""
+
+    constant: str = Field(description="a fitted constant (kappa, speed_scale, c, ...)")
+    factor: str = Field(description="a trial metadata key with numbers (duty_cycle, speed_mm_s, ...)")
+
+
+class FitDesign(Strict):
+    """How ``needle evaluate`` groups and regresses the fitted constants by the trials' metadata (from the
+    logs: design factors of a CSV mapping, a data set's speed, ...). Default: every design factor."""
+
+    group_by: list[str] = Field(default_factory=list, description="metadata keys of the fit_by_design table")
+    regress: list[Regression] = Field(default_factory=list, description="regressions of fit_regression")
+
+
 class FitSettings(KalmanSetup):
     """The ``fit:`` section of a config: how ``needle fit-em`` fits every trial.
 
-    The model's curvature constant (``c`` of the MNM, ``l_inv`` of the BiNM) is an augmented state;
+    The model's constants in ``constants`` (default: its curvature, ``c`` of the MNM, ``l_inv`` of the BiNM,
+    ``kappa`` of the unicycle; e.g. ``[kappa, speed_scale]``) are augmented states;
     ``q`` holds the initial guess of the process noise and names the states that have process noise
     (the others' rows and columns of Q stay zero; default: every model state); ``measurements`` the
     initial guesses of each R_j and their floors; ``init.values`` and ``p0`` may name any fitted model's
@@ -121,11 +139,19 @@ class FitSettings(KalmanSetup):
 
     models: list[str] = Field(default_factory=lambda: ["mnm", "binm"], min_length=1,
                               description="models fitted by default (needle fit-em --model)")
-    hold: list[str] = Field(default_factory=list, description="states whose process noise and constants that are "
-                            "held at their initial guess, not fitted (e.g. taken from another fit with from_fit)")
-    ticks: Ticks = "measurements"
-    substeps: int | None = Field(1, ge=1, le=1000)
-    em: EMSettings = Field(default_factory=EMSettings)
+    hold: list[str] = Field(default_factory=list, description="states whose process noise, and constants, held at "
+                            "their initial guess, not fitted (e.g. taken from another fit with from_fit)")
+    constants: list[str] | None = Field(
+        None, description="model parameters EM estimates as constant states (default: the curvature parameter; "
+        "e.g. [kappa, speed_scale] for a needle that slips)")
+    design: FitDesign = Field(default_factory=FitDesign, description="tables by the trials' design factors")
+    ticks: Ticks = Field("measurements", description="where the filter has a state: grid (every grid step), "
+                                                     "measurements (the times of the samples used), or a rate in Hz "
+                                                     "plus those times")
+    substeps: int | None = Field(1, ge=1, le=1000, description="RK4 steps per tick interval with the interval's mean "
+                                                               "input (null: one per grid step)")
+    em: EMSettings = Field(default_factory=EMSettings, description="the EM iterations: limits, tolerances, "
+                                                                   "acceleration")
     identify: IdentifySettings = Field(default_factory=IdentifySettings, description="standard errors and verdicts")
     store: Literal["full", "diag"] = Field("diag", description="smoothed covariances in the fit file")
     repeats: int = Field(100, ge=1, le=100_000, description="re-simulations per parameter for 'SD as trajectory error'")

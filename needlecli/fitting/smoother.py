@@ -141,6 +141,21 @@ def affine_pass(
     return SmootherResult(fwd, sm, lin)
 
 
+def take_linearisation(lin: Linearisation, idx: np.ndarray) -> Linearisation:
+    """The linearisation of the runs ``idx`` only."""
+    return Linearisation(lin.A[idx], lin.b[idx], [h[idx] for h in lin.H], [d[idx] for d in lin.d],
+                         [y[idx] for y in lin.y])
+
+
+def affine_loglik(lin: Linearisation, dm: DiscreteModel, meas: Sequence[MeasurementModel], m0: np.ndarray,
+                  P0: np.ndarray, Qc: np.ndarray, R: Sequence[np.ndarray]) -> np.ndarray:
+    """The log-likelihood ``(N,)`` of the measurements under a fixed affine model (the forward pass of
+    :func:`affine_pass` only: compiled where the kernels cover it)."""
+    fwd = kalman_forward_affine(m0, P0, Qc, dm.dt, lin.A, lin.b, _channels(meas, R, lin.y), lin.H, lin.d,
+                                state_angles=dm.angles)
+    return fwd.loglik
+
+
 @dataclass
 class IEKSResult:
     """Final pass, the prior mean it settled on, and per run: filter-smoother passes run, iterations to

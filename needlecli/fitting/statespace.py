@@ -18,7 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from needlecli.models import Model
+from needlecli import kernels
+from needlecli.models import Model, StateSelection
 from needlecli.numerics.kalman import Channel, finite_difference_h, rk4_with_jacobian
 from needlecli.numerics.needle_frame import needle_basis
 
@@ -170,6 +171,12 @@ class DiscreteModel:
     def transition_all(self, zbar: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Every interval at once from ``zbar (N, K, n)`` (the states at ticks ``0..K-1``):
         ``(f_k(zbar_k) (N, K, n), A (N, K, n, n))``."""
+        if (not self.sensor_states and kernels.compiled()
+                and self.model.registered_name in kernels.COMPILED["linearised"]):  # sensor states: numpy
+            from needlecli.kernels import kalman as compiled
+
+            if compiled.transitions_supported(self):
+                return compiled.transition_all(self, zbar)
         z = zbar
         A = None
         for j in range(self.sub_dt.shape[1]):
@@ -265,6 +272,12 @@ class MeasurementModel:
     :func:`tangent_basis` at the linearisation point. Along the direction itself a unit vector has no
     noise and no information (its Jacobian has no row there); kept, that component's variance would
     shrink without end in EM. ``R`` of such a channel is 2 x 2.
+
+    ``scale`` (N, M, m) (optional): each sample's noise std relative to the channel's reference (an export's
+    per-sample sigma over the nominal one). Sample ``i`` then has noise ``diag(scale_i) R diag(scale_i)``:
+    the channel is whitened, ``y``, ``h`` and the linearisation divided by ``scale_i``, so that the filters
+    and EM see one ``R`` (the noise of a sample at the reference sigma; EM fits it). The log-likelihood is
+    that of the whitened samples (it differs by the constant ``sum log scale``).
     """
 
     name: str
@@ -277,6 +290,7 @@ class MeasurementModel:
     names: tuple[str, ...] = ()
     units: tuple[str, ...] = ()
     unit_vector: bool = False  # the components form a measured direction (renormalised)
+    scale: np.ndarray | None = None  # (N, M, m) per-sample noise std over the reference (None: all 1)
     #: ``"needle"``: a position used in coordinates along and across the needle (components ``t, e1, e2``
     #: of :func:`~needlecli.numerics.needle_frame.needle_basis` at the linearisation point, reference axis
     #: ``frame_axis``), so that its R is a covariance in the needle's frame; ``tangent_fn`` is the model's
@@ -310,7 +324,8 @@ class MeasurementModel:
 
     def take(self, idx: np.ndarray) -> MeasurementModel:
         out = MeasurementModel(self.name, self.h, self.nx, self.tick, self.y[idx], self.valid[idx], self.angle,
-                               self.names, self.units, self.unit_vector, self.frame, self.tangent_fn,
+                               self.names, self.units, self.unit_vector,
+                               None if self.scale is None else self.scale[idx], self.frame, self.tangent_fn,
                                self.frame_axis, self.offset_index, None if self.weight is None else self.weight[idx])
         if self.tangent:
             out._axis_cache = self._axis()
@@ -325,8 +340,16 @@ class MeasurementModel:
 
     def linearise(self, z: np.ndarray, y: np.ndarray | None = None, sample: int | None = None):
         """At states ``z (..., n)``: ``(h(z), H (..., m, n), d = h(z) - H z, y)`` with the measurements
-        ``y (..., m_raw)`` (default: every sample, ``z`` then ``(N, M, n)``) in the same coordinates;
-        ``sample``: the sample index when ``z (N, n)`` is one sample's (for its robust weight)."""
+        ``y (..., m_raw)`` (default: every sample, ``z`` then ``(N, M, n)``) in the same coordinates
+        (whitened by ``scale``: of every sample, or of sample ``sample`` when ``z`` is ``(N, n)``; weighted
+        by ``weight`` likewise)."""
+        if (self.scale is None and self.weight is None and self.frame == "world" and self.offset_index is None
+                and kernels.compiled() and z.ndim in (2, 3) and z.shape[0] == self.valid.shape[0]):
+            from needlecli.kernels import kalman as compiled  # (whitening, weights, the needle's frame and
+                                                              # offsets: the numpy path below)
+            kind = measurement_kind(self)
+            if kind is not None:
+                return compiled.linearise(self, kind, z, y)
         yh, H = finite_difference_h(self.h_aug, z)
         if y is None:
             y = np.where(self.valid[..., None], self.y, 0.0)
@@ -339,6 +362,9 @@ class MeasurementModel:
             yh = (Et @ yh[..., None])[..., 0]
             H = Et @ H
             y = np.where(self.valid[..., None] if y.ndim == 3 else True, (Et @ y[..., None])[..., 0], 0.0)
+        if self.scale is not None:
+            w = self.scale if sample is None else self.scale[:, sample]
+            yh, H, y = yh / w, H / w[..., None], y / w
         if self.weight is not None:
             w = self.weight if sample is None else self.weight[:, sample]
             s = np.sqrt(np.broadcast_to(w, yh.shape[:-1]))[..., None]
@@ -361,3 +387,21 @@ class MeasurementModel:
             y = np.where(self.valid[..., None], self.y, 0.0)
         return Channel(tick=self.tick, y=y, valid=self.valid, R=R,
                        angle=None if self.tangent else self.angle)
+
+
+def measurement_kind(mm):
+    """``(kind, idx)`` of a channel's ``h`` that the compiled linearisation
+    (:func:`needlecli.kernels.kalman.fd_linearise`) covers, or None."""
+    h = mm.h
+    if isinstance(h, StateSelection):
+        return 0, np.asarray(h.index, dtype=np.int64)
+    sensor = getattr(h, "__self__", None)
+    model = getattr(sensor, "model", None)
+    if sensor is None or model is None or model.registered_name not in ("mnm", "binm") or not mm.tangent:
+        return None
+    name = getattr(h, "__name__", "")
+    if sensor.registered_name == "bfield" and name == "h":
+        return 1, np.array([6, 7, 8], dtype=np.int64)
+    if sensor.registered_name == "tangent" and name == "h":
+        return 1, np.array([3, 4, 5], dtype=np.int64)
+    return None

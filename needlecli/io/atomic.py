@@ -1,35 +1,489 @@
-"""Write files so that a reader never sees half of one: through a temporary file beside the target,
-renamed over it when complete, with the permissions of an ordinary new file (mkstemp's are 0600)."""
+"""Writing files so that a reader never sees half of one and nothing earlier is lost, and saying truly
+what is on disk when a command is stopped.
+
+* **Atomic writes.** Every output goes to a temporary file beside its target
+  (``.<name>.<host>-<pid>-<random>.needle-tmp``), is flushed to disk and renamed over the target when
+  complete (:func:`atomic_path`, :func:`write_bytes_atomic`, :func:`write_text_atomic`). On any error, a
+  signal or a full disk the temporary file is removed and the earlier file at the target is untouched; an
+  ``OSError`` becomes one :class:`~needlecli.errors.OutputError` line naming the target (a full disk says
+  so).
+* **Checked before the work** (:func:`check_output_file`, :func:`check_output_dir`): the target is not a
+  folder (or not a file), its name is not too long, the nearest existing folder is writable (a probe file
+  is created and removed: this catches read-only file systems and immutable folders, even as root), an
+  existing target may be replaced, and the file system has the room an estimate asks for.
+* **Stale temporary files** of earlier runs that were killed (``SIGKILL``, a crash) are removed from a
+  folder before it is written to: ours only, by their name, when the process named in it is gone (same
+  host) or when older than :data:`STALE_AGE` (another host sharing the folder).
+* **Signals.** :func:`handle_signals` makes ``SIGINT`` and ``SIGTERM`` the same
+  :class:`~needlecli.errors.Interrupted` (exit codes 130 and 143). Inside :func:`deferred_signals`
+  (while h5py builds a file, while a file is renamed into place) a signal is held and acted on when the
+  section ends, so that it is never lost inside a library callback and the journal below is true.
+* **The journal** (:data:`JOURNAL`): the outputs a command checked before its work and those it completed,
+  for the message of an interrupted command.
+"""
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
-import tempfile
+import re
+import secrets
+import signal
+import socket
+import threading
+import time
 from collections.abc import Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
+
+from needlecli.errors import Interrupted, OutputError
+from needlecli.schema import NAME_PATTERN
+
+TMP_MARK = ".needle-tmp"
+STALE_AGE = 24 * 3600.0  # s: a temporary file of another host (or of an unknown process) older than this is stale
+_HOST = re.sub(r"[^A-Za-z0-9_]", "_", socket.gethostname() or "host")[:32]
+_TMP_RE = re.compile(r"^\.(?P<name>.+)\.(?P<host>[A-Za-z0-9_]+)-(?P<pid>\d+)-[0-9a-f]{8}" + re.escape(TMP_MARK) + "$")
+_CHUNK = 16 * 2**20  # bytes per write of a file image
+
+
+# ---------------------------------------------------------------------------------------------- journal
+@dataclass
+class Journal:
+    """What the current command meant to write (checked before its work) and what it completed."""
+
+    planned: list[Path] = field(default_factory=list)
+    written: list[Path] = field(default_factory=list)
+    inflight: set[Path] = field(default_factory=set)
+
+    def reset(self) -> None:
+        self.planned.clear()
+        self.written.clear()
+        self.inflight.clear()
+
+    def plan(self, path: Path) -> None:
+        if path not in self.planned:
+            self.planned.append(path)
+
+    def remove_inflight(self) -> None:
+        """Remove temporary files still open (an interrupted cleanup)."""
+        for tmp in list(self.inflight):
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+            self.inflight.discard(tmp)
+
+    def summary(self) -> str:
+        """What is on disk, in words: what was completed, and which planned outputs were not written."""
+        parts = []
+        written = list(dict.fromkeys(self.written))
+        if written:
+            shown = ", ".join(str(p) for p in written[:3]) + (f" and {len(written) - 3} more" if len(written) > 3 else "")
+            parts.append(f"written completely before it: {shown}")
+        for p in self.planned:
+            if p in written:
+                continue
+            inside = [w for w in written if p in w.parents]
+            if inside:
+                continue  # a folder some of whose files were written: listed above
+            if p.is_file():
+                parts.append(f"{p} not written (the earlier file there is unchanged)")
+            else:
+                parts.append(f"{p} not written")
+        return "; ".join(parts) if parts else "no file was written"
+
+
+JOURNAL = Journal()
+
+
+# ---------------------------------------------------------------------------------------------- signals
+class _SignalState:
+    def __init__(self) -> None:
+        self.deferring = 0
+        self.pending: int | None = None
+        self.installed = False
+        self.raised: int | None = None  # the last signal raised as Interrupted in this command
+
+
+_SIG = _SignalState()
+_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+def _handler(signum, frame) -> None:  # noqa: ARG001
+    if _SIG.deferring:
+        _SIG.pending = _SIG.pending or signum
+        return
+    _SIG.raised = signum
+    raise Interrupted(signum)
+
+
+def raised_signal() -> Interrupted | None:
+    """The signal raised as :class:`Interrupted` in this command, if any: a library may have turned that
+    exception into one of its own (pydantic, a class being created) on its way out."""
+    return Interrupted(_SIG.raised) if _SIG.raised is not None else None
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary path beside ``path``; on success rename it to ``path``, on error remove it."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
+def handle_signals() -> Iterator[None]:
+    """SIGINT and SIGTERM raise :class:`Interrupted` while the block runs (main thread only; elsewhere,
+    and when already installed, nothing changes), from the moment the block calls :func:`start_signals`
+    (a signal before that is held, so that it is raised where the command catches it). The earlier
+    handlers come back afterwards; a signal that came while they were put back is passed on to them
+    when the block ended normally."""
+    if _SIG.installed or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = {s: signal.getsignal(s) for s in _SIGNALS}
+    _SIG.raised = None
+    _SIG.deferring += 1  # released by start_signals
+    for s in _SIGNALS:
+        signal.signal(s, _handler)
+    _SIG.installed = True
+    finished = False
     try:
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        yield Path(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
+        yield
+        finished = True
+    finally:
+        _SIG.deferring += 1
+        _SIG.installed = False
+        for s, h in old.items():
+            signal.signal(s, h)
+        pending, _SIG.pending, _SIG.deferring = _SIG.pending, None, 0
+        if pending is not None and finished:
+            os.kill(os.getpid(), pending)
+
+
+def start_signals() -> None:
+    """Inside :func:`handle_signals`, where the command can catch :class:`Interrupted`: signals act from
+    now on (one held since the handlers were installed is raised here)."""
+    if _SIG.deferring:
+        _SIG.deferring -= 1
+    if not _SIG.deferring and _SIG.pending is not None:
+        signum, _SIG.pending = _SIG.pending, None
+        raise Interrupted(signum)
+
+
+def hold_signals() -> None:
+    """Hold every further signal until :func:`handle_signals` ends (the command is ending anyway)."""
+    _SIG.deferring += 1
+
+
+_WORKER = {"busy": False, "process": False}
+
+
+def _worker_handler(signum, frame) -> None:
+    if not _WORKER["busy"]:  # idle: nothing is being written
+        os._exit(128 + signum)
+    _handler(signum, frame)
+
+
+def _watch_parent(parent: int) -> None:
+    """A worker whose parent is gone (killed with SIGKILL) stops as if it got SIGTERM, instead of waiting
+    for tasks for ever."""
+    while os.getppid() == parent:
+        time.sleep(0.5)
+    os.kill(os.getpid(), signal.SIGTERM)
+
+
+def install_worker_signals() -> None:
+    """In a worker process (a sweep's): SIGINT and SIGTERM stop the task (:func:`worker_task`) with
+    :class:`Interrupted`, so that what it writes removes its temporary file, and then the process; an
+    idle worker just ends. So does a worker whose parent process died."""
+    if threading.current_thread() is threading.main_thread():
+        for s in _SIGNALS:
+            signal.signal(s, _worker_handler)
+        _WORKER["process"] = True
+        import multiprocessing
+
+        parent = multiprocessing.parent_process()  # the process that started this one, even if already gone
+        parent_pid = parent.pid if parent is not None and parent.pid else os.getppid()
+        threading.Thread(target=_watch_parent, args=(parent_pid,), daemon=True, name="needle-parent").start()
+
+
+@contextlib.contextmanager
+def worker_task() -> Iterator[None]:
+    """Mark a worker busy with a task (see :func:`install_worker_signals`); in a worker process, a task
+    stopped by a signal ends the process once its temporary files are removed."""
+    _WORKER["busy"] = True
+    try:
+        yield
+    except Interrupted as e:
+        if _WORKER["process"]:
+            JOURNAL.remove_inflight()
+            os._exit(e.exit_code)
+        raise
+    finally:
+        _WORKER["busy"] = False
+
+
+@contextlib.contextmanager
+def deferred_signals() -> Iterator[None]:
+    """Hold SIGINT / SIGTERM while the block runs; one that came is raised when the outermost block ends."""
+    _SIG.deferring += 1
+    try:
+        yield
+    finally:
+        _SIG.deferring -= 1
+    if not _SIG.deferring and _SIG.pending is not None:
+        signum, _SIG.pending = _SIG.pending, None
+        raise Interrupted(signum)
+
+
+# ---------------------------------------------------------------------------------------------- temporaries
+def temp_path(path: Path) -> Path:
+    """A temporary name beside ``path`` that says whose it is (host, process) and fits any file system."""
+    return path.parent / f".{path.name[:120]}.{_HOST}-{os.getpid()}-{secrets.token_hex(4)}{TMP_MARK}"
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+_swept: set[Path] = set()
+
+
+def remove_stale(folder: Path, *, force: bool = False) -> list[Path]:
+    """Remove this tool's temporary files in ``folder`` left by runs that were killed: those of a process
+    of this host that no longer runs, and any older than :data:`STALE_AGE`. Once per folder and process
+    unless ``force``. Returns what was removed."""
+    folder = Path(folder)
+    key = folder.resolve() if folder.exists() else folder
+    if key in _swept and not force:
+        return []
+    _swept.add(key)
+    removed = []
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return removed
+    now = time.time()
+    for e in entries:
+        m = _TMP_RE.match(e.name)
+        if not m:
+            continue
+        try:
+            age = now - e.stat(follow_symlinks=False).st_mtime
+        except OSError:
+            continue
+        pid = int(m["pid"])
+        mine = m["host"] == _HOST
+        stale = (mine and pid != os.getpid() and not _pid_alive(pid)) or age > STALE_AGE
+        if stale:
+            with contextlib.suppress(OSError):
+                os.unlink(e.path)
+                removed.append(Path(e.path))
+    return removed
+
+
+# ---------------------------------------------------------------------------------------------- checks before the work
+def _os_reason(e: OSError) -> str:
+    if e.errno == errno.ENOSPC:
+        return "no space left on the device (the disk is full)"
+    if e.errno == errno.EDQUOT:
+        return "the disk quota is exceeded"
+    if e.errno == errno.EROFS:
+        return "the file system is read-only"
+    if e.errno == errno.ENAMETOOLONG:
+        return "the name is too long for the file system"
+    if e.errno in (errno.EACCES, errno.EPERM):
+        return "permission denied"
+    return " ".join((e.strerror or str(e)).split())
+
+
+def _nearest_existing(path: Path) -> Path:
+    p = path
+    while not os.path.lexists(p):
+        if p.parent == p:
+            break
+        p = p.parent
+    return p
+
+
+def _name_max(folder: Path) -> int:
+    try:
+        return os.pathconf(folder, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        return 255
+
+
+def _probe(folder: Path, target: Path) -> None:
+    """Create and remove a temporary file in ``folder``: proves that files can be made there."""
+    probe = temp_path(folder / "probe")
+    try:
+        fd = os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    except OSError as e:
+        raise OutputError(target, f"cannot write in {folder}: {_os_reason(e)}") from None
+    os.close(fd)
+    with contextlib.suppress(OSError):
+        os.unlink(probe)
+
+
+def human_bytes(n: float) -> str:
+    for unit in ("bytes", "kB", "MB", "GB", "TB", "PB"):
+        if abs(n) < 1000 or unit == "PB":
+            return f"{n:.0f} {unit}" if unit == "bytes" else f"{n:.3g} {unit}"
+        n /= 1000.0
+    return f"{n:.3g} PB"
+
+
+def free_space(folder: Path) -> int | None:
+    """Bytes free for an ordinary user on the file system of ``folder`` (None if unknown)."""
+    try:
+        st = os.statvfs(folder)
+    except OSError:
+        return None
+    return st.f_bavail * st.f_frsize
+
+
+def _check_names(path: Path, target: Path, last: str = "folder") -> None:
+    """Every part of ``path`` fits the file system's name length (before any call that would fail on it);
+    ``last``: what its last part names (file or folder)."""
+    for i, part in enumerate(path.parts):
+        if len(part.encode()) > 255:
+            what = last if i == len(path.parts) - 1 else "folder"
+            raise OutputError(target if len(str(target)) < 300 else f"{str(target)[:120]}...",
+                              f"the {what} name {part[:40]!r}... is too long ({len(part.encode())} bytes; at most 255)")
+
+
+def _check_parents(path: Path, target: Path, what: str) -> Path:
+    """The nearest existing ancestor of ``path``: a folder we can write in."""
+    _check_names(path, target)
+    base = _nearest_existing(path)
+    if not base.is_dir():
+        raise OutputError(target, f"cannot make {what} here: {base} is a file, not a folder")
+    return base
+
+
+def _check_room(folder: Path, target: Path, size: int | None, what: str) -> None:
+    if size is None:
+        return
+    free = free_space(folder)
+    if free is not None and size > free:
+        raise OutputError(target, f"{what} needs up to {human_bytes(size)} on disk, {human_bytes(free)} are free "
+                          f"there: free some space or choose another --out")
+
+
+def check_output_file(path: str | Path, *, what: str = "the file", size: int | None = None) -> Path:
+    """Check, before any work, that ``path`` can be written as a file (see the module docstring); record it
+    in the journal. ``size`` is what it may need on disk. Raises :class:`OutputError`."""
+    path = Path(path)
+    _check_names(path, path, last="file")
+    if path.name in ("", ".", ".."):
+        raise OutputError(path, f"is a folder; give a file name for {what}")
+    if path.is_dir():
+        raise OutputError(path, f"is a folder; give a file name for {what} (e.g. {path / 'name'})")
+    base = _check_parents(path.parent, path, what)
+    folder = path.parent if path.parent.is_dir() else base
+    limit = _name_max(folder)
+    if len(path.name.encode()) > limit:
+        raise OutputError(path, f"the file name is too long ({len(path.name.encode())} bytes; at most {limit})")
+    if path.exists():
+        if not path.is_file():
+            raise OutputError(path, f"exists and is not a regular file; cannot replace it with {what}")
+        if not os.access(path, os.W_OK):
+            raise OutputError(path, "exists and cannot be replaced (read-only or immutable)")
+    _probe(folder, path)
+    _check_room(folder, path, size, what)
+    remove_stale(folder)
+    JOURNAL.plan(path)
+    return path
+
+
+def check_output_dir(path: str | Path, *, what: str = "the outputs", size: int | None = None) -> Path:
+    """Check, before any work, that files can be written in folder ``path`` (made if missing); record it."""
+    path = Path(path)
+    _check_names(path, path)
+    if path.exists() and not path.is_dir():
+        raise OutputError(path, f"is a file, not a folder for {what}")
+    base = _check_parents(path, path, what)
+    folder = path if path.is_dir() else base
+    _probe(folder, path)
+    _check_room(folder, path, size, what)
+    if path.is_dir():
+        remove_stale(path)
+    JOURNAL.plan(path)
+    return path
+
+
+def output_stem(name, fallback: str) -> str:
+    """The stem of output file names taken from a file's contents (a results file's ``name``): used as
+    it is only when it is a plain name (letters, digits, ``_ . -``, not starting with a dot, at most 100
+    characters), else ``fallback`` (the file's own stem) with everything else replaced by ``_``. Never a
+    path: an absolute or ``../`` name cannot put outputs outside the folder asked for."""
+    if isinstance(name, str) and re.fullmatch(NAME_PATTERN, name) and len(name) <= 100:
+        return name
+    plain = re.sub(r"[^A-Za-z0-9_.\-]", "_", str(fallback))[:100].lstrip(".")
+    return plain or "results"
+
+
+# ---------------------------------------------------------------------------------------------- writing
+@contextlib.contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; on success rename it to ``path``, on error (a signal too)
+    remove it. An ``OSError`` becomes :class:`OutputError` naming ``path``."""
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OutputError(path, f"cannot make the folder {path.parent}: {_os_reason(e)}") from None
+    remove_stale(path.parent)
+    tmp = temp_path(path)
+    with deferred_signals():
+        try:
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)  # the umask applies, as to any new file
+        except OSError as e:
+            raise OutputError(path, f"cannot write: {_os_reason(e)}") from None
+        os.close(fd)
+        JOURNAL.inflight.add(tmp)
+    try:
+        yield tmp
+        with deferred_signals():
+            _fsync(tmp)
+            os.replace(tmp, path)
+            JOURNAL.inflight.discard(tmp)
+            JOURNAL.written.append(path)
+    except BaseException as e:
+        with deferred_signals():
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+            JOURNAL.inflight.discard(tmp)
+        if isinstance(e, OSError) and not isinstance(e, OutputError):
+            kept = " (the earlier file there is unchanged)" if path.is_file() else ""
+            raise OutputError(path, f"cannot write: {_os_reason(e)}; nothing was written{kept}") from None
         raise
 
 
-def write_text_atomic(path: str | Path, text: str) -> Path:
+def _fsync(p: Path) -> None:
+    fd = os.open(p, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def write_bytes_atomic(path: str | Path, data: bytes | memoryview, progress=None) -> Path:
+    """Write ``data`` to ``path`` atomically, in pieces (a signal between them stops the write cleanly);
+    ``progress(bytes written)`` after each piece, if given."""
+    view = memoryview(data)
     with atomic_path(path) as tmp:
-        tmp.write_text(text, encoding="utf-8")
+        fd = os.open(tmp, os.O_WRONLY | os.O_TRUNC)
+        try:
+            for i in range(0, len(view), _CHUNK):
+                chunk = view[i : i + _CHUNK]
+                while chunk:
+                    n = os.write(fd, chunk)
+                    chunk = chunk[n:]
+                if progress is not None:
+                    progress(min(i + _CHUNK, len(view)))
+        finally:
+            os.close(fd)
     return Path(path)
+
+
+def write_text_atomic(path: str | Path, text: str) -> Path:
+    return write_bytes_atomic(path, text.encode("utf-8"))

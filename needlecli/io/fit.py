@@ -1,4 +1,4 @@
-"""The fit file of ``needle fit-em`` (README, "Fit file"): root attribute ``format = "needlecli-fit"``,
+"""The fit file of ``needle fit-em`` (docs/reference/fit-file.md): root attribute ``format = "needlecli-fit"``,
 ``version``. Written by :func:`needlecli.experiments.fit.fit_tree` through
 :func:`~needlecli.io.results.write_atomic`; read here."""
 
@@ -7,9 +7,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import h5py
+import numpy as np
 
 from needlecli.errors import DataError
-from needlecli.io.results import Group, _read
+from needlecli.io.layout import FIT, check_layout
+from needlecli.io.results import Group, _one_line, _read
 
 FIT_FORMAT = "needlecli-fit"
 FIT_VERSION = 1
@@ -36,11 +38,15 @@ def read_fit(path: str | Path) -> Group:
             fmt = fmt.decode() if isinstance(fmt, bytes) else fmt
             if fmt != FIT_FORMAT or "fit" not in f or "time" not in f:
                 raise DataError(f"{path}: not a needlecli fit file (format {fmt!r}, no /fit or /time)")
-            if int(f.attrs.get("version", 0)) > FIT_VERSION:
-                raise DataError(f"{path}: fit file version {int(f.attrs['version'])} is newer than this needlecli "
+            version = f.attrs.get("version", 0)
+            if not isinstance(version, (int, np.integer)):
+                raise DataError(f"{path}: [/ attribute version] should be an integer, is {version!r:.40}")
+            if int(version) > FIT_VERSION:
+                raise DataError(f"{path}: fit file version {int(version)} is newer than this needlecli "
                                 f"reads ({FIT_VERSION})")
+            check_layout(f, FIT, path)
             return _read(f)
     except DataError:
         raise
-    except (OSError, KeyError, ValueError) as e:
-        raise DataError(f"{path}: cannot read the fit file ({e.__class__.__name__}: {e})") from None
+    except (OSError, KeyError, ValueError, TypeError, RuntimeError) as e:
+        raise DataError(f"{path}: cannot read the fit file ({e.__class__.__name__}: {_one_line(e)})") from None

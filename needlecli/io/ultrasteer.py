@@ -32,7 +32,8 @@ Conventions found in the data (``tests/test_real_data.py`` checks them on every 
   tangents and the unit chords of about 3 mm of path, registers the tracker's rotations to its positions
   (a fixed-frame rotation fits better than a body-frame tilt on the trials that turn 30-60 deg); the
   residual is 3.7 deg (9_18_15) and 8.1 deg (1_7_16, about 1 mm of position jitter).
-* Bending direction: the lab's model (``TipState::PropagateLength``) bends toward body ``+y``; ours
+* Bending direction (the frame maths shared with the CSV import: :mod:`needlecli.io.frames`): the lab's
+  model (``TipState::PropagateLength``) bends toward body ``+y``; ours
   (``w = (kappa v, 0, u)``) toward ``-y``. With ``align`` a roll ``Rz(psi)`` per session, ``psi`` from the
   mean body-frame direction of ``dt/ds`` in the session, maps the bending direction onto ``-y`` (with
   ``--no-align`` the lab's convention is mapped: ``psi = pi``). The tracker's frame also rolls about the
@@ -73,8 +74,9 @@ from pathlib import Path
 import numpy as np
 
 from needlecli.errors import DataError
+from needlecli.io.frames import bend_roll, body_bend, chord_pairs, express, pose_axes, rolled
 from needlecli.io.logs import InputStream, Log, SensorStream, Trial, TruthStream
-from needlecli.numerics import matrix_to_euler_xyz, project_to_so3, rot_z
+from needlecli.numerics import matrix_to_euler_xyz, project_to_so3
 
 NOMINAL_DT = 0.177  # s between tracker/ultrasound frames (5.65 Hz), resultsOrig/dts.dat
 ORTHO_TOL = 0.02  # max |R^T R - I| of a valid tracker rotation
@@ -95,14 +97,20 @@ def default_data_dir() -> Path | None:
 
 
 # ---------------------------------------------------------------------------------------------- reading
-def read_numbers(path: Path) -> np.ndarray:
-    """A whitespace-separated numeric file as a 2D array (a single row or column stays 2D)."""
+def read_numbers(path: Path, *, finite: bool = False) -> np.ndarray:
+    """A whitespace-separated numeric file as a 2D array (a single row or column stays 2D); with
+    ``finite``, a NaN or infinite entry is an error naming its row and column (times, speeds, angles)."""
     if not path.exists():
         raise DataError(f"{path}: no such file")
     try:
         a = np.loadtxt(path, ndmin=2)
-    except (OSError, ValueError) as e:
-        raise DataError(f"{path}: cannot read the numbers ({e})") from None
+    except (OSError, ValueError, UnicodeDecodeError) as e:
+        raise DataError(f"{path}: cannot read the numbers ({' '.join(str(e).split())[:200]})") from None
+    if finite:
+        bad = np.argwhere(~np.isfinite(a))
+        if bad.size:
+            r, c = bad[0]
+            raise DataError(f"{path}: [row {r + 1}, column {c + 1}] {a[r, c]} is not a finite number")
     return a
 
 
@@ -230,7 +238,7 @@ def read_trial(folder: Path, *, trial_id: str, session: str, speed_folder: str |
     # times
     dts_path = folder / "dts.dat"
     if dts_path.exists():
-        dts = read_numbers(dts_path).ravel()
+        dts = read_numbers(dts_path, finite=True).ravel()
         if dts.size != N:
             raise DataError(f"{dts_path}: {dts.size} entries for {N} frames")
         if (dts[1:] <= 0).any():
@@ -245,7 +253,7 @@ def read_trial(folder: Path, *, trial_id: str, session: str, speed_folder: str |
     speed = speed_from_folder(speed_folder) if speed_folder else None
     v_path = folder / "V.dat"
     if v_path.exists():
-        V = read_numbers(v_path).ravel()
+        V = read_numbers(v_path, finite=True).ravel()
         if V.size != N:
             raise DataError(f"{v_path}: {V.size} entries for {N} frames")
         v = (t[:-1], V[1:])
@@ -257,7 +265,7 @@ def read_trial(folder: Path, *, trial_id: str, session: str, speed_folder: str |
     u = None
     th_path = folder / "Thetas.dat"
     if th_path.exists():
-        th = read_numbers(th_path).ravel()
+        th = read_numbers(th_path, finite=True).ravel()
         if th.size != N:
             raise DataError(f"{th_path}: {th.size} entries for {N} frames")
         u = (t[:-1], np.diff(th) / dts[1:])
@@ -334,16 +342,9 @@ def find_trials(root: Path) -> list[RawTrial]:
 def chords(raw: RawTrial, length: float = CHORD_MM) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Pairs of valid frames about ``length`` mm of insertion apart: ``(i, j, unit chord (K, 3), chord
     length (K,))`` with ``i`` and ``j`` indices into the frames."""
-    idx = np.nonzero(raw.ok)[0]
     dt = float(np.median(np.diff(raw.t))) if len(raw.t) > 1 else NOMINAL_DT
     k = max(3, int(round(length / max(raw.speed * dt, 1e-9))))
-    if len(idx) <= k:
-        return idx[:0], idx[:0], np.zeros((0, 3)), np.zeros(0)
-    i, j = idx[:-k], idx[k:]
-    d = raw.pos[j] - raw.pos[i]
-    n = np.linalg.norm(d, axis=-1)
-    good = n > 0.3 * length
-    return i[good], j[good], d[good] / n[good, None], n[good]
+    return chord_pairs(raw.pos, raw.ok, k, 0.3 * length)
 
 
 def kabsch(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -399,20 +400,18 @@ def estimate_alignment(raws: list[RawTrial], align: bool = True) -> dict[str, Al
             t = r.rot[i, :, 2] + r.rot[j, :, 2]
             tang.append(t / np.linalg.norm(t, axis=-1, keepdims=True))
             chord.append(c)
-            curv.append(np.einsum("kji,kj->ki", r.rot[i], r.rot[j, :, 2] - r.rot[i, :, 2]) / n[:, None])
+            curv.append(body_bend(r.rot[i], r.rot[j], n))
         a, b, c = np.concatenate(tang), np.concatenate(chord), np.concatenate(curv)
         if len(a) < 3:
             raise DataError(f"session {name}: too few valid tracker frames to check the orientation")
         raw_angle = float(np.median(_angle_deg(a, b)))
-        cm = c.mean(0)
-        bend = float(np.arctan2(cm[1], cm[0]))
+        psi, bend = bend_roll(c)  # Rz(psi)^T turns the bending direction onto -e2
         if align:
             W = kabsch(a, b)
-            psi = bend + np.pi / 2.0  # Rz(psi)^T turns the bending direction onto -e2
         else:
-            W, psi = np.eye(3), np.pi
+            W, psi = np.eye(3), float(np.arctan2(np.sin(np.pi), np.cos(np.pi)))
         resid = float(np.median(_angle_deg(a @ W.T, b)))
-        out[name] = Alignment(W=W, psi=float(np.arctan2(np.sin(psi), np.cos(psi))), trials=[r.id for r in members],
+        out[name] = Alignment(W=W, psi=psi, trials=[r.id for r in members],
                               residual_deg=resid, raw_angle_deg=raw_angle, bend_direction_deg=float(np.degrees(bend)),
                               curvature=float(np.median(np.linalg.norm(c, axis=-1))))
     return out
@@ -449,17 +448,16 @@ def to_trial(raw: RawTrial, al: Alignment, *, frame: str = "trial") -> Trial:
         raise DataError(f"{raw.folder}: fewer than two valid tracker frames")
     a, b = int(idx[0]), int(idx[-1])
     keep = slice(a, b + 1)
-    r_al = al.W @ raw.rot[keep] @ rot_z(al.psi)  # (K, 3, 3)
+    r_al = rolled(al.W @ raw.rot[keep], al.psi)  # (K, 3, 3)
     ok = raw.ok[keep]
     if frame == "trial":
-        G, p0 = r_al[0].T, raw.pos[a]
+        G, p0 = pose_axes(r_al[0]), raw.pos[a]
     elif frame == "tracker":
         G, p0 = np.eye(3), np.zeros(3)
     else:
         raise ValueError(f"unknown frame {frame!r} (trial or tracker)")
     t = raw.t[keep] - raw.t[a]
-    pos = (raw.pos[keep] - p0) @ G.T
-    R = G @ r_al
+    pos, R = express(G, p0, raw.pos[keep], r_al)
     R = np.where(ok[:, None, None], R, np.eye(3))  # invalid frames: placeholders, never valid
     euler = matrix_to_euler_xyz(R)
     state = np.concatenate([pos, euler, R.reshape(-1, 9)], -1)
@@ -474,7 +472,7 @@ def to_trial(raw: RawTrial, al: Alignment, *, frame: str = "trial") -> Trial:
         t=t, value=R[:, :, 2], valid=ok.copy(), names=("tx", "ty", "tz"), units=("1",) * 3,
         settings={"type": "tangent", "name": "tangent", "rate": rate, "sigma": 0.01})
     if raw.us is not None:
-        us = (raw.us[keep] - p0) @ G.T
+        us, _ = express(G, p0, raw.us[keep])
         lost = raw.us_lost[keep]
         tr.sensors["us"] = SensorStream(
             t=t, value=np.where(np.isfinite(us), us, 0.0), valid=~lost, names=("x", "y", "z"), units=("mm",) * 3,
@@ -514,6 +512,7 @@ def to_trial(raw: RawTrial, al: Alignment, *, frame: str = "trial") -> Trial:
         "tracker_roll_about_tangent_deg": round(roll, 3), "tracker_bend_deg": round(bend, 3),
         "shaft_rotation": "Thetas.dat differences over dts" if raw.u is not None else
                           "not recorded (u absent: held at zero in replay)",
+        "design_factors": ["session", "speed_mm_s"],  # what fit tables group by (reports/design.py)
     }
     if raw.rho is not None:
         meta["rho_setting_mm"] = raw.rho

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
+from needlecli import kernels
 from needlecli.io.results import Group
 from needlecli.numerics import angle_diff, euler_xyz_to_matrix, rotation_angle
 
@@ -101,7 +102,7 @@ def compute_errors(res: Group) -> dict[str, ErrorSet]:
         if (t_ok & ~e_ok).any():
             for st in np.unique(grp.data["status"][t_ok & ~e_ok]):
                 es.excluded[f"estimate {st}"] = int(((grp.data["status"] == st) & t_ok).sum())
-        ts, xs = t_state[keep], est[keep]
+        ts, xs = (t_state, est) if keep.size == n_runs else (t_state[keep], est[keep])  # no copy when all are kept
 
         def col(names, arr, k):
             return arr[..., names.index(k)]
@@ -112,8 +113,14 @@ def compute_errors(res: Group) -> dict[str, ErrorSet]:
             d = np.stack([col(e_names, xs, a) - col(t_names, ts, a) for a in pos_t], -1)
             es.quantities["E_xyz"] = QuantityError("E_xyz", "mm", scale * np.linalg.norm(d, axis=-1), keep)
             used.update(pos_t)
-        r_t, r_e = _rotation(t_names, ts), _rotation(e_names, xs)
-        if r_t is not None and r_e is not None:
+        euler = ("alpha", "beta", "gamma")
+        if all(a in t_names for a in euler) and all(a in e_names for a in euler) and kernels.compiled():
+            from needlecli.kernels.metrics import rotation_error  # without the (N, T, 3, 3) matrices
+
+            err = rotation_error(ts[..., [t_names.index(a) for a in euler]], xs[..., [e_names.index(a) for a in euler]])
+            es.quantities["E_R"] = QuantityError("E_R", "deg", np.rad2deg(err), keep)
+            used.update(_R)
+        elif (r_t := _rotation(t_names, ts)) is not None and (r_e := _rotation(e_names, xs)) is not None:
             err = rotation_angle(np.swapaxes(r_t, -1, -2) @ r_e)
             es.quantities["E_R"] = QuantityError("E_R", "deg", np.rad2deg(err), keep)
             used.update(_R)

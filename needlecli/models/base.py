@@ -15,10 +15,10 @@ from collections.abc import Mapping
 from typing import ClassVar
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict
 
 from needlecli.models import MODELS  # noqa: F401  (the registry, at the package's front door)
 from needlecli.numerics import complex_step_jacobian, rk4_step
+from needlecli.schema import Strict
 
 Params = Mapping[str, np.ndarray]
 
@@ -44,10 +44,9 @@ class StateSelection:
         return f"StateSelection({self.index.tolist()})"
 
 
-class ModelParams(BaseModel):
-    """Base schema of a model's parameters in a config (``model.params``)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
+class ModelParams(Strict):
+    """Base schema of a model's parameters in a config (``model.params``): strict and finite, as every
+    config section (:class:`~needlecli.schema.Strict`)."""
 
 
 class NotMeasurable(Exception):
@@ -67,6 +66,9 @@ class Model:
         The input whose time integral is the inserted length (depth).
     curvature_param : str or None
         The parameter that tissue layers set as a function of depth.
+    curvature_roll_state : str or None
+        A roll angle such that ``(-curvature, roll + pi)`` gives the same path as ``(curvature, roll)``
+        (the unicycle's ``gamma``): fits report a negative fitted curvature as that (None: no symmetry).
     length_unit : str
         Unit of positions (``mm``; ``m`` for the magnetic models of seed 004).
     Params : pydantic schema of ``model.params`` in a config.
@@ -80,6 +82,7 @@ class Model:
     input_units: ClassVar[dict[str, str]] = {}
     insertion_input: ClassVar[str] = "v"
     curvature_param: ClassVar[str | None] = None
+    curvature_roll_state: ClassVar[str | None] = None
     length_unit: ClassVar[str] = "mm"
     Params: ClassVar[type[ModelParams]] = ModelParams
     state_bounds: ClassVar[dict[str, tuple[float, float]]] = {}  # open intervals for initial states

@@ -15,6 +15,16 @@ from needlecli.numerics import euler_xyz_to_matrix, sincos
 
 class UnicycleParams(ModelParams):
     kappa: float = Field(0.002, ge=0.0, description="path curvature, 1/mm")
+    speed_scale: float = Field(
+        1.0, gt=0.0, le=2.0,
+        description="actual over commanded insertion (slip in the tissue: the tip advances speed_scale * v), 1")
+
+
+def _advance(v, p: Params):
+    """The tip's insertion speed: the commanded ``v`` times the ``speed_scale`` parameter (slip), when
+    the parameters have one (a bare ``{kappa: ...}`` mapping means 1). ``v * 1.0`` is ``v`` exactly."""
+    s = p.get("speed_scale")
+    return v if s is None else v * s
 
 
 @MODELS.register("unicycle")
@@ -26,7 +36,11 @@ class Unicycle(Model):
         a' = \kappa v \cos g / \cos b,\; b' = \kappa v \sin g,\; g' = u - \kappa v \cos g \tan b
 
     State ``(x, y, z, alpha, beta, gamma)`` in mm and rad; inputs ``v`` (mm/s) and ``u`` (rad/s);
-    parameter ``kappa`` (1/mm). Singular at ``cos(beta) = 0``.
+    parameters ``kappa`` (1/mm) and ``speed_scale`` (the tip advances ``speed_scale * v``: a needle that
+    slips in the tissue has it below 1; default 1). Singular at ``cos(beta) = 0``.
+
+    ``(kappa, gamma)`` and ``(-kappa, gamma + pi)`` give the same path (the body rotated by pi about the
+    tangent): a fit that finds a negative curvature has found the roll + pi (``curvature_roll_state``).
     """
 
     state_names = ("x", "y", "z", "alpha", "beta", "gamma")
@@ -41,11 +55,12 @@ class Unicycle(Model):
     translation_states = ("x", "y", "z")
     selections = {"tip_position": ("x", "y", "z"), "roll": ("gamma",)}
     singular_reason = "cos(beta) -> 0: the generalized-coordinate unicycle is undefined at beta = +-pi/2"
+    curvature_roll_state = "gamma"
 
     component_major = True
 
     def f_components(self, x, u, p: Params):
-        v, w = u[0], u[1]
+        v, w = _advance(u[0], p), u[1]
         (sa, sb, sg), (ca, cb, cg) = sincos(x[3:6])
         kv = p["kappa"] * v
         kvc = kv * cg / cb
@@ -88,6 +103,7 @@ class ModifiedUnicycleParams(ModelParams):
     beta_cut: float = Field(
         0.0, ge=0.0, le=np.deg2rad(6.0), description="cutting angle of the bevel, rad (0..6 deg)"
     )
+    speed_scale: float = UnicycleParams.model_fields["speed_scale"]
 
 
 @MODELS.register("modified_unicycle")
@@ -107,10 +123,11 @@ class ModifiedUnicycle(Unicycle):
     state_names = Unicycle.state_names + ("kappa",)
     state_units = Unicycle.state_units + ("1/mm",)
     Params = ModifiedUnicycleParams
+    curvature_roll_state = None  # the cutting angle's terms change sign with the roll: no such symmetry
 
     def f_components(self, x, u, p: Params):
         # written into the output rows in place: this is the UKF's hot path (15 sigma points per run)
-        v, w = u[0], u[1]
+        v, w = _advance(u[0], p), u[1]
         (sa, sb, sg), (ca, cb, cg) = sincos(x[3:6])
         kv = x[6] * v
         inv_cb = 1.0 / cb

@@ -7,7 +7,9 @@ from needlecli.numerics.rotations import (
     euler_xyz_to_matrix,
     hat,
     matrix_to_euler_xyz,
+    matrix_to_quaternion,
     project_to_so3,
+    quaternion_to_matrix,
     rot_x,
     rot_y,
     rot_z,
@@ -35,4 +37,6 @@ __all__ = [
     "so3_log",
     "rotation_angle",
     "project_to_so3",
+    "quaternion_to_matrix",
+    "matrix_to_quaternion",
 ]

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from needlecli import kernels
 from needlecli.numerics.angles import wrap_angle
 
 LOG_2PI = float(np.log(2.0 * np.pi))
@@ -335,6 +336,10 @@ def kalman_forward_affine(
     ----------
     A : (N, K, n, n), b : (N, K, n); H[j] : (N, M_j, m_j, n), d[j] : (N, M_j, m_j) per channel
     """
+    if kernels.compiled():
+        from needlecli.kernels import kalman as compiled
+
+        return ForwardResult(*compiled.kalman_forward_affine(m0, P0, Qc, dt, A, b, channels, H, d, state_angles=state_angles))
     m = np.array(m0, dtype=float)
     N, n = m.shape
     K = len(dt)
@@ -444,6 +449,11 @@ def rts_smoother(fwd: ForwardResult, *, state_angles: np.ndarray | None = None) 
     and the lag-one cross-covariance ``Cov(x_{k+1}, x_k | all) = P_{k+1|K} G_k^T``. The gains are
     computed for all ticks at once; only the recursion loops over time.
     """
+    if kernels.compiled():
+        from needlecli.kernels import kalman as compiled
+
+        m_s, P_s, C, G, repairs = compiled.rts_smoother(fwd, state_angles=state_angles)
+        return SmoothResult(m=m_s, P=P_s, C=C, G=G, repairs=repairs)
     N, K1, n = fwd.m_filt.shape
     K = K1 - 1
     Pp, rep = repair_pd(fwd.P_pred[:, 1:])
@@ -503,6 +513,10 @@ def em_process_noise(
     -------
     Qc : (N, n, n)
     """
+    if kernels.compiled():
+        from needlecli.kernels import kalman as compiled
+
+        return compiled.em_process_noise(sm, A, b, dt, index=index, state_angles=state_angles)
     m, P, C = sm.m, sm.P, sm.C
     e = m[:, 1:] - (A @ m[:, :-1, :, None])[..., 0] - b
     if state_angles is not None and state_angles.any():
@@ -538,6 +552,10 @@ def em_measurement_noise(
     -------
     R : (N, m, m) (NaN for a run without valid samples) and the count of samples used (N,)
     """
+    if kernels.compiled():
+        from needlecli.kernels import kalman as compiled
+
+        return compiled.em_measurement_noise(sm, channel, H, d)
     tick = np.asarray(channel.tick)
     m_k = sm.m[:, tick]
     P_k = sm.P[:, tick]

@@ -137,3 +137,48 @@ def project_to_so3(r: np.ndarray) -> np.ndarray:
 def orthonormalize(r: np.ndarray) -> np.ndarray:
     """One Newton step toward the polar factor: ``1.5 R - 0.5 R R^T R`` (cheap, for near-rotations)."""
     return 1.5 * r - 0.5 * (r @ np.swapaxes(r, -1, -2) @ r)
+
+
+def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices ``(..., 3, 3)`` of unit quaternions ``q (..., 4)`` in the order ``(w, x, y, z)``
+    (scalar first; normalised here, so a quaternion of any non-zero length gives its rotation)."""
+    q = np.asarray(q, dtype=float)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    r = [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ]
+    return np.stack([np.stack(row, -1) for row in r], -2)
+
+
+def matrix_to_quaternion(r: np.ndarray) -> np.ndarray:
+    """Unit quaternions ``(..., 4)``, ``(w, x, y, z)`` with ``w >= 0``, of rotation matrices ``(..., 3, 3)``
+    (Shepperd's method: the largest of ``w, x, y, z`` is computed first, stable for every angle)."""
+    r = np.asarray(r, dtype=float)
+    t = np.trace(r, axis1=-2, axis2=-1)
+    d = np.diagonal(r, axis1=-2, axis2=-1)
+    cand = np.stack([t, d[..., 0], d[..., 1], d[..., 2]], -1)  # 4 w^2 - 1 + ..., one per component
+    k = np.argmax(cand, axis=-1)
+    s = {}
+    s[0] = np.sqrt(np.maximum(1.0 + t, 0.0)) * 2.0
+    s[1] = np.sqrt(np.maximum(1.0 + 2 * d[..., 0] - t, 0.0)) * 2.0
+    s[2] = np.sqrt(np.maximum(1.0 + 2 * d[..., 1] - t, 0.0)) * 2.0
+    s[3] = np.sqrt(np.maximum(1.0 + 2 * d[..., 2] - t, 0.0)) * 2.0
+    with np.errstate(all="ignore"):
+        rows = {
+            0: (0.25 * s[0], (r[..., 2, 1] - r[..., 1, 2]) / s[0], (r[..., 0, 2] - r[..., 2, 0]) / s[0],
+                (r[..., 1, 0] - r[..., 0, 1]) / s[0]),
+            1: ((r[..., 2, 1] - r[..., 1, 2]) / s[1], 0.25 * s[1], (r[..., 0, 1] + r[..., 1, 0]) / s[1],
+                (r[..., 0, 2] + r[..., 2, 0]) / s[1]),
+            2: ((r[..., 0, 2] - r[..., 2, 0]) / s[2], (r[..., 0, 1] + r[..., 1, 0]) / s[2], 0.25 * s[2],
+                (r[..., 1, 2] + r[..., 2, 1]) / s[2]),
+            3: ((r[..., 1, 0] - r[..., 0, 1]) / s[3], (r[..., 0, 2] + r[..., 2, 0]) / s[3],
+                (r[..., 1, 2] + r[..., 2, 1]) / s[3], 0.25 * s[3]),
+        }
+    q = np.stack(rows[0], -1)
+    for i in (1, 2, 3):
+        q = np.where((k == i)[..., None], np.stack(rows[i], -1), q)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where(q[..., :1] < 0, -q, q)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from needlecli.registry import Registry
+from needlecli.registry import Registry, lazy_attributes
 
 if TYPE_CHECKING:
     from needlecli.observers.base import Observer
@@ -26,13 +26,7 @@ _LAZY = {  # the contract, imported on first use (this package's import is light
     "Posterior": "needlecli.observers.base",
 }
 
-
-def __getattr__(name: str):
-    if name in _LAZY:
-        import importlib
-
-        return getattr(importlib.import_module(_LAZY[name]), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_attributes(__name__, _LAZY)
 
 
 __all__ = ["OBSERVERS", "Channel", "EstimationProblem", "Observer", "ObserverSettings", "Posterior"]

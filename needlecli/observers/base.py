@@ -20,7 +20,7 @@ from pydantic import Field
 from needlecli.models import Model
 from needlecli.observers import OBSERVERS  # noqa: F401  (the registry, at the package's front door)
 from needlecli.problem import Channel, CommonStart, EstimationProblem  # noqa: F401  (part of the observer contract)
-from needlecli.schema import Strict
+from needlecli.schema import Name, Strict
 
 STATUS_OK = "ok"
 STATUS_DIVERGED = "diverged"
@@ -32,7 +32,7 @@ class ObserverSettings(Strict):
     """Settings every observer has."""
 
     type: str
-    name: str | None = Field(None, description="name in the results file (defaults to the type)")
+    name: Name | None = Field(None, description="name in the results file (defaults to the type)")
 
 
 @dataclass

@@ -33,7 +33,7 @@ Kravaris' inter-sample predictor; a latency is bridged the same way), so the inn
 continuous and nothing is learnt from the staircase. ``hold: zoh`` holds the last sample (the literal
 reading); it biases the derivative estimates between samples and is kept for comparison. Either way
 the sampled-data design needs ``theta * T_s`` small: the ``theta = 67e4`` of seed 000's simulation (as
-legible) assumes a continuous measurement; at 25-100 Hz, theta of order 10-1000 is usable (README).
+legible) assumes a continuous measurement; at 25-100 Hz, theta of order 10-1000 is usable (docs/papers/seed000.md).
 """
 
 from __future__ import annotations
@@ -201,9 +201,13 @@ class HighGainInit(Strict):
     starts the roll from the known 3 deg) or zeros (``from: nominal``), then fixed ``values`` (seed 000:
     ``{x: 0, beta: 0}``), then Gaussian noise of ``std``. zeta starts as ``sign(cos gamma_hat0)``."""
 
-    from_: Literal["truth", "nominal"] = Field("truth", alias="from")
-    values: dict[Literal["x", "beta", "gamma"], float] = Field(default_factory=dict)
-    std: dict[Literal["x", "beta", "gamma"], NonNeg] = Field(default_factory=dict)
+    from_: Literal["truth", "nominal"] = Field("truth", alias="from", description="start from the truth's initial "
+                                              "x, beta, gamma (truth) or from zeros (nominal)")
+    values: dict[Literal["x", "beta", "gamma"], float] = Field(default_factory=dict, description="fixed starting "
+                                                                 "values, x in mm, beta and gamma in rad (seed 000: "
+                                                                 "{x: 0, beta: 0})")
+    std: dict[Literal["x", "beta", "gamma"], NonNeg] = Field(default_factory=dict, description="std of Gaussian noise "
+                                                             "added to the start per run, x in mm, beta and gamma in rad")
 
 
 class HighGainSettings(ObserverSettings):
@@ -217,7 +221,8 @@ class HighGainSettings(ObserverSettings):
     hold: Literal["predictor", "zoh"] = Field("predictor", description="the output between samples")
     zeta_eps: float = Field(0.5, gt=0.0, le=1.0, description="band sqrt(1 - s2^2 - s3^2) < eps where zeta may flip")
     zeta_u_min: NonNeg = Field(1e-3, description="|u| (rad/s) above which the shaft counts as rotating")
-    init: HighGainInit = Field(default_factory=HighGainInit)
+    init: HighGainInit = Field(default_factory=HighGainInit, description="the initial estimate of x, beta, gamma "
+                                                                         "(zeta starts as sign(cos gamma_hat0))")
 
     @model_validator(mode="after")
     def _signs(self):

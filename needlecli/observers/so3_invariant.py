@@ -123,9 +123,12 @@ class SO3Init(Strict):
     uniformly per run) about the measured body axis (``axis: measured``: the estimated and the measured
     tangent then agree, as in seed 001's Fig. 3) or about a uniformly random body axis per run."""
 
-    from_: Literal["truth", "nominal"] = Field("truth", alias="from")
-    error_deg: NonNeg | tuple[NonNeg, NonNeg] = 0.0
-    axis: Literal["measured", "random"] = "measured"
+    from_: Literal["truth", "nominal"] = Field("truth", alias="from", description="start from the true initial "
+                                              "rotation (truth) or the model's default pose (nominal)")
+    error_deg: NonNeg | tuple[NonNeg, NonNeg] = Field(0.0, description="angle of the initial error rotation, deg (at "
+                                                      "most 180): a number, or [lo, hi] drawn uniformly per run")
+    axis: Literal["measured", "random"] = Field("measured", description="axis of the error rotation: the measured body "
+                                                "axis (the tangent, as seed 001's Fig. 3) or a random axis per run")
 
     @field_validator("error_deg")
     @classmethod
@@ -151,7 +154,8 @@ class SO3InvariantSettings(ObserverSettings):
     measurements: dict[str, TangentSpec] = Field(
         default_factory=dict, description="tangent channels by sensor name (default: every tangent sensor)"
     )
-    init: SO3Init = Field(default_factory=SO3Init)
+    init: SO3Init = Field(default_factory=SO3Init, description="the initial estimate: a start rotation times an "
+                                                               "error rotation")
     min_excitation: NonNeg = Field(
         0.01, description="rad of rotation perpendicular to the measured axis a run needs to be observable"
     )

@@ -17,7 +17,10 @@ Exact shortcuts (each tested against the plain computation): a channel whose ``h
 transform of a linear ``h`` gives (one scalar state, seed 003's 100 Hz roll, without a solve); the
 square root of ``P`` is taken with the states the model's vector field depends on first, so that the
 sigma points that move only the positions (``model.translation_states``) are displaced as the central
-point instead of being propagated (9 of 15 points go through the model for seed 003).
+point instead of being propagated (9 of 15 points go through the model for seed 003); and the translation
+states of the sigma points are propagated relative to the central point's (increments of micrometres, not
+positions of 80 mm), so that the rounding the alpha = 1e-3 weights (7e4) amplify into the mean stays at
+1e-10 mm per tick instead of 1e-9 to 1e-8 (the model does not depend on them: the same points).
 """
 
 from __future__ import annotations
@@ -26,7 +29,6 @@ from typing import Literal
 
 import numpy as np
 from pydantic import Field, model_validator
-from scipy.stats import chi2
 
 from needlecli.initial import InitialEstimate, check_initial, initial_covariance, initial_mean, make_start
 from needlecli.models import MODELS, Model, StateSelection
@@ -84,7 +86,8 @@ class MeasurementSpec(Strict):
 class KappaReset(Strict):
     """Reset of ``P_kappa_kappa`` to ``factor * P0_kappa_kappa`` when the tip crosses an interface."""
 
-    factor: Positive = 1.0
+    factor: Positive = Field(1.0, description="P_kappa_kappa becomes factor times its initial variance at each "
+                                              "interface (seed 003 Fig. 8: 10)")
     interfaces: str = Field("experiment", description="'experiment' or the name of an elastography channel")
 
 
@@ -93,15 +96,20 @@ class UKFSettings(ObserverSettings):
     model: str | None = Field(None, description="the filter's model (default: the experiment's)")
     params: dict[str, float] = Field(default_factory=dict, description="the filter's model parameters")
     rate: Positive | None = Field(None, description="filter rate, Hz (default: the simulation grid's)")
-    alpha: Positive = 1e-3
-    beta: NonNeg = 2.0
-    kappa: float = 0.0
+    alpha: Positive = Field(1e-3, description="spread of the Merwe scaled sigma points around the mean "
+                                              "(seed 003: 1e-3)")
+    beta: NonNeg = Field(2.0, description="prior-distribution weight of the sigma points (2 is optimal for a "
+                                          "Gaussian; seed 003: 2)")
+    kappa: float = Field(0.0, description="secondary scaling of the sigma points (seed 003: 0); not the curvature")
     q: dict[str, NonNeg] = Field(default_factory=dict, description="process noise std per state per tick")
     p0: dict[str, NonNeg] = Field(default_factory=dict, description="initial variance per state")
-    measurements: dict[str, MeasurementSpec] = Field(default_factory=dict)
+    measurements: dict[str, MeasurementSpec] = Field(default_factory=dict, description="channels used, by sensor "
+                                                     "name, with their noise, growth and gate (default: every channel "
+                                                     "the model can predict, with the sensor's own sigma)")
     init: InitialEstimate = Field(default_factory=InitialEstimate, description="initial estimate (needlecli.initial)")
     kappa_max: Positive | None = Field(None, description="curvature constraint 0 <= kappa <= kappa_max")
-    kappa_reset: KappaReset | None = None
+    kappa_reset: KappaReset | None = Field(None, description="reset of the curvature variance at tissue interfaces "
+                                                             "(default: none)")
     predict_at_depths: list[NonNeg] = Field(default_factory=list, description="observation depths for prediction")
     max_cov_trace: Positive = Field(1e8, description="a run whose tr(P) exceeds this has diverged")
 
@@ -110,6 +118,12 @@ class UKFSettings(ObserverSettings):
         if any(b <= a for a, b in zip(self.predict_at_depths, self.predict_at_depths[1:])):
             raise ValueError("predict_at_depths must increase strictly")
         return self
+
+
+def _chi2_quantile(p: float, m: int) -> float:
+    from scipy.stats import chi2  # here: scipy.stats costs 0.5 s of start-up, and only gates need it
+
+    return float(chi2.ppf(p, m))
 
 
 @OBSERVERS.register("ukf")
@@ -193,6 +207,7 @@ class UnscentedKalmanFilter(Observer):
         angles = model.angle_mask
         ang_sel = angle_selection(angles)
         order, back, n_act = self._translation_order(model)
+        tsel = np.array([model.index(k) for k in model.translation_states], dtype=np.int64) if order is not None else None
         w = MerweWeights(n, s.alpha, s.beta, s.kappa)
         wm, wc = w.wm, w.wc
         sq_scale = np.sqrt(w.scale)
@@ -212,7 +227,6 @@ class UnscentedKalmanFilter(Observer):
 
         # --- channels used, and the tick at which each sample becomes available
         chans = self._channels(problem, model)
-        schedule = self._schedule(chans, ticks)
 
         # --- initial estimate
         x, P0 = self._initial(problem, model, params, rng, chans)
@@ -223,7 +237,20 @@ class UnscentedKalmanFilter(Observer):
         Q = np.diag(np.array([s.q.get(k, 0.0) for k in model.state_names]) ** 2)
         kappa_i = model.index(model.curvature_param) if model.curvature_param in model.state_names else None
         interfaces = self._interfaces(problem, N)
+        depths = np.asarray(s.predict_at_depths, dtype=float)
 
+        from needlecli import kernels  # the compiled tick loop, where it covers this filter
+
+        if kernels.compiled(problem.kernels) and kernels.has_model(model.registered_name):
+            from needlecli.kernels import ukf as compiled
+
+            # a channel in the needle's frame (a full R at the predicted tangent): the numpy path below
+            if compiled.supports(model, chans) and all(c["frame"] == "world" for c in chans):
+                return self._from_kernel(compiled.filter_runs(
+                    model, params, problem, s, chans, ticks, inputs, x, P0, Q, kappa_i, interfaces, depths, w, order,
+                    n_act, progress), model, s, chans, time, stride, dt_grid, depths)
+
+        schedule = self._schedule(chans, ticks)
         # --- outputs
         states = np.empty((N, T, n))
         keep = set(cov_steps(T, problem.cov_stride).tolist())
@@ -237,7 +264,6 @@ class UnscentedKalmanFilter(Observer):
         gated = {c["name"]: np.zeros(N, dtype=np.int64) for c in chans}
         used = {c["name"]: np.zeros(N, dtype=np.int64) for c in chans}
         nis = {c["name"]: np.full(c["valid"].shape, np.nan) for c in chans}  # per sample used: nu^T S^-1 nu
-        depths = np.asarray(s.predict_at_depths, dtype=float)
         pred_final = np.full((N, len(depths), n), np.nan)
         pred_tick = np.full(len(depths), -1, dtype=np.int64)
         roll = np.zeros((N, 0, n))  # rollouts to the final depth, advanced with the sigma points
@@ -272,6 +298,10 @@ class UnscentedKalmanFilter(Observer):
                 X[:, 0] = x
                 np.add(x[:, None, :], cols[:, :n_act], out=X[:, 1 : 1 + n_act])
                 np.subtract(x[:, None, :], cols[:, :n_act], out=X[:, 1 + n_act : S])
+                if tsel is not None:  # translation states relative to the central point's (see the module)
+                    X[:, 0, tsel] = 0.0
+                    X[:, 1 : 1 + n_act, tsel] = cols[:, :n_act, tsel]
+                    X[:, 1 + n_act : S, tsel] = -cols[:, :n_act, tsel]
                 X[:, S:] = roll
                 for j in range(k0, k1):
                     X = model.step(X, inputs[:, j, None, :], params, dt_grid)
@@ -285,6 +315,8 @@ class UnscentedKalmanFilter(Observer):
                     X = full
                 x_prev = x
                 x, dX = mean_and_residuals(X, wm, angles)
+                if tsel is not None:
+                    x[:, tsel] += x_prev[:, tsel]
                 P = symmetrize(weighted_cov(dX, dX, wc) + Q)
                 # ---- tissue interface: reset the curvature variance
                 if s.kappa_reset is not None and kappa_i is not None and interfaces.size:
@@ -356,6 +388,26 @@ class UnscentedKalmanFilter(Observer):
         if roll_ids:
             pred_final[:, roll_ids] = roll
         cov = np.stack(covs, 1) if covs is not None else None
+        return self._posterior(model, s, chans, time, stride, dt_grid, states, cov, status, reason, repairs,
+                               constraint_hits, resets, used, gated, nis, depths, pred_tick, pred_final)
+
+    def _from_kernel(self, k, model, s, chans, time, stride, dt_grid, depths) -> Posterior:
+        """The posterior from the compiled filter's arrays (status codes: 0 ok, 1 diverged, 2 singular)."""
+        status = np.where(k["status"] == 0, STATUS_OK, np.where(k["status"] == 2, STATUS_SINGULAR, STATUS_DIVERGED))
+        at = time[np.maximum(k["event"], 0)]
+        reason = np.array(["" if c == 0 else f"{model.singular_reason} (t = {t:.2f} s)" if c == 2 else
+                           f"non-finite or exploding covariance at t = {t:.2f} s" for c, t in zip(k["status"], at)],
+                          dtype=object)
+        return self._posterior(model, s, chans, time, stride, dt_grid, k["states"], k["cov"], status, reason,
+                               k["repairs"], k["hits"], k["resets"],
+                               {c["name"]: k["used"][:, i] for i, c in enumerate(chans)},
+                               {c["name"]: k["gated"][:, i] for i, c in enumerate(chans)},
+                               {c["name"]: k["nis"][i] for i, c in enumerate(chans)},
+                               depths, k["pred_tick"], k["roll"])
+
+    @staticmethod
+    def _posterior(model, s, chans, time, stride, dt_grid, states, cov, status, reason, repairs, constraint_hits,
+                   resets, used, gated, nis, depths, pred_tick, pred_final) -> Posterior:
         extras = {
             "cholesky_repairs": repairs,
             "constraint_hits": constraint_hits,
@@ -423,7 +475,7 @@ class UnscentedKalmanFilter(Observer):
                 "name": name, "h": h, "m": m, "sigma": sigma, "growth": growth,
                 "select": h.index if isinstance(h, StateSelection) else None,
                 "pos_cols": pos_cols, "pos_axes": [("x", "y", "z").index(ch.names[i]) for i in pos_cols],
-                "gate": chi2.ppf(spec.gate, m) if spec and spec.gate else None,
+                "gate": _chi2_quantile(spec.gate, m) if spec and spec.gate else None,
                 "angle": np.asarray(ch.angle, dtype=bool), "value": ch.value, "valid": ch.valid,
                 "avail": avail[order], "order": order, "channel": ch,
                 "frame": spec.frame if spec else "world", "tangent": model.tangent if spec and spec.frame == "needle" else None,

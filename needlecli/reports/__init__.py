@@ -19,6 +19,7 @@ _TABLE_MODULES = {
     "needlecli.reports.identify": ("identifiability",),
     "needlecli.reports.real": ("real_tip_error", "measurement_use", "real_error_vs_depth", "per_trial",
                                "em_per_trial", "em_per_speed", "em_loglik"),
+    "needlecli.reports.design": ("fit_by_design", "fit_regression", "fit_warnings"),
     "needlecli.reports.along_across": ("real_error_along_across",),
 }
 _PLOT_MODULES = {
@@ -28,8 +29,16 @@ _PLOT_MODULES = {
     "needlecli.reports.seed004": ("seed004_fig5", "seed004_fig10"),
     "needlecli.reports.imaging": ("imaging_frames",),
     "needlecli.reports.consistency": ("nees_vs_depth",),
+    "needlecli.reports.design": ("fit_regression",),
     "needlecli.reports.along_across": ("error_along_across",),
 }
+
+#: the tables that read a fit file of ``needle fit-em`` (the others read results files); ``needle evaluate
+#: FIT.h5`` writes the first ones by default (:data:`FIT_DEFAULT`), the others when named
+FIT_TABLE_NAMES = ("seed004_table1", "seed004_table2", "seed004_table3", "seed004_recovery", "fit_status",
+                   "identifiability", "fit_by_design", "fit_regression", "fit_warnings",
+                   "em_per_trial", "em_per_speed", "em_loglik")
+FIT_DEFAULT = FIT_TABLE_NAMES[:9]
 
 #: table functions ``(results, errors) -> DataFrame``
 TABLES: Registry = Registry("table", group="needlecli.tables",
@@ -38,4 +47,4 @@ TABLES: Registry = Registry("table", group="needlecli.tables",
 PLOTS: Registry = Registry("plot", group="needlecli.plots",
                            builtins={n: m for m, names in _PLOT_MODULES.items() for n in names})
 
-__all__ = ["PLOTS", "TABLES"]
+__all__ = ["FIT_DEFAULT", "FIT_TABLE_NAMES", "PLOTS", "TABLES"]

@@ -23,19 +23,31 @@ from typing import Literal
 import numpy as np
 import pandas as pd
 import yaml
-from pydantic import Field, ValidationError
+from pydantic import Field, ValidationError, field_validator
 
 from needlecli.errors import ConfigError
 from needlecli.schema import NonNeg, Strict
 
 
 class Cell(Strict):
+    """One expected cell. Its value and tolerance are finite numbers (a NaN expectation is an error in
+    the baseline, never a cell that holds); its table is one ``needle evaluate`` knows."""
+
     table: str
     row: dict[str, str | int | float]
     column: str
     value: float
     tol: NonNeg
     check: Literal["both", "max", "min"] = "both"
+
+    @field_validator("table")
+    @classmethod
+    def _known(cls, v):
+        from needlecli.reports import TABLES
+
+        if v not in TABLES.names():
+            raise ValueError(f"unknown table {v!r}; known: {', '.join(TABLES.names())}")
+        return v
 
 
 class Baseline(Strict):
@@ -56,19 +68,15 @@ class Failure:
 
 
 def load_baseline(path: str | Path) -> Baseline:
-    from needlecli.io.yamlfile import parse_yaml
-    from needlecli.schema import error_message
+    from needlecli.io.yamlfile import read_yaml
+    from needlecli.schema import validation_error
 
     path = Path(path)
+    data, _ = read_yaml(path, "a baseline")
     try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as e:
-        raise ConfigError(str(path), (), f"cannot read the baseline: {e}") from None
-    try:
-        return Baseline.model_validate(parse_yaml(text, str(path)))
+        return Baseline.model_validate(data)
     except ValidationError as e:
-        err = e.errors()[0]
-        raise ConfigError(str(path), tuple(err["loc"]), error_message(err)) from None
+        raise validation_error(e, data, str(path), schema=Baseline) from None
 
 
 def _key_columns(df: pd.DataFrame) -> list[str]:
@@ -104,11 +112,12 @@ def _find(df: pd.DataFrame, row: dict) -> pd.DataFrame:
     return df[sel]
 
 
-def compare(tables: dict[str, pd.DataFrame], baseline: Baseline, name: str | None = None) -> list[Failure]:
-    """Cells that regress (or are missing)."""
+def compare(tables: dict[str, pd.DataFrame], baseline: Baseline, name: str | None = None,
+            source: str = "baseline") -> list[Failure]:
+    """Cells that regress, are missing, or are not finite (NaN fails a cell). ``source``: the baseline file."""
     out = []
     if baseline.results and name and baseline.results != name:
-        raise ConfigError("baseline", ("results",), f"is for experiment {baseline.results!r}, these results are {name!r}")
+        raise ConfigError(str(source), ("results",), f"is for experiment {baseline.results!r}, these results are {name!r}")
     for cell in baseline.cells:
         df = tables.get(cell.table)
         if df is None or cell.column not in (df.columns if df is not None else []):

@@ -202,16 +202,16 @@ def trajectories(res: Group, errors: dict[str, ErrorSet], path_stem: Path, max_r
     return save_figure(fig, Path(f"{path_stem}_trajectories.png"))
 
 
-def draw_plots(res: Group, errors, path_stem: Path, names=None) -> list[Path]:
-    """Draw the registered plots (or ``names``) of a results or fit file; a plot that cannot be drawn is
-    not written, and the log says why, once per plot."""
+def draw_plots(res: Group, errors, path_stem: Path, names=None, options: dict | None = None) -> list[Path]:
+    """Draw the registered plots (or ``names``) of a results or fit file, with keyword ``options`` per plot
+    name; a plot that cannot be drawn is not written, and the log says why, once per plot."""
     import logging
 
     log = logging.getLogger("needlecli")
     out = []
     for name in names if names is not None else PLOTS.names():
         try:
-            p = PLOTS.get(name)(res, errors, path_stem)
+            p = PLOTS.get(name)(res, errors, path_stem, **((options or {}).get(name) or {}))
         except PlotSkipped as e:
             log.info("plot %s: not written (%s)", name, e)
             continue

@@ -352,4 +352,3 @@ def em_loglik(res: Group, errors=None) -> pd.DataFrame:
 
 
 #: this module's tables of a fit file of ``needle fit-em`` (``needle evaluate FIT.h5 --tables em_per_trial``)
-FIT_TABLES_HERE = ("em_per_trial", "em_per_speed", "em_loglik")

@@ -19,6 +19,7 @@ Trials whose fit failed for any model (singular, diverged) are left out for ever
 from __future__ import annotations
 
 import logging
+import re
 from pathlib import Path
 
 import numpy as np
@@ -27,17 +28,17 @@ import pandas as pd
 from needlecli.errors import DataError
 from needlecli.io.results import Group
 from needlecli.models import MODELS
+from needlecli.reports import FIT_DEFAULT, FIT_TABLE_NAMES
 from needlecli.reports.identify import MARK, mark_label, weak_note, weak_quantities
 from needlecli.reports.plots import PLOTS, draw_plots, observer_colours, observer_style, save_figure, subplots
-from needlecli.reports.real import FIT_TABLES_HERE
 from needlecli.reports.tables import TABLES, count_cell, table_caption, write_table
 
 log = logging.getLogger("needlecli")
 
-FIT_TABLES = ("seed004_table1", "seed004_table2", "seed004_table3", "seed004_recovery", "fit_status", "identifiability")
+FIT_TABLES = FIT_DEFAULT  # written by default (the tables of a fit file: needlecli.reports.FIT_TABLE_NAMES)
 #: every table of a fit file: :data:`FIT_TABLES` (written by default) and those asked for by name
-ALL_FIT_TABLES = FIT_TABLES + FIT_TABLES_HERE
-FIT_PLOTS = ("seed004_fig5", "seed004_fig10")
+ALL_FIT_TABLES = FIT_TABLE_NAMES
+FIT_PLOTS = ("seed004_fig5", "seed004_fig10", "fit_regression")
 FAILED = ("singular", "diverged")
 _TO_MM = {"m": 1000.0, "mm": 1.0, "cm": 10.0}
 
@@ -360,10 +361,16 @@ def recovery_table(res: Group, errors=None) -> pd.DataFrame:
 
 @TABLES.register("fit_status")
 def fit_status_table(res: Group, errors=None) -> pd.DataFrame:
-    """EM outcome per model: trials per status with the reasons, EM iterations (median, max), E-step
-    passes per iteration, log-likelihood decreases beyond numerical noise, SQUAREM steps rejected."""
+    """EM outcome per model: trials per status with the reasons (each with its trials), EM iterations
+    (median, max), E-step passes per iteration, log-likelihood decreases beyond numerical noise, SQUAREM
+    steps rejected, and the warnings of table fit_warnings (R on its floor, Q nearly singular, negative
+    curvatures reported as the roll + pi) by kind with their trials."""
     if not is_fit(res):
         return pd.DataFrame()
+    from needlecli.reports.design import trial_ids, warning_summary
+
+    ids = trial_ids(res)
+    warn = warning_summary(res, statuses=False)
     rows = []
     for model, g in res.data["fit"].data.items():
         status = np.asarray(g.data["status"]).astype(str)
@@ -371,14 +378,22 @@ def fit_status_table(res: Group, errors=None) -> pd.DataFrame:
         it = np.asarray(g.data["iterations"])
         for s in np.unique(status):
             sel = status == s
-            reasons = sorted({r.split(" (EM iteration")[0] for r in reason[sel] if r})
+            by_reason: dict[str, list[str]] = {}  # each reason with the trials that gave it, in full
+            for r, tid in zip(reason[sel], ids[sel]):
+                if r:
+                    m = re.match(r"^(.*?)\s*\(([^()]*)\)$", r)  # a trailing detail: per trial
+                    base, detail = (m.group(1), f" ({m.group(2)})") if m else (r, "")
+                    by_reason.setdefault(base, []).append(f"{tid}{detail}")
+            reasons = [f"{r}: {', '.join(t)}" for r, t in by_reason.items()]
             rows.append({
                 "Model": model, "Status": s, "Trials": count_cell(sel.sum(), len(sel)),
                 "Iterations (median)": float(np.median(it[sel])), "Iterations (max)": int(it[sel].max()),
                 "E-step passes / iteration": float(np.mean(np.asarray(g.data["estep_passes"])[sel] / np.maximum(it[sel], 1))),
                 "LL decreases": int(np.asarray(g.data["ll_decreases"])[sel].sum()),
                 "SQUAREM rejected": int(np.asarray(g.data.get("rejections", np.zeros(len(sel))))[sel].sum()),
-                "Reasons": "; ".join(reasons)[:300],
+                "Reasons": "; ".join(reasons),
+                "Warnings": "" if s != np.unique(status)[0] else  # once per model, on its first row
+                "; ".join(w.split(": ", 1)[1] for w in warn if w.startswith(f"{model}: ")),
             })
     return pd.DataFrame(rows)
 
@@ -418,34 +433,43 @@ def fig5(res: Group, errors, path_stem: Path) -> Path | None:
     i = _pick_trial(res, ("T2", "-x"))
     scale = _TO_MM.get(str(res.attrs.get("length_unit", "m")), 1.0)
     names = [str(x) for x in mg.attrs["names"]]
-    cols = [names.index(a) for a in ("x", "y") if a in names]
-    y = np.asarray(mg.data["value"])[i][:, cols] * scale
+    y_all = np.asarray(mg.data["value"])[i] * scale
     valid = np.asarray(mg.data["valid"])[i]
+    pairs = _position_pairs(res, names)  # (state stem, channel) of every measured axis the fits have
+    if not pairs:
+        return None
+    cols = [names.index(c) for _, c in pairs]
+    y = y_all[:, cols]
+    shown = _two_widest(y, valid)  # the plane of the plot: the two axes the path spans most
     t_meas = np.asarray(mg.data["t"])
     colours = observer_colours(res)
     fig, axs = subplots(1, 2, figsize=(12, 4.8))
-    axs[0].plot(y[valid, 0], y[valid, 1], ".", ms=3, color="0.5", label=f"{ch} measurements")
+    axs[0].plot(y[valid, shown[0]], y[valid, shown[1]], ".", ms=3, color="0.5", label=f"{ch} measurements")
     tr = res.data.get("truth", Group())
     if "state" in tr.data:
         tn = [str(x) for x in tr.attrs["names"]]
         ts = np.asarray(tr.data["state"])[i]
-        axs[0].plot(ts[:, tn.index("px")] * scale, ts[:, tn.index("py")] * scale, "k--", lw=0.8, label="truth", gid="truth")
+        st = [_state_of(tn, pairs[k][0]) for k in shown]
+        if None not in st:
+            axs[0].plot(ts[:, st[0]] * scale, ts[:, st[1]] * scale, "k--", lw=0.8, label="truth", gid="truth")
     for model, g in res.data["fit"].data.items():
         gn = [str(x) for x in g.attrs["names"]]
-        z = np.asarray(g.data["state"])[i]
-        px, py = z[:, gn.index("px")] * scale, z[:, gn.index("py")] * scale
+        idx = [_state_of(gn, s) for s, _ in pairs]
+        if None in idx:
+            continue
+        z = np.asarray(g.data["state"])[i][:, idx] * scale
         status = str(np.asarray(g.data["status"]).astype(str)[i])
-        st = observer_style(colours, model)
-        axs[0].plot(px, py, lw=1.2, label=f"{model} EM ({status})", **st)
+        sty = observer_style(colours, model)
+        axs[0].plot(z[:, shown[0]], z[:, shown[1]], lw=1.2, label=f"{model} EM ({status})", **sty)
         ticks = np.asarray(g.data["ticks"])
         at = np.clip(np.searchsorted(ticks, np.asarray(mg.data["index"])), 0, len(ticks) - 1)
-        d = np.hypot(px[at] - y[:, 0], py[at] - y[:, 1])
+        d = np.linalg.norm(z[at] - y, axis=-1)
         d = np.where(valid, d, np.nan)
         run = np.sqrt(np.nancumsum(d**2) / np.maximum(np.cumsum(valid), 1))
-        axs[1].plot(t_meas, d, lw=0.5, alpha=0.5, **st)
-        axs[1].plot(t_meas, run, lw=1.5, label=f"{model}: running RMS {run[-1]:.3f} mm", **st)
-    axs[0].set_xlabel("x [mm]")
-    axs[0].set_ylabel("y [mm]")
+        axs[1].plot(t_meas, d, lw=0.5, alpha=0.5, **sty)
+        axs[1].plot(t_meas, run, lw=1.5, label=f"{model}: running RMS {run[-1]:.3f} mm", **sty)
+    axs[0].set_xlabel(f"{pairs[shown[0]][1]} [mm]")
+    axs[0].set_ylabel(f"{pairs[shown[1]][1]} [mm]")
     axs[0].set_aspect("equal", adjustable="datalim")
     axs[0].legend(fontsize="small")
     axs[1].set_xlabel("time [s]")
@@ -457,8 +481,36 @@ def fig5(res: Group, errors, path_stem: Path) -> Path | None:
     case = res.data["inputs"].data.get("case")
     pcase, plabels = _cases(res)
     what = (labels[int(case[i])] + ", " if labels and case is not None else "") + plabels[int(pcase[i])]
-    fig.suptitle(f"{res.attrs.get('name', '')}: trial {i} ({what}): EM estimates of both models", fontsize=10)
+    from needlecli.reports.design import trial_ids
+
+    fig.suptitle(f"{res.attrs.get('name', '')}: trial {trial_ids(res)[i]} ({what}): EM estimates of each model", fontsize=10)
     return save_figure(fig, Path(f"{path_stem}_seed004_fig5.png"))
+
+
+def _state_of(names: list[str], stem: str) -> int | None:
+    """Index of a position state by its axis (``x`` is ``px`` of the magnetic models, ``x`` of the unicycle)."""
+    for s in (f"p{stem}", stem):
+        if s in names:
+            return names.index(s)
+    return None
+
+
+def _position_pairs(res: Group, channels: list[str]) -> list[tuple[str, str]]:
+    """``(axis, channel)`` of every measured position axis that every fitted model has as a state."""
+    out = []
+    for a in ("x", "y", "z"):
+        if a in channels and all(_state_of([str(x) for x in g.attrs["names"]], a) is not None
+                                 for g in res.data["fit"].data.values()):
+            out.append((a, a))
+    return out
+
+
+def _two_widest(y: np.ndarray, valid: np.ndarray) -> tuple[int, int]:
+    """The two columns of ``y`` with the largest range over the valid samples, in their order."""
+    if y.shape[1] <= 2:
+        return (0, min(1, y.shape[1] - 1))
+    span = np.ptp(np.where(valid[:, None], y, np.nan)[valid], axis=0) if valid.any() else np.zeros(y.shape[1])
+    return tuple(sorted(np.argsort(-span)[:2].tolist()))
 
 
 def _cos_hb(z: np.ndarray, names: list[str]) -> np.ndarray:
@@ -521,9 +573,12 @@ def evaluate_fit(
     out_dir: str | Path | None = None,
     formats: list[str] | None = None,
     plots: bool = False,
+    design: dict | None = None,
 ) -> dict[str, pd.DataFrame]:
     """``needle evaluate FIT.h5``: the fit tables (default :data:`FIT_TABLES`; any of :data:`ALL_FIT_TABLES`), written to
-    ``out_dir`` with the figures when asked."""
+    ``out_dir`` with the figures when asked; ``design`` (``group_by``, ``regress``) for the tables by the
+    trials' design factors (``needle evaluate --group-by/--regress``)."""
+    from needlecli.io.atomic import output_stem
     from needlecli.io.fit import read_fit
 
     path = Path(path)
@@ -532,14 +587,21 @@ def evaluate_fit(
     for n in names:
         if n not in ALL_FIT_TABLES:
             raise DataError(f"{path}: table {n!r} needs a results file; a fit file has {', '.join(ALL_FIT_TABLES)}")
-    out = {n: TABLES.get(n)(res, None) for n in names}
+    from needlecli.reports.design import DESIGN_OPTIONS
+
+    def opts(n):
+        key = DESIGN_OPTIONS.get(n)
+        return {key: design[key]} if key and design and design.get(key) else {}
+
+    out = {n: TABLES.get(n)(res, None, **opts(n)) for n in names}
     for n, df in out.items():
         df.attrs["caption"] = table_caption(n, df, res)
     if out_dir is not None:
         out_dir = Path(out_dir)
-        stem = res.attrs.get("name", path.stem)
+        stem = output_stem(res.attrs.get("name"), path.stem)
         for n, df in out.items():
             write_table(df, out_dir / f"{stem}_{n}", formats or ["md", "csv", "tex"], caption=df.attrs["caption"])
         if plots:
-            draw_plots(res, None, out_dir / stem, FIT_PLOTS)
+            draw_plots(res, None, out_dir / stem, FIT_PLOTS,
+                       options={"fit_regression": {"regress": design["regress"]}} if design and design.get("regress") else None)
     return out

@@ -21,7 +21,7 @@ from pydantic import Field
 
 from needlecli.models.base import NotMeasurable, StateSelection
 from needlecli.numerics import wrap_angle
-from needlecli.schema import NonNeg, Positive, Probability, Strict
+from needlecli.schema import Name, NonNeg, Positive, Probability, Strict
 from needlecli.sensors import PIPELINES, SENSORS  # noqa: F401  (the registries, at the package's front door)
 
 if TYPE_CHECKING:
@@ -33,7 +33,7 @@ class SensorSettings(Strict):
     """Settings every sensor has. Times in s, rates in Hz."""
 
     type: str
-    name: str | None = Field(None, description="name in the results file (defaults to the type)")
+    name: Name | None = Field(None, description="name in the results file (defaults to the type)")
     rate: Positive = Field(description="sampling rate, Hz")
     start: NonNeg = Field(0.0, description="time of the first sample, s")
     latency: NonNeg = Field(0.0, description="delay between acquisition and availability, s")
@@ -153,10 +153,15 @@ class Sensor:
         return y
 
     # ------------------------------------------------------------------ the whole thing
+    #: ``progress(samples done, samples)``, set by the runner before :meth:`measure`: a pipeline that takes
+    #: long (rendering frames) reports to it
+    progress: Callable[[int, int], None] | None = None
+
     def measure(self, truth: Truth, rng: np.random.Generator) -> MeasurementStream:
         """Sample the truth on this sensor's clock through its pipeline, then apply dropouts."""
         idx = self.sample_indices(truth.time)
         pipeline = PIPELINES.get(self.settings.pipeline)()
+        pipeline.progress = self.progress
         value, valid, sigma = pipeline.measure(self, truth, idx, rng)
         return self._stream(truth, idx, pipeline, value, valid, sigma, rng)
 
@@ -206,6 +211,9 @@ class Pipeline:
     def __init__(self) -> None:
         #: further arrays of the last ``measure`` (e.g. saved frames), stored beside the stream's values
         self.extras: dict[str, np.ndarray] = {}
+        #: ``progress(samples done, samples)``, set by the sensor before ``measure``; a pipeline that takes
+        #: long (one frame at a time) calls it, a quick one may ignore it
+        self.progress: Callable[[int, int], None] | None = None
 
     def measure(
         self, sensor: Sensor, truth: Truth, idx: np.ndarray, rng: np.random.Generator

@@ -33,9 +33,13 @@ _AXES = ("x", "y", "z")
 
 class PositionSettings(SensorSettings):
     type: Literal["position"]
-    axes: list[Literal["x", "y", "z"]] = Field(default_factory=lambda: ["x", "y", "z"], min_length=1)
+    axes: list[Literal["x", "y", "z"]] = Field(default_factory=lambda: ["x", "y", "z"], min_length=1,
+                                               description="the tip coordinates it measures, each a channel "
+                                                           "(2D transverse ultrasound: [x, y])")
     sigma: Sigma = Field(0.3, description="noise std per axis at the transducer, model length unit")
-    growth: DistanceGrowth | None = None
+    growth: DistanceGrowth | None = Field(None, description="noise growing with the distance to a transducer, "
+                                                            "sigma = (1 + a d / d_max) sigma (seed 003); default: "
+                                                            "constant sigma")
     image: ImageSection | None = Field(
         None, validate_default=True, description="with pipeline: image, the imaging device (sensors/imaging)")
 
@@ -100,7 +104,9 @@ class PositionSensor(Sensor):
 class EncoderSettings(SensorSettings):
     type: Literal["encoder"]
     channels: list[Literal["depth", "roll", "base_angle"]] = Field(
-        default_factory=lambda: ["depth", "roll"], min_length=1
+        default_factory=lambda: ["depth", "roll"], min_length=1,
+        description="what it reads: depth (inserted length, model length unit), roll (the needle's roll angle, "
+                    "rad), base_angle (rad)",
     )
     sigma: Sigma = Field(0.0035, description="noise std per channel (mm for depth, rad for angles)")
 

@@ -114,11 +114,11 @@ def main() -> None:
     case(edit("input_unit_mismatch", lambda f: f["trials/t1/inputs/v"].attrs.__setitem__("unit", "m/s")),
          "unit 'm/s' does not match the model's 'mm/s'")
     case(edit("names_count", lambda f: f["trials/t1/sensors/us"].attrs.__setitem__("names", ["x", "y"])),
-         "3 value columns but names")
+         "[/trials/t1/sensors/us attribute units] has 3 names, but /trials/t1/sensors/us attribute names give m = 2")
     case(edit("missing_value", lambda f: f.__delitem__("trials/t1/sensors/us/value")), "missing dataset 'value'")
     case(edit("missing_time", lambda f: f.__delitem__("trials/t1/sensors/robot/t")), "missing dataset 't'")
-    case(edit("shape_mismatch", rewrite("trials/t1/sensors/us/value", v[:30])), "value has shape (30, 3) for 40 timestamps")
-    case(edit("valid_shape", rewrite("trials/t1/sensors/us/valid", np.ones(39, bool))), "valid has shape (39,) for 40 timestamps")
+    case(edit("shape_mismatch", rewrite("trials/t1/sensors/us/value", v[:30])), "[/trials/t1/sensors/us/value] has shape (30, 3), expected (M,) = (40,) or (M, m) = (40, 3)")
+    case(edit("valid_shape", rewrite("trials/t1/sensors/us/valid", np.ones(39, bool))), "[/trials/t1/sensors/us/valid] has shape (39,), expected (M,) = (40,)")
     case(edit("bad_sensor_json", lambda f: f["trials/t1/sensors/us"].attrs.__setitem__("sensor", "{not json")),
          "attribute 'sensor' is not valid JSON")
     case(edit("sensor_without_type", lambda f: f["trials/t1/sensors/us"].attrs.__setitem__("sensor", "{}")),
@@ -129,7 +129,7 @@ def main() -> None:
          "settings: rate")
     case(edit("missing_sensors_group", lambda f: f.__delitem__("trials/t1/sensors")), "missing group 'sensors'")
     case(edit("missing_insertion_input", lambda f: f.__delitem__("trials/t1/inputs/v")), "missing input 'v'")
-    case(edit("truth_shape", rewrite("trials/t1/truth/state", np.zeros((40, 4)))), "state has shape (40, 4)")
+    case(edit("truth_shape", rewrite("trials/t1/truth/state", np.zeros((40, 4)))), "[/trials/t1/truth/state] has shape (40, 4), expected (L, n) = (40, 6)")
     case(edit("truth_nan", rewrite("trials/t1/truth/state", np.full((40, 6), np.nan))), "[trial t1 -> truth] sample 0 is not finite")
     case(edit("input_nan", rewrite("trials/t1/inputs/v/value", np.r_[np.full(10, 2.0), np.nan, np.full(29, 2.0)])),
          "[trial t1 -> input v] sample 10 is not finite")
@@ -174,7 +174,7 @@ def main() -> None:
     csv_case("unknown_sensor", good, "unknown sensor type 'sonar'",
              lambda m: m["sensors"]["us"]["sensor"].__setitem__("type", "sonar"))
     csv_case("channel_without_column", good, "no column for channel 'z'",
-             lambda m: m["sensors"]["us"]["columns"].pop("z"))
+             lambda m: (m["sensors"]["us"]["columns"].pop("z"), m["sensors"]["us"].__setitem__("units", ["mm", "mm"])))
 
     (HERE / "expect.yaml").write_text(
         "# bad logs and CSV exports: the command that meets each, and what its one-line error contains\n"

@@ -30,7 +30,7 @@ import yaml
 
 from needlecli.errors import SweepError
 from needlecli.experiments.sweep.plan import Cell, config_hash
-from needlecli.io.atomic import write_text_atomic
+from needlecli.io.atomic import install_worker_signals, worker_task, write_text_atomic
 from needlecli.reports.sweep import cell_metrics, param_info, sweep_table, write_sweep_table
 
 CONNECT_TIMEOUT = "10s"  # to reach a Dask scheduler
@@ -104,15 +104,21 @@ def _record_failure(cell: Cell, out: CellOutcome, details: str) -> None:
 
 def run_cell(cell: Cell) -> CellOutcome:
     """Run one cell: its experiment (results file written atomically), then its metrics. Never raises: a
-    failure is returned (and written to ``<id>.error.txt``)."""
+    failure is returned (and written to ``<id>.error.txt``); a signal (SIGINT, SIGTERM) is raised, the
+    cell's temporary file removed."""
+    t0 = time.perf_counter()
+    path = Path(cell.path)
+    with worker_task():
+        return _run_cell(cell, path, t0)
+
+
+def _run_cell(cell: Cell, path: Path, t0: float) -> CellOutcome:
     from needlecli.experiments.config import load_config
     from needlecli.experiments.runner import run_experiment
 
-    t0 = time.perf_counter()
-    path = Path(cell.path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        for stale in (path, _error_file(cell), _sidecar(cell)):
+        for stale in (_error_file(cell), _sidecar(cell)):  # an earlier results file stays until the new one replaces it
             stale.unlink(missing_ok=True)
         with _one_thread():
             cfg, text = load_config(cell.config_source, text=cell.config_text)
@@ -152,7 +158,9 @@ def _resumed(cell: Cell) -> CellOutcome | None:
 # ---------------------------------------------------------------------------------------------- executors
 def _pin_worker_threads() -> None:
     """Initializer of local worker processes: the environment already pins BLAS / OpenMP (set before the
-    process started, so before numpy is imported); threadpoolctl, if installed, makes sure."""
+    process started, so before numpy is imported); threadpoolctl, if installed, makes sure. SIGINT and
+    SIGTERM stop the cell being run cleanly (its temporary file removed)."""
+    install_worker_signals()
     for k in THREAD_ENV:
         os.environ[k] = "1"
     try:
@@ -201,8 +209,25 @@ def _run_local(cells: list[Cell], workers: int) -> Iterator[CellOutcome]:
             except Exception as e:  # noqa: BLE001 (a worker process died: BrokenProcessPool)
                 yield _failed(futures[fut], e)
         pool.shutdown(wait=True)
+    except BaseException:  # interrupted: the running cells stop too (each removes its temporary file)
+        _stop_workers(pool)
+        raise
     finally:  # interrupted (or the consumer stopped): drop the cells not started, do not wait for them
         pool.shutdown(wait=False, cancel_futures=True)
+
+
+def _stop_workers(pool, timeout: float = 10.0) -> None:
+    """SIGTERM to every worker process of ``pool``, then wait for them (SIGKILL after ``timeout``)."""
+    procs = list(getattr(pool, "_processes", {}).values())  # the executor has no public handle on them
+    for p in procs:
+        with contextlib.suppress(Exception):
+            p.terminate()
+    deadline = time.monotonic() + timeout
+    for p in procs:
+        with contextlib.suppress(Exception):
+            p.join(max(0.0, deadline - time.monotonic()))
+            if p.is_alive():
+                p.kill()
 
 
 def _dask_client(scheduler: str | None, workers: int):

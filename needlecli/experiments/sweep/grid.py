@@ -22,13 +22,12 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field, ValidationError, field_validator, model_validator
 
-from needlecli.errors import ConfigError
-from needlecli.schema import Strict
+from needlecli.schema import MAX_SEED, Strict, validation_error
 
 MAX_CELLS = 100_000
 
 _KEY = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*(\.[A-Za-z0-9_\-]+)*$")
-_RANGE = re.compile(r"^\s*range\(\s*(-?\d+)\s*(?:,\s*(-?\d+)\s*)?(?:,\s*(-?\d+)\s*)?\)\s*$")
+_RANGE = re.compile(r"^\s*range\(\s*(-?\d{1,18})\s*(?:,\s*(-?\d{1,18})\s*)?(?:,\s*(-?\d{1,18})\s*)?\)\s*$")
 
 
 def _check_keys(mapping: dict, what: str) -> dict:
@@ -36,6 +35,17 @@ def _check_keys(mapping: dict, what: str) -> dict:
         if not isinstance(k, str) or not _KEY.match(k):
             raise ValueError(f"{what} key {k!r} is not a dotted config path like observers.0.q.kappa")
     return mapping
+
+
+def _bounded(values: range) -> range:
+    """A range of at most :data:`MAX_CELLS` values (its length is known before any value is made)."""
+    try:
+        what = f"{len(values):,} values" if len(values) > MAX_CELLS else ""
+    except OverflowError:  # more than 2**63
+        what = "more than 2**63 values"
+    if what:
+        raise ValueError(f"has {what}; a sweep makes at most {MAX_CELLS:,} cells")
+    return values
 
 
 def expand_axis(v: Any) -> list:
@@ -50,7 +60,7 @@ def expand_axis(v: Any) -> list:
         args = (a,) if b is None else (a, b) if c is None else (a, b, c)
         if c == 0:
             raise ValueError("range step must not be 0")
-        v = list(range(*args))
+        v = list(_bounded(range(*args)))
     elif isinstance(v, dict):
         if len(v) != 1 or next(iter(v)) not in ("range", "linspace", "geomspace"):
             raise ValueError("a mapping axis is one of {range: [start, stop, step]}, {linspace: [a, b, n]}, "
@@ -61,14 +71,17 @@ def expand_axis(v: Any) -> list:
         if kind == "range":
             if not 1 <= len(args) <= 3 or not all(isinstance(x, int) for x in args) or (len(args) == 3 and args[2] == 0):
                 raise ValueError("range: needs 1 to 3 integers [start, stop, step], step not 0")
-            v = list(range(*args))
+            v = list(_bounded(range(*args)))
         else:
             if len(args) != 3 or not isinstance(args[2], int) or args[2] < 1:
                 raise ValueError(f"{kind}: needs [a, b, n] with an integer n >= 1")
+            _bounded(range(args[2]))
             if kind == "geomspace" and (args[0] <= 0 or args[1] <= 0):
                 raise ValueError("geomspace: a and b must be > 0")
             fn = np.linspace if kind == "linspace" else np.geomspace
             v = [float(x) for x in fn(args[0], args[1], args[2])]
+    elif isinstance(v, list) and len(v) > MAX_CELLS:
+        raise ValueError(f"has {len(v):,} values; a sweep makes at most {MAX_CELLS:,} cells")
     elif not isinstance(v, list):
         raise ValueError(f"an axis is a list of values, range(...), or a mapping (linspace, geomspace, range), "
                          f"not {type(v).__name__}")
@@ -119,7 +132,7 @@ class RandomSamples(Strict):
     default: the grid's ``seed``, else 0, whatever the config's runs.seed)."""
 
     count: int = Field(ge=1, le=MAX_CELLS)
-    seed: int | None = Field(None, ge=0, description="seed of the samples (default: the grid's seed, else 0)")
+    seed: int | None = Field(None, ge=0, le=MAX_SEED, description="seed of the samples (default: the grid's seed, else 0)")
     params: dict[str, Distribution] = Field(min_length=1)
 
     @field_validator("params")
@@ -143,7 +156,7 @@ class Grid(Strict):
     """
 
     description: str = ""
-    seed: int | None = Field(None, ge=0, description="sweep seed (default: the config's runs.seed)")
+    seed: int | None = Field(None, ge=0, le=MAX_SEED, description="sweep seed (default: the config's runs.seed)")
     seeds: Literal["common", "derived"] = Field(
         "common", description="seed of cells that do not set runs.seed: the sweep seed (common random numbers), "
         "or one derived per cell from its overrides")
@@ -194,34 +207,20 @@ class Grid(Strict):
                     raise ValueError(f"key {both[0]} is set in both {a} and {b}")
         n = (len(self.cells) or 1) * (self.random.count if self.random else 1) * math.prod(len(x) for x in self.grid.values())
         if n > MAX_CELLS:
-            raise ValueError(f"the grid makes {n} cells; at most {MAX_CELLS}")
+            raise ValueError(f"the grid makes {n:,} cells; at most {MAX_CELLS:,} (split the sweep)")
         return self
 
 
 def load_grid(path: str | Path) -> Grid:
     """Read and validate a grid file. Raises :class:`ConfigError` naming the file and key."""
-    from needlecli.io.yamlfile import parse_yaml
+    from needlecli.io.yamlfile import read_yaml
 
     source = str(path)
-    try:
-        text = Path(path).read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError(source, (), "no such file") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise ConfigError(source, (), f"cannot read the file: {e}") from None
-    data = parse_yaml(text, source)
+    data, _ = read_yaml(path, "a sweep grid")
     try:
         return Grid.model_validate(data)
     except ValidationError as e:
-        err = e.errors()[0]
-        loc = tuple(p for p in err["loc"] if not (isinstance(p, str) and ("[" in p or p.startswith("function-"))))
-        msg = err.get("msg", "invalid value")
-        msg = msg[len("Value error, "):] if msg.startswith("Value error, ") else msg
-        if err.get("type") == "extra_forbidden":
-            msg = "unknown key"
-        elif err.get("type") == "missing":
-            msg = "required key is missing"
-        raise ConfigError(source, loc, " ".join(msg.split())) from None
+        raise validation_error(e, data, source, schema=Grid) from None
 
 
 def grid_overrides(grid: Grid) -> list[dict]:

@@ -75,6 +75,7 @@ class Cell:
     base_dir: str
     #: what each override key is: {key: {name, description, unit}} (:func:`.describe.describe_key`)
     param_info: dict = field(default_factory=dict)
+    file_bytes: int = 0  # at most what its results file takes on disk (:mod:`needlecli.experiments.budget`)
 
     def label(self) -> str:
         return ", ".join(f"{k} = {format_value(v)}" for k, v in self.overrides.items()) or "(no overrides)"
@@ -108,25 +109,18 @@ def plan_sweep(
     ``overrides`` (``key=value`` strings, as ``--set``) join ``grid.fixed``. Raises :class:`SweepError`
     naming the cell, its overrides and the config key at fault.
     """
+    from needlecli.experiments.budget import estimate
     from needlecli.experiments.config import load_config
-    from needlecli.experiments.overrides import set_dotted
-    from needlecli.io.yamlfile import parse_yaml
+    from needlecli.experiments.overrides import parse_override, set_dotted
+    from needlecli.io.yamlfile import read_yaml
 
     config = Path(config)
     source = str(config)
-    try:
-        text = config.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ConfigError(source, (), "no such file") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise ConfigError(source, (), f"cannot read the file: {e}") from None
-    base = parse_yaml(text, source)
+    base, _ = read_yaml(config)
     fixed = dict(grid.fixed)
     for ov in overrides or []:
-        if "=" not in ov:
-            raise ConfigError(source, (), f"override {ov!r} is not of the form key.path=value")
-        k, v = ov.split("=", 1)
-        fixed[k.strip()] = yaml.safe_load(v)
+        k, v = parse_override(ov, source)
+        fixed[k] = v
     cells_dir = Path(out_dir).resolve() / "cells"
     base_seed = (base.get("runs") or {}).get("seed", 0) if isinstance(base.get("runs"), dict) else 0
     sweep_seed = grid.seed if grid.seed is not None else int(base_seed or 0)
@@ -166,6 +160,7 @@ def plan_sweep(
             observers=tuple(o.name or o.type for o in cfg.observers), n_runs=_n_runs(cfg),
             path=str(cells_dir / f"{cid}.h5"), base_dir=str(config.resolve().parent),
             param_info={k: _describe(cfg, k) for k in ov},
+            file_bytes=estimate(cfg, config.resolve().parent).file_bytes,
         ))
     return cells
 

@@ -58,7 +58,7 @@ def bz_command(opacity: np.ndarray, opacity_0: np.ndarray, *, gain: float = 2.0,
 class CameraSettings(ImageSettings):
     """Overhead camera of seed 004: 800 x 668 px over 90 x 75 mm (about 0.11 mm per pixel), 6 Hz."""
 
-    device: Literal["camera"]
+    device: Literal["camera"] = Field(description="the imaging device: camera, seed 004's overhead camera")
     size: tuple[int, int] = Field((800, 668), description="frame width, height, px")
     fov: tuple[Positive, Positive] = Field((90.0, 75.0), description="field of view in x, y, mm")
     center: tuple[float, float] = Field((0.0, -30.0), description="world x, y (mm) at the frame centre (seed 004: "

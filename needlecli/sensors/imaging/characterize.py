@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from needlecli.errors import ConfigError
+from needlecli.errors import ConfigError, did_you_mean
 from needlecli.sensors.imaging.base import DEVICES, Device, Pose
 from needlecli.sensors.imaging.render import NeedleGeometry
 
@@ -49,6 +49,7 @@ def characterize_device(
     poses: list[Pose] | None = None,
     axes: tuple[str, ...] | None = None,
     chunk: int = 256,
+    progress=None,
 ) -> pd.DataFrame:
     """Measure ``repeats`` independent frames of every pose (default: the device's own grid), each repeat
     moved by a random offset within one pixel (voxel) so that the spread includes the quantisation.
@@ -58,6 +59,7 @@ def characterize_device(
     outlier : error norm (mm) above which a detection counts as an outlier (default: 5 pixels / voxels)
     mode : ``tracking`` or ``search`` (how the 3D ultrasound places its region; see ``measure_once``)
     axes : axes to report (default: the device's)
+    progress : ``progress(frames done, frames)`` after each chunk of frames, if given
     """
     poses = poses if poses is not None else device.poses()
     axes = axes or device.axes
@@ -77,6 +79,8 @@ def characterize_device(
         res = device.measure_once(g, rng, mode)
         found[sl] = res.tip[:, 0]
         valid[sl] = res.valid[:, 0]
+        if progress is not None:
+            progress(min(lo + chunk, len(tips)), len(tips))
     err = (found - tips)[:, cols]
     norm = np.linalg.norm(err, axis=1)
     rows = []
@@ -122,9 +126,10 @@ def fit_growth(table: pd.DataFrame, d_max: float) -> tuple[float, float]:
 
 def characterize_sensors(
     cfg, *, sensor: str | None = None, repeats: int = 20, seed: int = 0, outlier: float | None = None,
-    mode: str = "tracking", source: str = "<config>",
+    mode: str = "tracking", source: str = "<config>", progress=None,
 ) -> list[Characterization]:
-    """Characterise every sensor of an experiment config that uses ``pipeline: image`` (or the one named).
+    """Characterise every sensor of an experiment config that uses ``pipeline: image`` (or the one named);
+    ``progress(phase, done, total)`` hears each sensor's frames.
 
     Raises
     ------
@@ -143,7 +148,8 @@ def characterize_sensors(
         picked.append((name, s))
     if not picked:
         names = [s.name or s.type for s in cfg.sensors]
-        what = f"no sensor named {sensor!r} (sensors: {', '.join(names)})" if sensor else "no sensor uses pipeline: image"
+        what = (f"no sensor named {sensor!r} (sensors: {', '.join(names)})" + did_you_mean(sensor, names)
+                if sensor else "no sensor uses pipeline: image")
         raise ConfigError(source, ("sensors",), what)
     from needlecli.models import MODELS
     from needlecli.sensors.imaging.render import to_mm
@@ -154,7 +160,8 @@ def characterize_sensors(
     for name, s in picked:
         device = DEVICES.get(s.image.device)(s.image)
         table = characterize_device(device, repeats=repeats, seed=seed, outlier=outlier, mode=mode,
-                                    axes=tuple(a for a in s.axes if a in device.axes))
+                                    axes=tuple(a for a in s.axes if a in device.axes),
+                                    progress=(lambda k, n, _n=name: progress(f"sensor {_n}", k, n)) if progress else None)
         suggestion: dict = {}
         std_cols = [c for c in table.columns if c.startswith("Std ")]
         if s.image.device == "us3d":

@@ -57,6 +57,14 @@ class ImagePipeline(Pipeline):
         n_runs = path.n_runs
         frames = FrameStore(len(idx), min(cfg.save_runs, n_runs), cfg.save_frames)
         length, ds = device.shaft_extent()
+        if self.progress is not None:  # frames one at a time: say how far the rendering is
+            report, inner, total = self.progress, on_frame, len(idx)
+
+            def on_frame(j, outputs):
+                if inner is not None:
+                    inner(j, outputs)
+                report(j + 1, total)
+
         res = device.run(lambda j: path.geometry(int(idx[j]), length, ds), times, n_runs, rng, frames, on_frame=on_frame)
         cols = [_AXES.index(a) for a in sensor.settings.axes]
         value = res.tip[..., cols] / path.scale

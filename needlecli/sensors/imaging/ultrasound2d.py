@@ -41,7 +41,7 @@ from needlecli.sensors.imaging.render import (
 class TransverseUltrasoundSettings(ImageSettings):
     """2D transverse B-mode ultrasound (seed 000: SonixTouch, 18 G needle in gelatin)."""
 
-    device: Literal["us2d"]
+    device: Literal["us2d"] = Field(description="the imaging device: us2d, 2D transverse ultrasound (seed 000)")
     pixel: Positive = Field(0.2, description="pixel edge, mm")
     width: Positive = Field(40.0, description="lateral extent of the image (world x), mm")
     depth: Positive = Field(40.0, description="imaging depth below the probe face, mm")
@@ -57,7 +57,7 @@ class TransverseUltrasoundSettings(ImageSettings):
     dynamic_range: Positive = Field(50.0, description="display dynamic range, dB")
     threshold_db: Positive = Field(14.0, description="candidates: brighter than the row median by this, dB")
     candidates: int = Field(96, ge=8, le=1024, description="brightest candidate pixels given to RANSAC")
-    ransac_iterations: int = Field(64, ge=4, le=4096)
+    ransac_iterations: int = Field(64, ge=4, le=4096, description="line hypotheses (pairs of candidates) RANSAC tries per frame")
     ransac_tolerance: Positive = Field(0.3, description="inlier distance to the line, mm")
     min_inliers: int = Field(8, ge=3, description="fewer inliers: no measurement")
     max_tilt: float = Field(25.0, gt=0, lt=90, description="the line must be within this of the beam, deg")

@@ -65,7 +65,7 @@ _SPECKLE_DB = 5.57  # std of fully developed speckle in dB (robust: 1.4826 MAD)
 class EndFireUltrasoundSettings(ImageSettings):
     """3D end-fire ultrasound at 1 Hz (seed 003: 4DEC-9/10 on a Sonix RP, 0.4 mm voxels)."""
 
-    device: Literal["us3d"]
+    device: Literal["us3d"] = Field(description="the imaging device: us3d, 3D end-fire ultrasound volumes (seed 003)")
     voxel: Positive = Field(0.4, description="voxel edge, mm")
     transducer: Vec3 = Field((0.0, -50.0, 40.0), description="world position of the transducer, mm")
     axis: Vec3 = Field((0.0, 1.0, 0.0), description="direction the probe looks along")

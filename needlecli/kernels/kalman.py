@@ -1,0 +1,1030 @@
+"""The Kalman passes that EM runs, compiled: the affine filter, the RTS smoother, the closed-form M-step
+sums, and the linearisation of the magnetic models (RK4 with its exact Jacobian; measurement Jacobians
+by the same central differences), each over all trials at once (trials spread over the cores).
+
+Each function returns what its numpy counterpart in :mod:`needlecli.numerics.kalman` and
+:mod:`needlecli.fitting.statespace` returns, with the same operations in the same order where rounding
+matters (the symmetrisations, the repairs of matrices that are not positive definite, the order of the
+matrix products); only the order of the sums inside a product and per-matrix rather than per-batch
+repairs (a matrix is repaired when its own Cholesky fails) differ.
+"""
+
+from __future__ import annotations
+
+import math
+import weakref
+
+import numpy as np
+
+from needlecli.kernels._jit import jit
+from needlecli.kernels._threads import blocks, parallel_for
+from needlecli.kernels.core import cholesky_into, wrap
+from needlecli.kernels.models import magnetic_field
+
+LOG_2PI = float(np.log(2.0 * np.pi))
+
+
+# ---------------------------------------------------------------------------------------------- helpers
+@jit
+def _mm(A, B, out, n, k, m):
+    """``out[:n, :m] = A[:n, :k] @ B[:k, :m]``."""
+    for i in range(n):
+        for j in range(m):
+            out[i, j] = 0.0
+        for q in range(k):
+            a = A[i, q]
+            for j in range(m):
+                out[i, j] += a * B[q, j]
+
+
+@jit
+def repair_pd_one(P, n, L):
+    """:func:`needlecli.numerics.kalman.repair_pd` for one matrix, in place: symmetrised; where its Cholesky
+    fails, eigenvalues clipped at ``max(1e-300, 1e-12 * largest)`` (non-finite: left as is). Returns
+    whether it needed the repair (``L`` scratch)."""
+    for i in range(n):
+        for j in range(i):
+            s = 0.5 * (P[i, j] + P[j, i])
+            P[i, j] = s
+            P[j, i] = s
+    if cholesky_into(P, L, n):
+        return False
+    for i in range(n):
+        for j in range(n):
+            if not np.isfinite(P[i, j]):
+                return True
+    w, v = np.linalg.eigh(P[:n, :n].copy())
+    top = max(w[n - 1], 1e-300)
+    lo = max(1e-300, 1e-12 * top)
+    if w[0] > 1e-12 * max(w[n - 1], 0.0):
+        return False  # positive definite by the eigenvalue test: numpy's repair_pd leaves it
+    for i in range(n):
+        w[i] = max(w[i], lo)
+    R = np.zeros((n, n))
+    for q in range(n):
+        for a in range(n):
+            for b in range(n):
+                R[a, b] += v[a, q] * w[q] * v[b, q]
+    for a in range(n):
+        for b in range(n):
+            P[a, b] = 0.5 * (R[a, b] + R[b, a])
+    return True
+
+
+# ---------------------------------------------------------------------------------------------- lanes
+# The transition Jacobians and measurement matrices of the state-space models have fixed zeros (the
+# magnetic models': 45 of 100 entries of A, all but one to three entries of each row of H). The kernels
+# take the nonzero columns of each row (over every trial and tick: ``cnt[a]`` of them in ``idx[a]``) and
+# skip the rest; a skipped product is an exact zero, so the sums are those of the dense products.
+#
+# The passes work on LANES trials at once, each quantity an array whose last axis is the lane: every
+# scalar operation of the filter is then one vector operation, written as four explicit sums in registers
+# (LLVM cannot prove that arrays do not overlap, so a loop over lanes writing to memory stays scalar;
+# four independent sums become one vector sum with the SLP vectoriser, see _jit.py). A lane whose matrix
+# is not positive definite takes the scalar repair (rare).
+LANES = 4
+
+
+@jit
+def _lanes(lo, hi, r0):
+    """The trials of the lanes starting at ``r0`` (past ``hi``: the last one again, computed, not stored)."""
+    out = np.empty(LANES, dtype=np.int64)
+    for l in range(LANES):
+        out[l] = min(r0 + l, hi - 1)
+    return out
+
+
+@jit
+def _sAx(A, x, out, cnt, idx, n):
+    for a in range(n):
+        s0 = s1 = s2 = s3 = 0.0
+        for t in range(cnt[a]):
+            q = idx[a, t]
+            s0 += A[a, q, 0] * x[q, 0]
+            s1 += A[a, q, 1] * x[q, 1]
+            s2 += A[a, q, 2] * x[q, 2]
+            s3 += A[a, q, 3] * x[q, 3]
+        out[a, 0], out[a, 1], out[a, 2], out[a, 3] = s0, s1, s2, s3
+
+
+@jit
+def _sAX(A, X, out, cnt, idx, n, m):
+    """``out = A @ X`` per lane, sparse rows of ``A``."""
+    for a in range(n):
+        for j in range(m):
+            s0 = s1 = s2 = s3 = 0.0
+            for t in range(cnt[a]):
+                q = idx[a, t]
+                s0 += A[a, q, 0] * X[q, j, 0]
+                s1 += A[a, q, 1] * X[q, j, 1]
+                s2 += A[a, q, 2] * X[q, j, 2]
+                s3 += A[a, q, 3] * X[q, j, 3]
+            out[a, j, 0], out[a, j, 1], out[a, j, 2], out[a, j, 3] = s0, s1, s2, s3
+
+
+@jit
+def _sXAt(X, A, out, cnt, idx, n, m, sym):
+    """``out = X @ A^T`` per lane, sparse rows of ``A``; ``sym``: the result is symmetric (lower triangle
+    computed and mirrored)."""
+    for a in range(m):
+        for c in range(a + 1 if sym else n):
+            s0 = s1 = s2 = s3 = 0.0
+            for t in range(cnt[c]):
+                q = idx[c, t]
+                s0 += X[a, q, 0] * A[c, q, 0]
+                s1 += X[a, q, 1] * A[c, q, 1]
+                s2 += X[a, q, 2] * A[c, q, 2]
+                s3 += X[a, q, 3] * A[c, q, 3]
+            out[a, c, 0], out[a, c, 1], out[a, c, 2], out[a, c, 3] = s0, s1, s2, s3
+            if sym:
+                out[c, a, 0], out[c, a, 1], out[c, a, 2], out[c, a, 3] = s0, s1, s2, s3
+
+
+@jit
+def _sXY(X, Y, out, n, k, m, tx, ty, sym, B, sub):
+    """``out[:n, :m] = B + sub * op(X) op(Y)`` per lane, dense, with ``op(X) = X`` or ``X^T`` (``tx``), the
+    same for ``Y``; ``sym``: symmetric result (lower computed, mirrored); ``B`` added first (``sub``: the
+    product subtracted, else added; ``B`` may be ``out``). One loop body per case (no branch inside the
+    sums: LLVM vectorises them)."""
+    for a in range(n):
+        for c in range(a + 1 if sym else m):
+            s0 = s1 = s2 = s3 = 0.0
+            if tx and ty:
+                for q in range(k):
+                    s0 += X[q, a, 0] * Y[c, q, 0]
+                    s1 += X[q, a, 1] * Y[c, q, 1]
+                    s2 += X[q, a, 2] * Y[c, q, 2]
+                    s3 += X[q, a, 3] * Y[c, q, 3]
+            elif tx:
+                for q in range(k):
+                    s0 += X[q, a, 0] * Y[q, c, 0]
+                    s1 += X[q, a, 1] * Y[q, c, 1]
+                    s2 += X[q, a, 2] * Y[q, c, 2]
+                    s3 += X[q, a, 3] * Y[q, c, 3]
+            elif ty:
+                for q in range(k):
+                    s0 += X[a, q, 0] * Y[c, q, 0]
+                    s1 += X[a, q, 1] * Y[c, q, 1]
+                    s2 += X[a, q, 2] * Y[c, q, 2]
+                    s3 += X[a, q, 3] * Y[c, q, 3]
+            else:
+                for q in range(k):
+                    s0 += X[a, q, 0] * Y[q, c, 0]
+                    s1 += X[a, q, 1] * Y[q, c, 1]
+                    s2 += X[a, q, 2] * Y[q, c, 2]
+                    s3 += X[a, q, 3] * Y[q, c, 3]
+            if sub:
+                s0, s1, s2, s3 = B[a, c, 0] - s0, B[a, c, 1] - s1, B[a, c, 2] - s2, B[a, c, 3] - s3
+            else:
+                s0, s1, s2, s3 = B[a, c, 0] + s0, B[a, c, 1] + s1, B[a, c, 2] + s2, B[a, c, 3] + s3
+            out[a, c, 0], out[a, c, 1], out[a, c, 2], out[a, c, 3] = s0, s1, s2, s3
+            if sym:
+                out[c, a, 0], out[c, a, 1], out[c, a, 2], out[c, a, 3] = s0, s1, s2, s3
+
+
+@jit
+def _schol(A, L, n, ok):
+    """Lower Cholesky factors per lane (``ok[l]`` False where one fails: that lane's L is garbage)."""
+    ok[0] = ok[1] = ok[2] = ok[3] = True
+    for j in range(n):
+        s0, s1, s2, s3 = A[j, j, 0], A[j, j, 1], A[j, j, 2], A[j, j, 3]
+        for q in range(j):
+            s0 -= L[j, q, 0] * L[j, q, 0]
+            s1 -= L[j, q, 1] * L[j, q, 1]
+            s2 -= L[j, q, 2] * L[j, q, 2]
+            s3 -= L[j, q, 3] * L[j, q, 3]
+        d = (s0, s1, s2, s3)
+        for l in range(LANES):
+            if not d[l] > 0.0:
+                ok[l] = False
+            L[j, j, l] = math.sqrt(d[l]) if d[l] > 0.0 else 1.0
+        i0, i1, i2, i3 = 1.0 / L[j, j, 0], 1.0 / L[j, j, 1], 1.0 / L[j, j, 2], 1.0 / L[j, j, 3]
+        for i in range(j + 1, n):
+            t0, t1, t2, t3 = A[i, j, 0], A[i, j, 1], A[i, j, 2], A[i, j, 3]
+            for q in range(j):
+                t0 -= L[i, q, 0] * L[j, q, 0]
+                t1 -= L[i, q, 1] * L[j, q, 1]
+                t2 -= L[i, q, 2] * L[j, q, 2]
+                t3 -= L[i, q, 3] * L[j, q, 3]
+            L[i, j, 0], L[i, j, 1], L[i, j, 2], L[i, j, 3] = t0 * i0, t1 * i1, t2 * i2, t3 * i3
+        for i in range(j):
+            L[i, j, 0] = L[i, j, 1] = L[i, j, 2] = L[i, j, 3] = 0.0
+
+
+@jit
+def _schol_solve(L, B, X, n, k):
+    """``X = (L L^T)^{-1} B`` per lane (divisions by the diagonal as multiplications by its inverse)."""
+    D = np.empty((n, LANES))
+    for i in range(n):
+        for l in range(LANES):
+            D[i, l] = 1.0 / L[i, i, l]
+    for j in range(k):
+        for i in range(n):
+            s0, s1, s2, s3 = B[i, j, 0], B[i, j, 1], B[i, j, 2], B[i, j, 3]
+            for q in range(i):
+                s0 -= L[i, q, 0] * X[q, j, 0]
+                s1 -= L[i, q, 1] * X[q, j, 1]
+                s2 -= L[i, q, 2] * X[q, j, 2]
+                s3 -= L[i, q, 3] * X[q, j, 3]
+            X[i, j, 0], X[i, j, 1], X[i, j, 2], X[i, j, 3] = s0 * D[i, 0], s1 * D[i, 1], s2 * D[i, 2], s3 * D[i, 3]
+        for i in range(n - 1, -1, -1):
+            s0, s1, s2, s3 = X[i, j, 0], X[i, j, 1], X[i, j, 2], X[i, j, 3]
+            for q in range(i + 1, n):
+                s0 -= L[q, i, 0] * X[q, j, 0]
+                s1 -= L[q, i, 1] * X[q, j, 1]
+                s2 -= L[q, i, 2] * X[q, j, 2]
+                s3 -= L[q, i, 3] * X[q, j, 3]
+            X[i, j, 0], X[i, j, 1], X[i, j, 2], X[i, j, 3] = s0 * D[i, 0], s1 * D[i, 1], s2 * D[i, 2], s3 * D[i, 3]
+
+
+@jit
+def _fix_lanes(M, L, n, ok, scratch, Ls, count):
+    """Lanes whose Cholesky failed: :func:`repair_pd_one` on that lane's matrix (counted in ``count``),
+    refactored. ``M`` symmetric."""
+    for l in range(LANES):
+        if ok[l]:
+            continue
+        for a in range(n):
+            for c in range(n):
+                scratch[a, c] = M[a, c, l]
+        if repair_pd_one(scratch, n, Ls):
+            count[l] += 1
+        cholesky_into(scratch, Ls, n)
+        for a in range(n):
+            for c in range(n):
+                M[a, c, l] = scratch[a, c]
+                L[a, c, l] = Ls[a, c]
+
+
+# ---------------------------------------------------------------------------------------------- the filter
+@jit
+def forward_affine(lo, hi, m0, P0, Qc, dt, A, b, acnt, aidx, slot, ch_m, Y, V, R, H, D, ang_c, hcnt, hidx,
+                   m_pred, P_pred, m_filt, P_filt, loglik, repairs, state_angles):
+    """:func:`needlecli.numerics.kalman.kalman_forward_affine` for trials ``lo..hi-1`` (lanes of LANES).
+
+    acnt, aidx: the sparse rows of A. Channels concatenated along the sample axis: slot (J, K+1) the
+    sample of channel j at tick k (-1: none); ch_m (J,) components; Y (N, M, mm), V (N, M), R (N, J, mm, mm),
+    H (N, M, mm, n), D (N, M, mm); ang_c (J, mm); hcnt (J, mm), hidx (J, mm, n) the sparse rows of each
+    channel's H. Outputs (N, K+1, ...) written in place. The gain uses the Cholesky factor of the
+    innovation covariance (numpy: LU; the same to rounding), which the log-likelihood needs anyway.
+    """
+    n = m0.shape[1]
+    K1 = slot.shape[1]
+    J = slot.shape[0]
+    mt_max = 0
+    for j in range(J):
+        mt_max += ch_m[j]
+    mt_max = max(mt_max, 1)
+    m = np.empty((n, LANES))
+    m2 = np.empty((n, 1, LANES))
+    P = np.empty((n, n, LANES))
+    Ak = np.empty((n, n, LANES))
+    T1 = np.empty((n, n, LANES))
+    L = np.empty((n, n, LANES))
+    Hl = np.zeros((mt_max, n, LANES))
+    yv = np.empty((mt_max, LANES))
+    nu = np.empty((mt_max, 1, LANES))
+    PHt = np.empty((n, mt_max, LANES))
+    HtT = np.empty((mt_max, n, LANES))
+    S = np.empty((mt_max, mt_max, LANES))
+    Ls = np.empty((mt_max, mt_max, LANES))
+    X = np.empty((mt_max, n, LANES))
+    g2 = np.empty((mt_max, 1, LANES))
+    ok = np.empty(LANES, dtype=np.bool_)
+    rep = np.zeros(LANES, dtype=np.int64)
+    ll = np.zeros(LANES)
+    nval = np.zeros(LANES)
+    sc_n = np.empty((n, n))
+    sc_nL = np.empty((n, n))
+    sc_m = np.empty((mt_max, mt_max))
+    sc_mL = np.empty((mt_max, mt_max))
+    rowc = np.empty(mt_max, dtype=np.int64)
+    rowi = np.empty(mt_max, dtype=np.int64)
+    rowq = np.empty(mt_max, dtype=np.int64)
+    for r0 in range(lo, hi, LANES):
+        rl = _lanes(lo, hi, r0)
+        for l in range(LANES):
+            r = rl[l]
+            rep[l] = 0
+            ll[l] = 0.0
+            for a in range(n):
+                m[a, l] = m0[r, a]
+                for c in range(n):
+                    P[a, c, l] = P0[r, a, c]
+        for k in range(K1):
+            if k > 0:
+                for l in range(LANES):
+                    r = rl[l]
+                    for a in range(n):
+                        for c in range(n):
+                            Ak[a, c, l] = A[r, k - 1, a, c]
+                _sAx(Ak, m, m2[:, 0], acnt, aidx, n)
+                for l in range(LANES):
+                    for a in range(n):
+                        m[a, l] = m2[a, 0, l] + b[rl[l], k - 1, a]
+                _sAX(Ak, P, T1, acnt, aidx, n, n)
+                _sXAt(T1, Ak, P, acnt, aidx, n, n, True)
+                h = dt[k - 1]
+                for l in range(LANES):
+                    r = rl[l]
+                    for a in range(n):
+                        for c in range(n):
+                            P[a, c, l] += Qc[r, a, c] * h
+            for l in range(LANES):
+                if r0 + l < hi:
+                    r = rl[l]
+                    for a in range(n):
+                        m_pred[r, k, a] = m[a, l]
+                        for c in range(n):
+                            P_pred[r, k, a, c] = P[a, c, l]
+            # ---- the joint update with every sample of this tick (invalid ones: zero rows, unit noise)
+            mt = 0
+            for j in range(J):
+                i = slot[j, k]
+                if i < 0:
+                    continue
+                for q in range(ch_m[j]):
+                    rowc[mt] = j
+                    rowi[mt] = i
+                    rowq[mt] = q
+                    mt += 1
+            if mt > 0:
+                for l in range(LANES):
+                    nval[l] = 0.0
+                for q in range(mt):
+                    j, i, qq = rowc[q], rowi[q], rowq[q]
+                    for l in range(LANES):
+                        r = rl[l]
+                        v = V[r, i]
+                        yv[q, l] = (Y[r, i, qq] - D[r, i, qq]) if v else 0.0
+                        if v:
+                            nval[l] += 1.0
+                        for t in range(hcnt[j, qq]):
+                            c = hidx[j, qq, t]
+                            Hl[q, c, l] = H[r, i, qq, c] if v else 0.0
+                for q in range(mt):  # nu = y - H m; PHt = P H^T (sparse rows of H)
+                    j, qq = rowc[q], rowq[q]
+                    for l in range(LANES):
+                        nu[q, 0, l] = yv[q, l]
+                    for t in range(hcnt[j, qq]):
+                        c = hidx[j, qq, t]
+                        for l in range(LANES):
+                            g2[q, 0, l] = Hl[q, c, l] * m[c, l] if t == 0 else g2[q, 0, l] + Hl[q, c, l] * m[c, l]
+                    for l in range(LANES):
+                        d = nu[q, 0, l] - (g2[q, 0, l] if hcnt[j, qq] else 0.0)
+                        nu[q, 0, l] = wrap(d) if ang_c[j, qq] else d
+                    for a in range(n):
+                        for l in range(LANES):
+                            PHt[a, q, l] = 0.0
+                        for t in range(hcnt[j, qq]):
+                            c = hidx[j, qq, t]
+                            for l in range(LANES):
+                                PHt[a, q, l] += P[a, c, l] * Hl[q, c, l]
+                        for l in range(LANES):
+                            HtT[q, a, l] = PHt[a, q, l]
+                for q in range(mt):  # S = H PHt + R, symmetric (lower mirrored); unit blocks for invalid samples
+                    j, i, qq = rowc[q], rowi[q], rowq[q]
+                    for q2 in range(q + 1):
+                        for l in range(LANES):
+                            S[q, q2, l] = 0.0
+                        for t in range(hcnt[j, qq]):
+                            c = hidx[j, qq, t]
+                            for l in range(LANES):
+                                S[q, q2, l] += Hl[q, c, l] * PHt[c, q2, l]
+                        if rowc[q2] == j:
+                            for l in range(LANES):
+                                if V[rl[l], i]:
+                                    S[q, q2, l] += R[rl[l], j, qq, rowq[q2]]
+                                elif q == q2:
+                                    S[q, q2, l] += 1.0
+                        for l in range(LANES):
+                            S[q2, q, l] = S[q, q2, l]
+                _schol(S, Ls, mt, ok)
+                _fix_lanes(S, Ls, mt, ok, sc_m, sc_mL, rep)
+                _schol_solve(Ls, HtT, X, mt, n)  # X = S^-1 (P H^T)^T: the gain transposed
+                _sXY(X, nu, m2, n, mt, 1, True, False, False, m[:, None, :], False)  # m + K nu
+                for a in range(n):
+                    for l in range(LANES):
+                        m[a, l] = m2[a, 0, l]
+                _sXY(X, PHt, P, n, mt, n, True, True, True, P, True)  # P - K PHt^T, symmetric
+                for a in range(n):
+                    if state_angles[a]:
+                        for l in range(LANES):
+                            m[a, l] = wrap(m[a, l])
+                # ---- the log-likelihood of these innovations
+                _schol_solve(Ls, nu, g2, mt, 1)
+                for l in range(LANES):
+                    logdet = 0.0
+                    quad = 0.0
+                    for q in range(mt):
+                        logdet += math.log(Ls[q, q, l])
+                        quad += nu[q, 0, l] * g2[q, 0, l]
+                    ll[l] += -0.5 * (quad + 2.0 * logdet + nval[l] * LOG_2PI)
+                for q in range(mt):  # Hl back to zeros for the next tick's sparse rows
+                    j, qq = rowc[q], rowq[q]
+                    for t in range(hcnt[j, qq]):
+                        c = hidx[j, qq, t]
+                        for l in range(LANES):
+                            Hl[q, c, l] = 0.0
+            # ---- store; the filtered covariance checked for positive definiteness (numpy: after the pass)
+            _schol(P, L, n, ok)
+            for l in range(LANES):
+                if not ok[l]:
+                    _fix_lanes(P, L, n, ok, sc_n, sc_nL, rep)
+                    break
+            for l in range(LANES):
+                if r0 + l < hi:
+                    r = rl[l]
+                    for a in range(n):
+                        m_filt[r, k, a] = m[a, l]
+                        for c in range(n):
+                            P_filt[r, k, a, c] = P[a, c, l]
+        for l in range(LANES):
+            if r0 + l < hi:
+                loglik[rl[l]] = ll[l]
+                repairs[rl[l]] += rep[l]
+
+
+# ---------------------------------------------------------------------------------------------- the smoother
+@jit
+def rts(lo, hi, A, acnt, aidx, m_pred, P_pred, m_filt, P_filt, state_angles, m_s, P_s, C, G, repairs):
+    """:func:`needlecli.numerics.kalman.rts_smoother` for trials ``lo..hi-1`` (lanes of LANES): the gains
+    from the Cholesky factor of the predicted covariance (its check of positive definiteness computes it
+    anyway), the backward recursion, the smoothed covariances, the lag-one cross-covariances."""
+    N, K1, n = m_filt.shape
+    K = K1 - 1
+    Pp = np.empty((n, n, LANES))
+    Pf = np.empty((n, n, LANES))
+    Ak = np.empty((n, n, LANES))
+    APf = np.empty((n, n, LANES))
+    Gt = np.empty((n, n, LANES))
+    L = np.empty((n, n, LANES))
+    T1 = np.empty((n, n, LANES))
+    T2 = np.empty((n, n, LANES))
+    ms = np.empty((n, LANES))
+    Ps = np.empty((n, n, LANES))
+    d = np.empty((n, LANES))
+    Cl = np.empty((n, n, LANES))
+    Z = np.zeros((n, n, LANES))
+    ok = np.empty(LANES, dtype=np.bool_)
+    rep = np.zeros(LANES, dtype=np.int64)
+    sc = np.empty((n, n))
+    scL = np.empty((n, n))
+    for r0 in range(lo, hi, LANES):
+        rl = _lanes(lo, hi, r0)
+        for l in range(LANES):
+            rep[l] = 0
+            r = rl[l]
+            for a in range(n):
+                ms[a, l] = m_filt[r, K, a]
+                for c in range(n):
+                    Ps[a, c, l] = P_filt[r, K, a, c]
+            if r0 + l < hi:
+                for a in range(n):
+                    m_s[r, K, a] = ms[a, l]
+                    for c in range(n):
+                        P_s[r, K, a, c] = Ps[a, c, l]
+        for k in range(K - 1, -1, -1):
+            for l in range(LANES):
+                r = rl[l]
+                for a in range(n):
+                    for c in range(n):
+                        Pp[a, c, l] = 0.5 * (P_pred[r, k + 1, a, c] + P_pred[r, k + 1, c, a])
+                        Pf[a, c, l] = P_filt[r, k, a, c]
+                        Ak[a, c, l] = A[r, k, a, c]
+            _schol(Pp, L, n, ok)
+            _fix_lanes(Pp, L, n, ok, sc, scL, rep)
+            _sAX(Ak, Pf, APf, acnt, aidx, n, n)
+            _schol_solve(L, APf, Gt, n, n)  # G^T = Pp^-1 A P_f
+            for l in range(LANES):
+                r = rl[l]
+                for a in range(n):
+                    dd = ms[a, l] - m_pred[r, k + 1, a]
+                    d[a, l] = wrap(dd) if state_angles[a] else dd
+            for a in range(n):
+                for l in range(LANES):
+                    acc0 = 0.0
+                    for c in range(n):
+                        acc0 += Gt[c, a, l] * d[c, l]
+                    v = m_filt[rl[l], k, a] + acc0
+                    ms[a, l] = wrap(v) if state_angles[a] else v
+            _sXY(Ps, Gt, Cl, n, n, n, False, False, False, Z, False)  # C_k = P_s[k + 1] G_k^T
+            for a in range(n):
+                for c in range(n):
+                    for l in range(LANES):
+                        T1[a, c, l] = Ps[a, c, l] - Pp[a, c, l]
+            _sXY(Gt, T1, T2, n, n, n, True, False, False, Z, False)  # G (Ps - Pp)
+            _sXY(T2, Gt, Ps, n, n, n, False, False, True, Pf, False)  # P_f + G (Ps - Pp) G^T, symmetric
+            for l in range(LANES):
+                if r0 + l < hi:
+                    r = rl[l]
+                    for a in range(n):
+                        m_s[r, k, a] = ms[a, l]
+                        for c in range(n):
+                            P_s[r, k, a, c] = Ps[a, c, l]
+                            G[r, k, a, c] = Gt[c, a, l]
+                            C[r, k, a, c] = Cl[a, c, l]
+        for l in range(LANES):
+            if r0 + l < hi:
+                repairs[rl[l]] += rep[l]
+
+
+# ---------------------------------------------------------------------------------------------- the M-step
+@jit
+def process_noise_sums(lo, hi, m, P, C, A, acnt, aidx, b, dt, keep, state_angles, Q):
+    """:func:`needlecli.numerics.kalman.em_process_noise` for trials ``lo..hi-1`` (lanes of LANES) into
+    ``Q (N, n, n)``: ``mean_k (e e^T + P_{k+1} - A C^T - C A^T + A P_k A^T) / dt_k``, symmetrised."""
+    N, K1, n = m.shape
+    K = K1 - 1
+    e = np.empty((n, LANES))
+    mk = np.empty((n, LANES))
+    Am = np.empty((n, LANES))
+    Ak = np.empty((n, n, LANES))
+    Ck = np.empty((n, n, LANES))
+    Pk = np.empty((n, n, LANES))
+    CAt = np.empty((n, n, LANES))
+    AP = np.empty((n, n, LANES))
+    APA = np.empty((n, n, LANES))
+    acc = np.empty((n, n, LANES))
+    for r0 in range(lo, hi, LANES):
+        rl = _lanes(lo, hi, r0)
+        for a in range(n):
+            for c in range(n):
+                for l in range(LANES):
+                    acc[a, c, l] = 0.0
+        for k in range(K):
+            for l in range(LANES):
+                r = rl[l]
+                for a in range(n):
+                    mk[a, l] = m[r, k, a]
+                    for c in range(n):
+                        Ak[a, c, l] = A[r, k, a, c]
+                        Ck[a, c, l] = C[r, k, a, c]
+                        Pk[a, c, l] = P[r, k, a, c]
+            _sAx(Ak, mk, Am, acnt, aidx, n)
+            for l in range(LANES):
+                r = rl[l]
+                for a in range(n):
+                    v = (m[r, k + 1, a] - Am[a, l]) - b[r, k, a]
+                    e[a, l] = wrap(v) if state_angles[a] else v
+            _sXAt(Ck, Ak, CAt, acnt, aidx, n, n, False)  # C_k A_k^T = (A_k C_k^T)^T
+            _sAX(Ak, Pk, AP, acnt, aidx, n, n)
+            _sXAt(AP, Ak, APA, acnt, aidx, n, n, True)
+            h = dt[k]
+            for l in range(LANES):
+                r = rl[l]
+                for a in range(n):
+                    for c in range(n):
+                        acc[a, c, l] += ((((e[a, l] * e[c, l] + P[r, k + 1, a, c]) - CAt[c, a, l]) - CAt[a, c, l])
+                                         + APA[a, c, l]) / h
+        for l in range(LANES):
+            if r0 + l < hi:
+                r = rl[l]
+                for a in range(n):
+                    for c in range(n):
+                        v = 0.5 * (acc[a, c, l] / K + acc[c, a, l] / K)
+                        Q[r, a, c] = v * (1.0 if (keep[a] and keep[c]) else 0.0)  # as numpy: NaN stays NaN
+
+
+@jit
+def measurement_noise_sums(lo, hi, m, P, tick, y, valid, H, d, angle, R, count):
+    """:func:`needlecli.numerics.kalman.em_measurement_noise` for one channel, trials ``lo..hi-1``."""
+    M = tick.shape[0]
+    mc = y.shape[2]
+    n = m.shape[2]
+    rv = np.empty(mc)
+    HP = np.empty((mc, n))
+    acc = np.empty((mc, mc))
+    for r in range(lo, hi):
+        for a in range(mc):
+            for c in range(mc):
+                acc[a, c] = 0.0
+        cnt = 0
+        for i in range(M):
+            if not valid[r, i]:
+                continue
+            cnt += 1
+            k = tick[i]
+            for a in range(mc):
+                s = 0.0
+                for c in range(n):
+                    s += H[r, i, a, c] * m[r, k, c]
+                v = (y[r, i, a] - s) - d[r, i, a]
+                rv[a] = wrap(v) if angle[a] else v
+            _mm(H[r, i], P[r, k], HP, mc, n, n)
+            for a in range(mc):
+                for c in range(mc):
+                    s = 0.0
+                    for q in range(n):
+                        s += HP[a, q] * H[r, i, c, q]
+                    acc[a, c] += rv[a] * rv[c] + s
+        count[r] = cnt
+        for a in range(mc):
+            for c in range(mc):
+                R[r, a, c] = 0.5 * (acc[a, c] / cnt + acc[c, a] / cnt)
+
+
+# ---------------------------------------------------------------------------------------------- linearisation
+@jit
+def _f_mag(z, u, nx, bicycle, out):
+    """The magnetic models' vector field at one augmented state (the constant is ``z[nx]``)."""
+    f = magnetic_field(z[3], z[4], z[5], z[6], z[7], z[8], z[nx], u[0], u[1], u[2], u[3], bicycle)
+    for i in range(9):
+        out[i] = f[i]
+    for i in range(nx, z.shape[0]):
+        out[i] = 0.0
+
+
+@jit
+def _jac_mag(z, u, nx, bicycle, J):
+    """``df/dz`` of the augmented magnetic model (:meth:`MagneticModel.jacobian` and ``param_jacobian``)."""
+    n = z.shape[0]
+    for i in range(n):
+        for j in range(n):
+            J[i, j] = 0.0
+    h = z[3:6]
+    bv = z[6:9]
+    v = u[0]
+    hh = h[0] * h[0] + h[1] * h[1] + h[2] * h[2]
+    hb = h[0] * bv[0] + h[1] * bv[1] + h[2] * bv[2]
+    bb = bv[0] * bv[0] + bv[1] * bv[1] + bv[2] * bv[2]
+    for i in range(3):
+        J[i, 3 + i] = v
+    p = z[nx]
+    if bicycle:
+        s = bv[0] * h[0] + bv[1] * h[1] + bv[2] * h[2]
+        lv = p * v
+    else:
+        cv = p * v
+    for i in range(3):
+        t_i = bv[i] * hh - h[i] * hb
+        for j in range(3):
+            dth = (2.0 * bv[i] * h[j] - (hb if i == j else 0.0)) - h[i] * bv[j]
+            dtb = (hh if i == j else 0.0) - h[i] * h[j]
+            if bicycle:
+                jh = lv * (dth / s - t_i * bv[j] / s**2)
+                jb = lv * (dtb / s - t_i * h[j] / s**2)
+            else:
+                jh = cv * dth
+                jb = cv * dtb
+            J[3 + i, 3 + j] = (jh + (1.0 - hh) * (1.0 if i == j else 0.0)) - 2.0 * h[i] * h[j]
+            J[3 + i, 6 + j] = jb
+        J[3 + i, nx] = (v / s) * t_i if bicycle else v * t_i
+    w = u[1:4]
+    sk = ((0.0, -w[2], w[1]), (w[2], 0.0, -w[0]), (-w[1], w[0], 0.0))
+    for i in range(3):
+        for j in range(3):
+            J[6 + i, 6 + j] = (sk[i][j] + (1.0 - bb) * (1.0 if i == j else 0.0)) - 2.0 * bv[i] * bv[j]
+
+
+@jit
+def _stage_jacobian(x, u, nx, bicycle, J, T, D_prev, h, D_out):
+    """``D_out = J(x) + h J(x) D_prev``: the chain rule through one RK4 stage."""
+    n = x.shape[0]
+    _jac_mag(x, u, nx, bicycle, J)
+    _mm(J, D_prev, T, n, n, n)
+    for a in range(n):
+        for c in range(n):
+            D_out[a, c] = J[a, c] + h * T[a, c]
+
+
+@jit
+def transitions(lo, hi, zbar, sub_dt, sub_u, nx, bicycle, z_out, A_out):
+    """:meth:`DiscreteModel.transition_all` for the magnetic models, trials ``lo..hi-1``: every interval's
+    RK4 substeps from ``zbar`` with the exact Jacobian (:func:`rk4_with_jacobian`'s chain rule)."""
+    N, K, n = zbar.shape
+    S = sub_dt.shape[1]
+    x = np.empty(n)
+    x2 = np.empty(n)
+    k1 = np.empty(n)
+    k2 = np.empty(n)
+    k3 = np.empty(n)
+    k4 = np.empty(n)
+    D1 = np.empty((n, n))
+    J = np.empty((n, n))
+    D2 = np.empty((n, n))
+    D3 = np.empty((n, n))
+    D4 = np.empty((n, n))
+    T = np.empty((n, n))
+    F = np.empty((n, n))
+    Acc = np.empty((n, n))
+    for r in range(lo, hi):
+        for k in range(K):
+            for a in range(n):
+                x[a] = zbar[r, k, a]
+            first = True
+            for j in range(S):
+                h = sub_dt[k, j]
+                if h == 0.0:
+                    continue
+                u = sub_u[r, k, j]
+                half = 0.5 * h
+                _f_mag(x, u, nx, bicycle, k1)
+                for a in range(n):
+                    x2[a] = x[a] + half * k1[a]
+                _f_mag(x2, u, nx, bicycle, k2)
+                _jac_mag(x, u, nx, bicycle, D1)
+                _stage_jacobian(x2, u, nx, bicycle, J, T, D1, half, D2)
+                for a in range(n):
+                    x2[a] = x[a] + half * k2[a]
+                _f_mag(x2, u, nx, bicycle, k3)
+                _stage_jacobian(x2, u, nx, bicycle, J, T, D2, half, D3)
+                for a in range(n):
+                    x2[a] = x[a] + h * k3[a]
+                _f_mag(x2, u, nx, bicycle, k4)
+                _stage_jacobian(x2, u, nx, bicycle, J, T, D3, h, D4)
+                sixth = h / 6.0
+                for a in range(n):
+                    x[a] = x[a] + sixth * ((k1[a] + 2.0 * (k2[a] + k3[a])) + k4[a])
+                    for c in range(n):
+                        F[a, c] = (1.0 if a == c else 0.0) + sixth * ((D1[a, c] + 2.0 * (D2[a, c] + D3[a, c])) + D4[a, c])
+                if first:
+                    for a in range(n):
+                        for c in range(n):
+                            Acc[a, c] = F[a, c]
+                    first = False
+                else:
+                    _mm(F, Acc, T, n, n, n)
+                    for a in range(n):
+                        for c in range(n):
+                            Acc[a, c] = T[a, c]
+            for a in range(n):
+                z_out[r, k, a] = x[a]
+                for c in range(n):
+                    A_out[r, k, a, c] = Acc[a, c] if not first else (1.0 if a == c else 0.0)
+
+
+@jit
+def fd_linearise(lo, hi, z, kind, idx, y, valid, axis, yh_out, H_out, d_out, y_out):
+    """:meth:`MeasurementModel.linearise` (central differences of ``h``, a measured direction in the plane
+    across it) for trials ``lo..hi-1`` at states ``z (N, M, n)``. kind 0: ``h = z[idx]``; kind 1:
+    ``h = z[idx] / |z[idx]|`` (a direction), then in the tangent plane of the predicted one about
+    ``axis``."""
+    N, M, n = z.shape
+    mr = idx.shape[0]
+    x = np.empty(n)
+    step = np.empty(n)
+    hp = np.empty(mr)
+    hm = np.empty(mr)
+    y0 = np.empty(mr)
+    Jr = np.empty((mr, n))
+    for r in range(lo, hi):
+        for i in range(M):
+            for a in range(n):
+                x[a] = z[r, i, a]
+                step[a] = 1e-6 * max(1.0, abs(x[a]))
+            _h(x, kind, idx, y0)
+            for a in range(n):
+                xa = x[a]
+                x[a] = xa + step[a]
+                _h(x, kind, idx, hp)
+                x[a] = xa - step[a]
+                _h(x, kind, idx, hm)
+                x[a] = xa
+                for q in range(mr):
+                    Jr[q, a] = (hp[q] - hm[q]) / (2.0 * step[a])
+            if kind == 0:
+                for q in range(mr):
+                    yh_out[r, i, q] = y0[q]
+                    for a in range(n):
+                        H_out[r, i, q, a] = Jr[q, a]
+                    s = 0.0
+                    for a in range(n):
+                        s += Jr[q, a] * x[a]
+                    d_out[r, i, q] = y0[q] - s
+                    y_out[r, i, q] = y[r, i, q] if valid[r, i] else 0.0
+            else:
+                nr = math.sqrt(y0[0] * y0[0] + y0[1] * y0[1] + y0[2] * y0[2])
+                u0, u1, u2 = y0[0] / nr, y0[1] / nr, y0[2] / nr
+                a0 = 1.0 if axis == 0 else 0.0
+                a1 = 1.0 if axis == 1 else 0.0
+                a2 = 1.0 if axis == 2 else 0.0
+                e0 = a1 * u2 - a2 * u1
+                e1 = a2 * u0 - a0 * u2
+                e2 = a0 * u1 - a1 * u0
+                ne = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+                e0, e1, e2 = e0 / ne, e1 / ne, e2 / ne
+                f0 = u1 * e2 - u2 * e1
+                f1 = u2 * e0 - u0 * e2
+                f2 = u0 * e1 - u1 * e0
+                E = ((e0, f0), (e1, f1), (e2, f2))
+                for q in range(2):
+                    yh = E[0][q] * y0[0] + E[1][q] * y0[1] + E[2][q] * y0[2]
+                    yh_out[r, i, q] = yh
+                    s = 0.0
+                    for a in range(n):
+                        Hq = E[0][q] * Jr[0, a] + E[1][q] * Jr[1, a] + E[2][q] * Jr[2, a]
+                        H_out[r, i, q, a] = Hq
+                        s += Hq * x[a]
+                    d_out[r, i, q] = yh - s
+                    if valid[r, i]:
+                        y_out[r, i, q] = E[0][q] * y[r, i, 0] + E[1][q] * y[r, i, 1] + E[2][q] * y[r, i, 2]
+                    else:
+                        y_out[r, i, q] = 0.0
+
+
+@jit
+def _h(x, kind, idx, out):
+    m = idx.shape[0]
+    for q in range(m):
+        out[q] = x[idx[q]]
+    if kind == 1:
+        nrm = math.sqrt(out[0] * out[0] + out[1] * out[1] + out[2] * out[2])
+        for q in range(m):
+            out[q] = out[q] / nrm
+
+
+# ---------------------------------------------------------------------------------------------- the seams
+def _trials(N: int, work: int = 1 << 20):
+    """Blocks of trials for the workers; one block (the calling thread) for little work (``work``: about
+    the number of matrix operations)."""
+    return blocks(N, per_thread=4) if work >= 20000 else [(0, N)]
+
+
+_PATTERNS: dict = {}
+
+
+def sparse_rows(M: np.ndarray):
+    """``(cnt (n,), idx (n, n))``: the columns of each row where any matrix of the stack ``M (..., n, n)``
+    is nonzero (NaN counts as nonzero). Kept for the array it was computed from (a linearisation serves
+    several passes)."""
+    key = id(M)
+    hit = _PATTERNS.get(key)
+    if hit is not None and hit[0]() is M:
+        return hit[1]
+    out = _sparse_rows(M)
+    try:
+        _PATTERNS[key] = (weakref.ref(M), out)
+    except TypeError:  # not weak-referenceable (a view of a temporary): not kept
+        pass
+    if len(_PATTERNS) > 64:
+        for k in [k for k, (ref, _) in _PATTERNS.items() if ref() is None]:
+            del _PATTERNS[k]
+    return out
+
+
+def _sparse_rows(M: np.ndarray):
+    n = M.shape[-1]
+    nz = (M != 0).reshape(-1, n, n).any(axis=0) if M.size else np.ones((n, n), dtype=bool)
+    cnt = nz.sum(1).astype(np.int64)
+    idx = np.zeros((n, n), dtype=np.int64)
+    for a in range(n):
+        idx[a, : cnt[a]] = np.nonzero(nz[a])[0]
+    return cnt, idx
+
+
+def _channels_concat(channels, H, d, N, n):
+    """The channels' samples along one axis (each channel's samples after the previous one's)."""
+    J = len(channels)
+    mm = max([ch.m for ch in channels], default=1)
+    M = sum(len(np.asarray(ch.tick)) for ch in channels)
+    Y = np.zeros((N, max(M, 1), mm))
+    V = np.zeros((N, max(M, 1)), dtype=np.bool_)
+    R = np.zeros((N, max(J, 1), mm, mm))
+    Hc = np.zeros((N, max(M, 1), mm, n))
+    Dc = np.zeros((N, max(M, 1), mm))
+    ang = np.zeros((max(J, 1), mm), dtype=np.bool_)
+    hcnt = np.zeros((max(J, 1), mm), dtype=np.int64)
+    hidx = np.zeros((max(J, 1), mm, n), dtype=np.int64)
+    ch_m = np.zeros(max(J, 1), dtype=np.int64)
+    offsets = []
+    o = 0
+    for j, ch in enumerate(channels):
+        Mj, mj = ch.y.shape[1], ch.m
+        Y[:, o : o + Mj, :mj] = ch.y
+        V[:, o : o + Mj] = ch.valid
+        R[:, j, :mj, :mj] = np.broadcast_to(ch.R, (N, mj, mj))
+        Hc[:, o : o + Mj, :mj] = H[j]
+        Dc[:, o : o + Mj, :mj] = d[j]
+        if ch.angle is not None:
+            ang[j, :mj] = ch.angle
+        nz = (np.asarray(H[j]) != 0).reshape(-1, mj, n).any(axis=0) if np.size(H[j]) else np.ones((mj, n), bool)
+        for q in range(mj):
+            cols = np.nonzero(nz[q])[0]
+            hcnt[j, q] = cols.size
+            hidx[j, q, : cols.size] = cols
+        ch_m[j] = mj
+        offsets.append(o)
+        o += Mj
+    return Y, V, R, Hc, Dc, ang, hcnt, hidx, ch_m, offsets
+
+
+def kalman_forward_affine(m0, P0, Qc, dt, A, b, channels, H, d, *, state_angles=None):
+    """:func:`needlecli.numerics.kalman.kalman_forward_affine`, compiled: the fields of its ``ForwardResult``
+    (``m_pred, P_pred, m_filt, P_filt, A, loglik, repairs``; the caller builds the result: the kernels import
+    nothing of the package above them)."""
+    m0 = np.ascontiguousarray(m0, dtype=float)
+    N, n = m0.shape
+    K = len(dt)
+    P0 = np.ascontiguousarray(np.broadcast_to(P0, (N, n, n)), dtype=float)
+    Qc = np.ascontiguousarray(np.broadcast_to(Qc, (N, n, n)), dtype=float)
+    A = np.ascontiguousarray(A, dtype=float)
+    b = np.ascontiguousarray(b, dtype=float)
+    acnt, aidx = sparse_rows(A)
+    Y, V, R, Hc, Dc, ang, hcnt, hidx, ch_m, offsets = _channels_concat(channels, H, d, N, n)
+    J = len(channels)
+    slot = np.full((max(J, 1), K + 1), -1, dtype=np.int64)
+    for j, ch in enumerate(channels):
+        t = np.asarray(ch.tick)
+        ok = (t >= 0) & (t < K + 1)
+        slot[j, t[ok]] = offsets[j] + np.nonzero(ok)[0]
+    sa = np.zeros(n, dtype=np.bool_) if state_angles is None else np.ascontiguousarray(state_angles, dtype=np.bool_)
+    m_pred = np.empty((N, K + 1, n))
+    P_pred = np.empty((N, K + 1, n, n))
+    m_filt = np.empty((N, K + 1, n))
+    P_filt = np.empty((N, K + 1, n, n))
+    loglik = np.zeros(N)
+    repairs = np.zeros(N, dtype=np.int64)
+    parallel_for(forward_affine, _trials(N), (m0, P0, Qc, np.ascontiguousarray(dt, dtype=float), A, b, acnt, aidx,
+                                               slot, ch_m, Y, V, R, Hc, Dc, ang, hcnt, hidx, m_pred, P_pred, m_filt,
+                                               P_filt, loglik, repairs, sa))
+    return m_pred, P_pred, m_filt, P_filt, A, loglik, repairs
+
+
+def rts_smoother(fwd, *, state_angles=None):
+    """:func:`needlecli.numerics.kalman.rts_smoother`, compiled: the fields of its ``SmoothResult``
+    (``m, P, C, G, repairs``)."""
+    N, K1, n = fwd.m_filt.shape
+    c = np.ascontiguousarray
+    sa = np.zeros(n, dtype=np.bool_) if state_angles is None else c(state_angles, dtype=np.bool_)
+    A = c(fwd.A, dtype=float)
+    acnt, aidx = sparse_rows(A)
+    m_s = np.empty((N, K1, n))
+    P_s = np.empty((N, K1, n, n))
+    C = np.empty((N, K1 - 1, n, n))
+    G = np.empty((N, K1 - 1, n, n))
+    repairs = np.zeros(N, dtype=np.int64)
+    parallel_for(rts, _trials(N), (A, acnt, aidx, c(fwd.m_pred, dtype=float), c(fwd.P_pred, dtype=float),
+                                   c(fwd.m_filt, dtype=float), c(fwd.P_filt, dtype=float), sa, m_s, P_s, C, G, repairs))
+    return m_s, P_s, C, G, repairs
+
+
+def em_process_noise(sm, A, b, dt, *, index=None, state_angles=None):
+    """:func:`needlecli.numerics.kalman.em_process_noise`, compiled."""
+    N, K1, n = sm.m.shape
+    c = np.ascontiguousarray
+    keep = np.ones(n, dtype=np.bool_)
+    if index is not None:
+        keep[:] = False
+        keep[np.asarray(index)] = True
+    sa = np.zeros(n, dtype=np.bool_) if state_angles is None else c(state_angles, dtype=np.bool_)
+    A = c(A, dtype=float)
+    acnt, aidx = sparse_rows(A)
+    Q = np.empty((N, n, n))
+    parallel_for(process_noise_sums, _trials(N), (c(sm.m, dtype=float), c(sm.P, dtype=float), c(sm.C, dtype=float),
+                                                  A, acnt, aidx, c(b, dtype=float), c(dt, dtype=float), keep, sa, Q))
+    return Q
+
+
+def em_measurement_noise(sm, channel, H, d):
+    """:func:`needlecli.numerics.kalman.em_measurement_noise`, compiled."""
+    N = sm.m.shape[0]
+    c = np.ascontiguousarray
+    m = channel.y.shape[-1]
+    ang = np.zeros(m, dtype=np.bool_) if channel.angle is None else c(channel.angle, dtype=np.bool_)
+    R = np.empty((N, m, m))
+    count = np.zeros(N, dtype=np.int64)
+    parallel_for(measurement_noise_sums, _trials(N), (c(sm.m, dtype=float), c(sm.P, dtype=float),
+                                                      c(channel.tick, dtype=np.int64), c(channel.y, dtype=float),
+                                                      c(channel.valid, dtype=np.bool_), c(H, dtype=float),
+                                                      c(d, dtype=float), ang, R, count))
+    return R, count
+
+
+def transition_all(dm, zbar):
+    """:meth:`DiscreteModel.transition_all` of a magnetic model (augmented with its constant), compiled."""
+    N, K, n = zbar.shape
+    z = np.empty((N, K, n))
+    A = np.empty((N, K, n, n))
+    c = np.ascontiguousarray
+    parallel_for(transitions, _trials(N), (c(zbar, dtype=float), c(dm.sub_dt, dtype=float), c(dm.sub_u, dtype=float),
+                                           int(dm.nx), dm.model.registered_name == "binm", z, A))
+    return z, A
+
+
+def transitions_supported(dm) -> bool:
+    return (dm.model.registered_name in ("mnm", "binm") and len(dm.augment) == 1
+            and dm.augment[0] == dm.model.curvature_param and dm.nx == 9)
+
+
+def linearise(mm, kind, z, y=None):
+    """:meth:`MeasurementModel.linearise`, compiled: ``(h(z), H, d, y)`` at ``z (N, M, n)`` or ``(N, n)``."""
+    kd, idx = kind
+    one = z.ndim == 2
+    z3 = np.ascontiguousarray(z[:, None] if one else z, dtype=float)
+    N, M, n = z3.shape
+    if y is None:
+        yy, valid = mm.y, mm.valid
+    else:
+        yy, valid = (y[:, None] if one else y), np.ones((N, M), dtype=bool)
+    m = mm.m
+    yh = np.empty((N, M, m))
+    H = np.empty((N, M, m, n))
+    d = np.empty((N, M, m))
+    yo = np.empty((N, M, m))
+    axis = mm._axis() if kd == 1 else 0
+    parallel_for(fd_linearise, _trials(N, N * M * n), (z3, kd, idx, np.ascontiguousarray(yy, dtype=float),
+                                            np.ascontiguousarray(valid, dtype=np.bool_), int(axis), yh, H, d, yo))
+    if one:
+        return yh[:, 0], H[:, 0], d[:, 0], yo[:, 0]
+    return yh, H, d, yo

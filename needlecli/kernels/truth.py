@@ -1,0 +1,173 @@
+"""The truth simulation, compiled: every run's RK4 steps, process noise, parameter sync and domain checks
+(:class:`needlecli.experiments.truth.TruthSimulator` without a ``before_step``, step for step).
+
+Runs are the lanes (blocks of :data:`BLOCK` runs, spread over worker threads); the process noise is
+drawn by the caller from the same generator in the same order as the numpy path (one
+``standard_normal((steps, N, n))`` per chunk of steps is the same stream as one ``(N, n)`` draw per step).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from needlecli.kernels._jit import jit
+from needlecli.kernels._threads import blocks, parallel_for
+from needlecli.kernels.models import BINM, MODIFIED_UNICYCLE, UNICYCLE, step_fast
+
+BLOCK = 32
+OK, DIVERGED, SINGULAR = 0, 1, 2
+
+
+def margin_kind(mid: int) -> int:
+    """0: no singularity; 1: cos(beta) (unicycles); 2: |cos| of the angle between B and h (BiNM)."""
+    return 1 if mid in (UNICYCLE, MODIFIED_UNICYCLE) else 2 if mid == BINM else 0
+
+
+@jit
+def advance(lo, hi, mid, states, k0, k1, u, p_run, p_t, p_t_index, sync_index, sync_param, q, noise, dt,
+            alive, status, event, kind, sing_thr, near_thr):
+    """Fill ``states[lo:hi, k0 + 1 : k1 + 1]`` from ``states[lo:hi, k0]`` (runs in lanes of :data:`BLOCK`).
+
+    u (1 or N, T, m); p_run (N, P); p_t (T,) the parameter ``p_t_index`` along time (-1: none);
+    sync_index: the state that carries parameter ``sync_param`` (-1: none); q (n,) noise std per step;
+    noise (k1 - k0, N, n) standard normal draws (shape (0, 0, 0): no process noise); alive (N,) bool,
+    status (N,) int, event (N,) grid index a run stopped at (-1: it did not): updated. Releases the GIL.
+    """
+    n = states.shape[2]
+    m = u.shape[2]
+    P = p_run.shape[1]
+    use_q = noise.shape[0] > 0
+    X = np.zeros((n, BLOCK))
+    X0 = np.zeros((n, BLOCK))
+    U = np.zeros((m, BLOCK))
+    Pm = np.zeros((P, BLOCK))
+    W = np.zeros((4, max(n, 6), BLOCK))
+    for r0 in range(lo, hi, BLOCK):
+        nb = min(BLOCK, hi - r0)
+        for i in range(nb):
+            for c in range(n):
+                X[c, i] = states[r0 + i, k0, c]
+            for c in range(P):
+                Pm[c, i] = p_run[r0 + i, c]
+        for k in range(k0, k1):
+            for i in range(nb):
+                ru = r0 + i if u.shape[0] > 1 else 0
+                for c in range(m):
+                    U[c, i] = u[ru, k, c]
+                if p_t_index >= 0:
+                    Pm[p_t_index, i] = p_t[k]
+                for c in range(n):
+                    X0[c, i] = X[c, i]
+            step_fast(mid, X, U, Pm, dt, min(BLOCK, (nb + 3) // 4 * 4), W)  # whole vectors (lanes past nb: finite)
+            for i in range(nb):
+                r = r0 + i
+                if use_q:
+                    for c in range(n):
+                        X[c, i] = X[c, i] + q[c] * noise[k - k0, r, c]
+                if sync_index >= 0:
+                    X[sync_index, i] = p_t[k + 1] if p_t_index == sync_param else p_run[r, sync_param]
+                if alive[r]:
+                    finite = True
+                    for c in range(n):
+                        if not np.isfinite(X[c, i]):
+                            finite = False
+                    sing = False
+                    near = False
+                    if kind == 1:
+                        sing = not math.cos(X[4, i]) > sing_thr
+                        near = not math.cos(X0[4, i]) > near_thr
+                    elif kind == 2:
+                        sing = not _bh_margin(X, i) > sing_thr
+                        near = not _bh_margin(X0, i) > near_thr
+                        d0 = X0[3, i] * X0[6, i] + X0[4, i] * X0[7, i] + X0[5, i] * X0[8, i]
+                        d1 = X[3, i] * X[6, i] + X[4, i] * X[7, i] + X[5, i] * X[8, i]
+                        if d0 * d1 < 0.0:
+                            sing = True
+                    if sing or not finite:
+                        alive[r] = False
+                        status[r] = SINGULAR if (sing or (not finite and near)) else DIVERGED
+                        event[r] = k + 1
+                if not alive[r]:
+                    for c in range(n):
+                        X[c, i] = X0[c, i]
+                for c in range(n):
+                    states[r, k + 1, c] = X[c, i]
+
+
+@jit
+def _bh_margin(X, i):
+    h0, h1, h2 = X[3, i], X[4, i], X[5, i]
+    b0, b1, b2 = X[6, i], X[7, i], X[8, i]
+    d = h0 * b0 + h1 * b1 + h2 * b2
+    return abs(d) / (math.sqrt(h0 * h0 + h1 * h1 + h2 * h2) * math.sqrt(b0 * b0 + b1 * b1 + b2 * b2))
+
+
+# ---------------------------------------------------------------------------------------------- the seam
+_SYNC = {MODIFIED_UNICYCLE: (6, "kappa")}  # models that carry a parameter as a state: (state, parameter)
+_CHUNK_ELEMENTS = 4_000_000  # noise drawn per chunk: at most this many numbers (32 MB)
+
+
+class TruthKernel:
+    """Advances a :class:`~needlecli.experiments.truth.TruthSimulator` (no ``before_step``) with
+    :func:`advance`, writing into its arrays exactly what its numpy loop writes."""
+
+    def __init__(self, sim) -> None:
+        from needlecli.kernels.models import MODEL_IDS
+
+        model = sim.model
+        self.mid = MODEL_IDS[model.registered_name]
+        N, T = sim.n_runs, sim.T
+        names = list(model.param_arrays())
+        self.p_run = np.empty((N, max(len(names), 1)))
+        self.p_t = np.zeros(T)
+        self.p_t_index = -1
+        for j, k in enumerate(names):
+            a = sim.params_t[k]
+            if a.ndim == 2:  # along time: the tissue schedule, the same for every run
+                if a.strides[0] != 0 and not (a == a[:1]).all():
+                    raise ValueError("a parameter that differs between runs along time")
+                self.p_t = np.ascontiguousarray(a[0], dtype=float)
+                self.p_t_index = j
+                self.p_run[:, j] = a[:, 0]
+            else:
+                self.p_run[:, j] = np.broadcast_to(a, (N,))
+        si, sp = _SYNC.get(self.mid, (-1, None))
+        self.sync_index = si
+        self.sync_param = names.index(sp) if sp is not None else -1
+        u = sim.u
+        self.u = np.ascontiguousarray(u[:1] if u.strides[0] == 0 else u, dtype=float)
+        self.q = np.ascontiguousarray(sim.q, dtype=float)
+        self.kind = margin_kind(self.mid)
+        self.code = np.zeros(N, dtype=np.int64)
+        self.event_k = np.full(N, -1, dtype=np.int64)
+
+    def advance_to(self, sim, k: int) -> None:
+        N, n = sim.n_runs, sim.model.n
+        # few chunks (each waits for the slowest worker): ~20 progress updates, noise at most 32 MB at a time
+        chunk = max(1, min(-(-(sim.T - 1) // 20), _CHUNK_ELEMENTS // max(N * n, 1)))
+        empty = np.zeros((0, 0, 0))
+        model = sim.model
+        while sim.k < k:
+            k0 = sim.k
+            k1 = min(k, k0 + chunk)
+            noise = sim.rng_q.standard_normal((k1 - k0, N, n)) if sim.use_q else empty
+            parallel_for(advance, blocks(N, per_thread=2, minimum=BLOCK), (
+                self.mid, sim.states, k0, k1, self.u, self.p_run, self.p_t, self.p_t_index, self.sync_index,
+                self.sync_param, self.q, noise, sim.dt, sim.alive, self.code, self.event_k, self.kind,
+                float(model.singular_threshold), float(model.near_singular_threshold)))
+            sim.k = k1
+            sim.acted = k1 - 1
+            if sim.progress is not None:
+                sim.progress(k1, sim.T - 1)
+        new = (self.code != OK) & (sim.status == "ok")
+        if new.any():
+            sing = new & (self.code == SINGULAR)
+            div = new & (self.code == DIVERGED)
+            sim.status[sing] = "singular"
+            sim.reason[sing] = model.singular_reason
+            sim.status[div] = "diverged"
+            sim.reason[div] = "non-finite truth state"
+            sim.event[new] = sim.time[self.event_k[new]]
+        sim.x = sim.states[:, sim.k]

@@ -1,0 +1,651 @@
+"""The multi-rate UKF of :mod:`needlecli.observers.ukf`, compiled: every tick of every run in one kernel.
+
+Each run is independent (its own sigma points, gains, masks, status), so runs are spread over the cores
+(blocks of runs on worker threads, :mod:`needlecli.kernels._threads`) and each run's whole time loop stays
+in cache. Inside a run, the sigma points (and the
+final-position rollouts riding along) are the lanes of :func:`needlecli.kernels.models.step`.
+
+What it computes is the numpy path's algorithm, operation for operation where it matters for rounding:
+the Cholesky factor in the translation order (position-only sigma points displaced as the central one),
+translation states propagated relative to the central point, means and residuals about the central
+point with angles wrapped, ``P = sym(sum wc dX dX^T + Q)``, the curvature-variance reset at interfaces,
+the updates (one scalar state in closed form; several channels that select states jointly, missing
+components masked out, chi-square gates per channel, noise reset by distance to a transducer), the
+curvature constraint, divergence and singularity per run, and the predictions. The differences are the
+order of a few sums (BLAS against loops) and sin/cos (1 ulp), so results agree with the numpy path
+to that rounding as the filter carries it (see ``tests/test_kernels.py``).
+
+Covered: channels whose ``h`` selects states (:class:`~needlecli.models.StateSelection`: position, roll,
+curvature). A channel with a nonlinear ``h`` needs sigma points through ``h``: :func:`supports` says no
+and the observer runs the numpy path.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import namedtuple
+
+import numpy as np
+
+from needlecli.kernels._jit import jit
+from needlecli.kernels._threads import blocks, parallel_for
+from needlecli.kernels.core import PI, cholesky_into, repaired_root, solve_into, wrap, wrap_if_needed
+from needlecli.kernels.models import BINM, MODEL_IDS, MODIFIED_UNICYCLE, UNICYCLE, step_fast
+
+OK, DIVERGED, SINGULAR = 0, 1, 2
+MODE_NONE, MODE_SCALAR, MODE_SELECT = 0, 1, 2
+LAYOUT_NONE, LAYOUT_DIAG, LAYOUT_FULL = 0, 1, 2
+
+
+MAX_CHANNELS = 4
+
+
+def supports(model, chans) -> bool:
+    """Whether the kernel covers this filter: a model with compiled equations and at most
+    :data:`MAX_CHANNELS` channels, each selecting states."""
+    return (model.registered_name in MODEL_IDS and len(chans) <= MAX_CHANNELS
+            and all(c["select"] is not None for c in chans))
+
+
+# ---------------------------------------------------------------------------------------------- the kernel
+@jit
+def run(lo, hi, mid, x0, P0, ticks, inputs, params, dt, angles, order, n_act, tmask, wm, wc, sq_scale, Q,
+        kappa_i, kappa_max, reset_target, interfaces, depth, max_trace, kind, sing_thr,
+        vals, valids, ch_m, ch_sel, ch_ang, ch_sig2, ch_gate, ch_growth, ch_ga, ch_gd, ch_gtr, ch_pos,
+        ev_ptr, ev_chan, ev_sptr, ev_samp, ev_any, tick_mode, pred_count,
+        states, cov_full, cov_diag, layout, stride,
+        status, event, repairs, hits, resets, used, gated, nisv, roll, progress):
+    """The whole filter for runs ``lo..hi-1``. Arguments as prepared by :func:`filter_runs` (one array per
+    quantity: the kernel knows no Python objects); outputs are written in place. Releases the GIL."""
+    for r in range(lo, hi):
+        _filter_run(r, mid, x0, P0, ticks, inputs, params, dt, angles, order, n_act, tmask, wm, wc, sq_scale, Q,
+                    kappa_i, kappa_max, reset_target, interfaces, depth, max_trace, kind, sing_thr,
+                    vals, valids, ch_m, ch_sel, ch_ang, ch_sig2, ch_gate, ch_growth, ch_ga, ch_gd, ch_gtr, ch_pos,
+                    ev_ptr, ev_chan, ev_sptr, ev_samp, ev_any, tick_mode, pred_count,
+                    states, cov_full, cov_diag, layout, stride,
+                    status, event, repairs, hits, resets, used, gated, nisv, roll, progress)
+
+
+@jit
+def _filter_run(r, mid, x0, P0, ticks, inputs, params, dt, angles, order, n_act, tmask, wm, wc, sq_scale, Q,
+                kappa_i, kappa_max, reset_target, interfaces, depth, max_trace, kind, sing_thr,
+                vals, valids, ch_m, ch_sel, ch_ang, ch_sig2, ch_gate, ch_growth, ch_ga, ch_gd, ch_gtr, ch_pos,
+                ev_ptr, ev_chan, ev_sptr, ev_samp, ev_any, tick_mode, pred_count,
+                states, cov_full, cov_diag, layout, stride,
+                status, event, repairs, hits, resets, used, gated, nisv, roll, progress):
+    """One run of :func:`run`: its whole time loop."""
+    n = x0.shape[1]
+    nt = ticks.shape[0]
+    m_in = inputs.shape[2]
+    S = 1 + 2 * n_act
+    D = roll.shape[1]
+    L = (S + D + 3) // 4 * 4
+    Mmax = 1
+    for c in range(ch_m.shape[0]):
+        Mmax += ch_m[c]
+    K_if = interfaces.shape[1]
+    x = np.empty(n)
+    P = np.empty((n, n))
+    xs = np.empty(n)
+    Ps = np.empty((n, n))
+    cols = np.empty((n, n))
+    XL = np.zeros((n, L))
+    U = np.zeros((m_in, L))
+    Pm = np.zeros((max(params.shape[0], 1), L))
+    W = np.zeros((4, max(n, 6), L))
+    dX = np.empty((2 * n + 3, n))
+    ws = _work(n, Mmax)
+    ri = min(r, inputs.shape[0] - 1)  # inputs, depths, interfaces: per run, or one row for all
+    rd = min(r, depth.shape[0] - 1)
+    rf = min(r, interfaces.shape[0] - 1)
+    for j in range(params.shape[0]):
+        for i in range(L):
+            Pm[j, i] = params[j]
+    for a in range(n):
+        x[a] = x0[r, a]
+        for b in range(n):
+            P[a, b] = P0[a, b]
+    alive = True
+    _emit(states, cov_full, cov_diag, layout, stride, r, 0, x, P)
+    for it in range(1, nt):
+        k0 = ticks[it - 1]
+        k1 = ticks[it]
+        _copy(x, P, xs, Ps)
+        nr = pred_count[it - 1]
+        lane0 = S if alive else 0
+        if alive and _sigma_points(x, P, order, n_act, tmask, sq_scale, cols, XL, ws.Pp, ws.Lf):
+            repairs[r] += 1
+        for q in range(nr):  # the predictions in flight ride along with the sigma points
+            for a in range(n):
+                XL[a, lane0 + q] = roll[r, q, a]
+        nl = min(L, (lane0 + nr + 3) // 4 * 4)  # whole vectors: the lanes past the last hold old, finite points
+        if lane0 + nr > 0:
+            for k in range(k0, k1):
+                for c in range(m_in):
+                    u = inputs[ri, k, c]
+                    for i in range(nl):
+                        U[c, i] = u
+                step_fast(mid, XL, U, Pm, dt, nl, W)
+        for q in range(nr):
+            for a in range(n):
+                roll[r, q, a] = XL[a, lane0 + q]
+        if alive:
+            _mean_cov(XL, cols, n_act, angles, tmask, wm, wc, Q, xs, x, P, dX, ws.C)
+            # ---- tissue interface: reset the curvature variance
+            if reset_target >= 0.0 and kappa_i >= 0 and K_if > 0:
+                d0 = depth[rd, k0]
+                d1 = depth[rd, k1]
+                crossed = False
+                for q in range(K_if):
+                    if d0 < interfaces[rf, q] and interfaces[rf, q] <= d1:
+                        crossed = True
+                if crossed:
+                    t_ = reset_target - P[kappa_i, kappa_i]
+                    P[kappa_i, kappa_i] += t_ if not t_ < 0.0 else 0.0
+                    resets[r] += 1
+            # ---- update with what arrived in (t_k0, t_k1]
+            mode = tick_mode[it]
+            if mode == MODE_SCALAR:
+                e = ev_ptr[it]
+                c = ev_chan[e]
+                j = ev_samp[ev_sptr[e]]
+                if valids[c][r, j]:
+                    used[r, c] += 1
+                    nisv[c][r, j] = _update_scalar(x, P, ch_sel[c, 0], vals[c][r, j, 0], ch_ang[c, 0], ch_sig2[c, 0], ws.Kg)
+            elif mode == MODE_SELECT:
+                _update_select(r, it, x, P, vals, valids, ch_m, ch_sel, ch_ang, ch_sig2, ch_gate, ch_growth, ch_ga,
+                               ch_gd, ch_gtr, ch_pos, ev_ptr, ev_chan, ev_sptr, ev_samp, ev_any, used, gated, nisv, ws)
+            if mode != MODE_NONE:
+                for a in range(n):
+                    if angles[a]:
+                        x[a] = wrap_if_needed(x[a])
+            # ---- curvature constraint: keep the previous estimate outside [0, kappa_max]
+            if kappa_i >= 0 and not math.isnan(kappa_max):
+                kk = x[kappa_i]
+                if kk < 0.0 or kk > kappa_max:
+                    x[kappa_i] = xs[kappa_i]
+                    hits[r] += 1
+            # ---- divergence and model singularity: a stopped run holds its last good estimate
+            code = _check(x, xs, P, kind, sing_thr, max_trace)
+            if code != OK:
+                alive = False
+                status[r] = code
+                event[r] = k1
+                _copy(xs, Ps, x, P)
+        # ---- store: the steps between ticks hold the last tick's estimate
+        for k in range(k0 + 1, k1):
+            _emit(states, cov_full, cov_diag, layout, stride, r, k, xs, Ps)
+        _emit(states, cov_full, cov_diag, layout, stride, r, k1, x, P)
+        for q in range(pred_count[it - 1], pred_count[it]):  # predictions that start now
+            for a in range(n):
+                roll[r, q, a] = x[a]
+        progress[r] = it
+
+
+_Work = namedtuple("_Work", "Pp Lf C Kg yv msk Rv sel ang nu blk_c blk_0 Pyy Pxy A B Xs KS g1 g2 idx blk_j")
+
+
+@jit
+def _work(n, M):
+    """Scratch of one run (allocated once per run)."""
+    return _Work(np.empty((n, n)), np.empty((n, n)), np.empty((n, n)), np.empty((n, 1)), np.empty(M), np.empty(M),
+                 np.empty(M), np.empty(M, dtype=np.int64), np.empty(M, dtype=np.bool_), np.empty(M),
+                 np.empty(M, dtype=np.int64), np.empty(M, dtype=np.int64), np.empty((M, M)), np.empty((n, M)),
+                 np.empty((M, max(M, n))), np.empty((M, n)), np.empty((M, n)), np.empty((n, M)), np.empty((M, 1)),
+                 np.empty((M, 1)), np.empty(M, dtype=np.int64), np.empty(M, dtype=np.int64))
+
+
+@jit
+def _sigma_points(x, P, order, n_act, tmask, sq_scale, cols, XL, Pp, Lf):
+    """Sigma points into lanes ``XL[:, :1 + 2 n_act]`` (translation states relative to the central point);
+    ``cols[j]`` the j-th column of ``sqrt(scale P)``, the Cholesky factor taken in the translation order.
+    Returns whether the factor needed the repair."""
+    n = x.shape[0]
+    for a in range(n):
+        for b in range(n):
+            Pp[a, b] = P[order[a], order[b]]
+    repaired = False
+    if not cholesky_into(Pp, Lf, n):
+        repaired_root(Pp, Lf, n, 1e-12)
+        repaired = True
+    for a in range(n):
+        for j in range(n):
+            cols[j, order[a]] = Lf[a, j] * sq_scale
+    for a in range(n):
+        if tmask[a]:
+            XL[a, 0] = 0.0
+            for j in range(n_act):
+                XL[a, 1 + j] = cols[j, a]
+                XL[a, 1 + n_act + j] = -cols[j, a]
+        else:
+            xa = x[a]
+            XL[a, 0] = xa
+            for j in range(n_act):
+                XL[a, 1 + j] = xa + cols[j, a]
+                XL[a, 1 + n_act + j] = xa - cols[j, a]
+    return repaired
+
+
+@jit
+def _mean_cov(XL, cols, n_act, angles, tmask, wm, wc, Q, xs, x, P, dX, C):
+    """Weighted mean and covariance of the 2n+1 propagated points (the position-only ones displaced as
+    the central one), residuals about the central point, angles wrapped; ``P = sum wc dX dX^T + Q`` (its
+    lower triangle computed, mirrored). Every sum over points runs in point order. ``dX (2n + 3, n)``: the
+    residuals, then two rows of scratch."""
+    n = x.shape[0]
+    S = 1 + 2 * n_act
+    n_fix = n - n_act
+    n_pts = 2 * n + 1
+    sh = dX[n_pts]  # the weighted sum of the residuals (the mean's shift)
+    row = dX[n_pts + 1]
+    for a in range(n):
+        sh[a] = 0.0
+        dX[0, a] = 0.0  # the central point's residual
+    for j in range(1, S):
+        w_ = wm[j]
+        for a in range(n):
+            d = XL[a, j] - XL[a, 0]
+            if angles[a] and not abs(d) < PI:  # wrapping is the identity inside (-pi, pi): skipped there
+                d = wrap(d)
+            dX[j, a] = d
+            sh[a] += w_ * d
+    for j in range(n_fix):
+        w_ = wm[S + j]
+        for a in range(n):
+            ref = XL[a, 0]
+            d = (ref + cols[n_act + j, a]) - ref
+            if angles[a] and not abs(d) < PI:
+                d = wrap(d)
+            dX[S + j, a] = d
+            sh[a] += w_ * d
+    for j in range(n_fix):
+        w_ = wm[S + n_fix + j]
+        for a in range(n):
+            ref = XL[a, 0]
+            d = (ref - cols[n_act + j, a]) - ref
+            if angles[a] and not abs(d) < PI:
+                d = wrap(d)
+            dX[S + n_fix + j, a] = d
+            sh[a] += w_ * d
+    for a in range(n):
+        mv = XL[a, 0] + sh[a]
+        if angles[a] and not abs(mv) < PI:
+            mv = wrap(mv)
+        x[a] = mv + xs[a] if tmask[a] else mv
+        for b in range(a + 1):
+            C[a, b] = 0.0
+    for j in range(n_pts):
+        w_ = wc[j]
+        for a in range(n):
+            d = dX[j, a] - sh[a]
+            if angles[a] and not abs(d) < PI:
+                d = wrap(d)
+            row[a] = d
+        for a in range(n):
+            da = row[a] * w_
+            for b in range(a + 1):
+                C[a, b] += da * row[b]
+    for a in range(n):
+        for b in range(a + 1):
+            p_ = C[a, b] + Q[a, b]
+            P[a, b] = p_
+            P[b, a] = p_
+
+
+@jit
+def _update_scalar(x, P, i_s, y, angle, sig2, u):
+    """One scalar sample of state ``i_s``: ``Pyy = P_ii + r``, ``Pxy = P[:, i]``; ``P - u u^T`` exactly
+    symmetric (the numpy path's ``_update_scalar``). Returns the normalised innovation squared."""
+    n = x.shape[0]
+    nu0 = y - x[i_s]
+    if angle:
+        nu0 = wrap(nu0)
+    s0 = P[i_s, i_s] + sig2
+    g = nu0 / s0
+    rs = math.sqrt(s0)
+    for a in range(n):
+        pa = P[a, i_s]
+        x[a] = x[a] + pa * g
+        u[a, 0] = pa / rs
+    for a in range(n):
+        for b in range(n):
+            P[a, b] = P[a, b] - u[a, 0] * u[b, 0]
+    return nu0 * nu0 / s0
+
+
+@jit
+def _update_select(r, it, x, P, vals, valids, ch_m, ch_sel, ch_ang, ch_sig2, ch_gate, ch_growth, ch_ga, ch_gd, ch_gtr,
+                   ch_pos, ev_ptr, ev_chan, ev_sptr, ev_samp, ev_any, used, gated, nisv, ws):
+    """Joint update with every channel of this tick, each selecting states (the numpy path's ``_update``
+    with ``X = None``): the latest valid sample of a channel wins, missing channels are masked out, noise
+    reset by distance where configured, chi-square gates per channel; the normalised innovation squared of
+    each channel's sample used (its own block of ``S``) goes to ``nisv``."""
+    n = x.shape[0]
+    yv, msk, Rv, sel, ang, nu = ws.yv, ws.msk, ws.Rv, ws.sel, ws.ang, ws.nu
+    Pyy, Pxy = ws.Pyy, ws.Pxy
+    M = 0
+    Mtot = 0
+    nb = 0
+    for e in range(ev_ptr[it], ev_ptr[it + 1]):
+        c = ev_chan[e]
+        mc = ch_m[c]
+        v = False
+        jv = -1
+        for q in range(ev_sptr[e], ev_sptr[e + 1]):
+            j = ev_samp[q]
+            if valids[c][r, j]:
+                v = True
+                jv = j
+                for k in range(mc):
+                    yv[M + k] = vals[c][r, j, k]
+        if not ev_any[e]:  # no run has a sample: the numpy path leaves the channel out
+            continue
+        Mtot += mc
+        f_ = 1.0
+        if ch_growth[c] and v:
+            dd = 0.0
+            for k in range(mc):
+                if ch_pos[c, k] >= 0:
+                    t_ = yv[M + k] - ch_gtr[c, ch_pos[c, k]]
+                    dd += t_ * t_
+            f_ = 1.0 + ch_ga[c] * math.sqrt(dd) / ch_gd[c]
+        for k in range(mc):
+            sel[M + k] = ch_sel[c, k]
+            ang[M + k] = ch_ang[c, k]
+            msk[M + k] = 1.0 if v else 0.0
+            rv = ch_sig2[c, k]
+            if ch_growth[c] and ch_pos[c, k] >= 0:
+                rv = rv * (f_ * f_)
+            Rv[M + k] = rv
+            if not v:
+                yv[M + k] = 0.0
+        ws.blk_c[nb] = c
+        ws.blk_0[nb] = M
+        ws.blk_j[nb] = jv
+        nb += 1
+        M += mc
+    if M == 0:
+        return
+    for k in range(M):
+        d = yv[k] - x[sel[k]]
+        if ang[k]:
+            d = wrap_if_needed(d)
+        nu[k] = d * msk[k]
+        for l in range(M):
+            Pyy[k, l] = P[sel[k], sel[l]]
+        Pyy[k, k] += Rv[k]
+        for a in range(n):
+            Pxy[a, k] = P[a, sel[k]]
+    for b_ in range(nb):  # chi-square gates per channel block
+        c = ws.blk_c[b_]
+        o = ws.blk_0[b_]
+        mc = ch_m[c]
+        on = msk[o] > 0.0
+        if on:
+            if mc == 1:
+                nis = nu[o] * nu[o] / Pyy[o, o]
+            else:
+                for k in range(mc):
+                    ws.g1[k, 0] = nu[o + k]
+                    for l in range(mc):
+                        ws.A[k, l] = Pyy[o + k, o + l]
+                solve_into(ws.A, ws.g1, ws.g2, mc, 1)
+                nis = 0.0
+                for k in range(mc):
+                    nis += nu[o + k] * ws.g2[k, 0]
+            if not math.isnan(ch_gate[c]) and not nis <= ch_gate[c]:
+                for k in range(mc):
+                    msk[o + k] = 0.0
+                    nu[o + k] = 0.0
+                gated[r, c] += 1
+                on = False
+        if on:
+            used[r, c] += 1
+            nisv[c][r, ws.blk_j[b_]] = nis
+    if Mtot == 1:  # one scalar measurement: the closed form without a solve
+        if msk[0] > 0.0:
+            s0 = Pyy[0, 0]
+            g = nu[0] / s0
+            rs = math.sqrt(s0)
+            for a in range(n):
+                x[a] = x[a] + Pxy[a, 0] * g
+                ws.Kg[a, 0] = Pxy[a, 0] / rs
+            for a in range(n):
+                for b in range(n):
+                    P[a, b] = P[a, b] - ws.Kg[a, 0] * ws.Kg[b, 0]
+        return
+    mv = 0  # the components that arrived: K = Pxy Pyy^-1 on those (masked ones have zero gain)
+    for k in range(M):
+        if msk[k] > 0.0:
+            ws.idx[mv] = k
+            mv += 1
+    if mv == 0:
+        return
+    A, B, Xs, KS, C = ws.A, ws.B, ws.Xs, ws.KS, ws.C
+    idx = ws.idx
+    for k in range(mv):
+        for l in range(mv):
+            A[k, l] = Pyy[idx[k], idx[l]]
+        for a in range(n):
+            B[k, a] = Pxy[a, idx[k]]
+    solve_into(A, B, Xs, mv, n)  # K^T (mv, n)
+    for a in range(n):
+        s_ = 0.0
+        for k in range(mv):
+            s_ += Xs[k, a] * nu[idx[k]]
+        x[a] = x[a] + s_
+    for a in range(n):
+        for k in range(mv):
+            s_ = 0.0
+            for l in range(mv):
+                s_ += Xs[l, a] * A[l, k]
+            KS[a, k] = s_
+    for a in range(n):
+        for b in range(n):
+            s_ = 0.0
+            for k in range(mv):
+                s_ += KS[a, k] * Xs[k, b]
+            C[a, b] = P[a, b] - s_
+    for a in range(n):
+        for b in range(n):
+            P[a, b] = 0.5 * (C[a, b] + C[b, a])
+
+
+@jit
+def _check(x, xs, P, kind, sing_thr, max_trace):
+    """Divergence (non-finite estimate or covariance, trace beyond ``max_trace``) and the model's
+    singularity (left the domain, or jumped over it since ``xs``): the run's status code."""
+    n = x.shape[0]
+    tr = 0.0
+    for a in range(n):
+        tr += P[a, a]
+    finite = np.isfinite(tr)
+    for a in range(n):
+        if not np.isfinite(x[a]):
+            finite = False
+    sing = False
+    if kind == 1:
+        sing = not math.cos(x[4]) > sing_thr
+    elif kind == 2:
+        h0, h1, h2 = x[3], x[4], x[5]
+        b0, b1, b2 = x[6], x[7], x[8]
+        dd = h0 * b0 + h1 * b1 + h2 * b2
+        mg = abs(dd) / (math.sqrt(h0 * h0 + h1 * h1 + h2 * h2) * math.sqrt(b0 * b0 + b1 * b1 + b2 * b2))
+        d0 = xs[3] * xs[6] + xs[4] * xs[7] + xs[5] * xs[8]
+        sing = (not mg > sing_thr) or d0 * dd < 0.0
+    if (not finite) or tr > max_trace or sing:
+        return SINGULAR if (sing and finite) else DIVERGED
+    return OK
+
+
+@jit
+def _copy(x, P, x_to, P_to):
+    n = x.shape[0]
+    for a in range(n):
+        x_to[a] = x[a]
+        for b in range(n):
+            P_to[a, b] = P[a, b]
+
+
+@jit
+def _emit(states, cov_full, cov_diag, layout, stride, r, k, x, P):
+    n = x.shape[0]
+    for a in range(n):
+        states[r, k, a] = x[a]
+    if layout == LAYOUT_NONE or k % stride != 0:
+        return
+    j = k // stride
+    if layout == LAYOUT_FULL:
+        for a in range(n):
+            for b in range(n):
+                cov_full[r, j, a, b] = P[a, b]
+    else:
+        for a in range(n):
+            cov_diag[r, j, a] = P[a, a]
+
+
+# ---------------------------------------------------------------------------------------------- the seam
+def filter_runs(model, params, problem, s, chans, ticks, inputs, x0, P0, Q, kappa_i, interfaces,
+                depths, weights, order, n_act, progress=None) -> dict:
+    """Everything :meth:`UnscentedKalmanFilter.run` computes in its tick loop, from the arrays it has set
+    up (its names), by :func:`run`."""
+    N, n = x0.shape
+    T = len(problem.time)
+    nt = len(ticks)
+    dt_grid = float(problem.time[1] - problem.time[0]) if T > 1 else 1.0
+    mid = MODEL_IDS[model.registered_name]
+    angles = np.ascontiguousarray(model.angle_mask, dtype=np.bool_)
+    tmask = np.zeros(n, dtype=np.bool_)
+    if order is None:
+        order_a = np.arange(n, dtype=np.int64)
+    else:
+        order_a = np.arange(n, dtype=np.int64)[order].astype(np.int64)
+        tmask[[model.index(k) for k in model.translation_states]] = True
+    p_arr = np.array([float(np.asarray(v)) for v in params.values()], dtype=float)
+    u = inputs
+    u3 = np.ascontiguousarray(u[:1] if u.strides[0] == 0 else u, dtype=float)
+    depth = problem.depth
+    depth2 = np.ascontiguousarray(depth[:1] if depth.strides[0] == 0 else depth, dtype=float)
+    itf = np.asarray(interfaces, dtype=float)
+    itf2 = np.ascontiguousarray(itf.reshape(1, -1) if itf.ndim == 1 else itf)
+    reset_target = -1.0
+    if s.kappa_reset is not None and kappa_i is not None and itf.size:
+        reset_target = float(s.kappa_reset.factor * P0[kappa_i, kappa_i])
+    # ---- channels as arrays; their samples as a tuple of MAX_CHANNELS arrays (padded: one compiled kernel for
+    # any number of channels; numba's typed lists would cost 0.6 s of compilation in every process)
+    C = len(chans)
+    mmax = max([c["m"] for c in chans], default=1)
+    ch_m = np.array([c["m"] for c in chans], dtype=np.int64)
+    ch_sel = np.zeros((max(C, 1), mmax), dtype=np.int64)
+    ch_ang = np.zeros((max(C, 1), mmax), dtype=np.bool_)
+    ch_sig2 = np.zeros((max(C, 1), mmax))
+    ch_gate = np.full(max(C, 1), np.nan)
+    ch_growth = np.zeros(max(C, 1), dtype=np.bool_)
+    ch_ga = np.zeros(max(C, 1))
+    ch_gd = np.ones(max(C, 1))
+    ch_gtr = np.zeros((max(C, 1), 3))
+    ch_pos = np.full((max(C, 1), mmax), -1, dtype=np.int64)
+    vals, valids = [], []
+    for ci, c in enumerate(chans):
+        m = c["m"]
+        ch_sel[ci, :m] = c["select"]
+        ch_ang[ci, :m] = c["angle"]
+        ch_sig2[ci, :m] = c["sigma"] ** 2
+        if c["gate"] is not None:
+            ch_gate[ci] = c["gate"]
+        g = c["growth"]
+        if g is not None and c["pos_cols"]:
+            ch_growth[ci] = True
+            ch_ga[ci], ch_gd[ci] = float(g.a), float(g.d_max)
+            ch_gtr[ci] = np.asarray(g.transducer, dtype=float)
+            for col, ax in zip(c["pos_cols"], c["pos_axes"]):
+                ch_pos[ci, col] = ax
+        vals.append(np.ascontiguousarray(c["value"], dtype=float))
+        valids.append(np.ascontiguousarray(c["valid"], dtype=np.bool_))
+    nisv = tuple([np.full(np.shape(c["valid"]), np.nan) for c in chans] + [np.full((1, 1), np.nan)] * (MAX_CHANNELS - C))
+    vals = tuple(vals + [np.zeros((1, 1, 1))] * (MAX_CHANNELS - C))
+    valids = tuple(valids + [np.zeros((1, 1), dtype=np.bool_)] * (MAX_CHANNELS - C))
+    # ---- the schedule (UnscentedKalmanFilter._schedule as arrays): per tick its events, each a channel and
+    # the samples of it that became available since the last tick (time order); channels in their order
+    e_tick, e_chan, e_first, e_count, samples, any_valid = [], [], [], [], [], []
+    base = 0
+    for ci, c in enumerate(chans):
+        tick_of = np.searchsorted(ticks, c["avail"], side="left")  # c["avail"] sorted, c["order"] maps back
+        keep = (tick_of > 0) & (tick_of < nt)  # samples available at the first tick serve initialisation
+        t_k, j_k = tick_of[keep], np.asarray(c["order"])[keep]
+        starts = np.flatnonzero(np.r_[True, t_k[1:] != t_k[:-1]]) if t_k.size else np.zeros(0, dtype=np.int64)
+        e_tick.append(t_k[starts])
+        e_chan.append(np.full(starts.size, ci))
+        e_first.append(base + starts)
+        e_count.append(np.diff(np.r_[starts, t_k.size]))
+        samples.append(j_k)
+        any_valid.append(np.asarray(c["valid"]).any(axis=0)[j_k])  # does any run have this sample
+        base += t_k.size
+    cat = (lambda parts, dt: np.concatenate(parts).astype(dt) if parts else np.zeros(0, dtype=dt))
+    e_tick, e_chan = cat(e_tick, np.int64), cat(e_chan, np.int64)
+    e_first, e_count = cat(e_first, np.int64), cat(e_count, np.int64)
+    samples, any_valid = cat(samples, np.int64), cat(any_valid, np.bool_)
+    o = np.lexsort((e_chan, e_tick))  # by tick, then channel
+    e_tick, e_chan, e_first, e_count = e_tick[o], e_chan[o], e_first[o], e_count[o]
+    ev_sptr_a = np.r_[0, np.cumsum(e_count)].astype(np.int64)
+    gather = np.repeat(e_first - ev_sptr_a[:-1], e_count) + np.arange(ev_sptr_a[-1])
+    ev_samp_a = samples[gather] if gather.size else np.zeros(1, dtype=np.int64)
+    ev_any_a = np.logical_or.reduceat(any_valid[gather], ev_sptr_a[:-1]) if gather.size else np.zeros(1, dtype=np.bool_)
+    ev_chan_a = e_chan if e_chan.size else np.zeros(1, dtype=np.int64)
+    ev_ptr = np.searchsorted(e_tick, np.arange(nt + 1), side="left").astype(np.int64)
+    n_ev = np.diff(ev_ptr)
+    mode = np.where(n_ev == 0, MODE_NONE, MODE_SELECT).astype(np.int64)
+    if e_chan.size:
+        first = np.minimum(ev_ptr[:-1], e_chan.size - 1)
+        scalar = np.array([c["scalar"] for c in chans], dtype=bool)
+        mode[(n_ev == 1) & scalar[e_chan[first]] & (e_count[first] == 1)] = MODE_SCALAR
+    # ---- predictions: which start at which tick (from the first run's depth, as the numpy path)
+    D = len(depths)
+    pred_tick = np.full(D, -1, dtype=np.int64)
+    pred_count = np.zeros(nt, dtype=np.int64)
+    started = 0
+    for i in range(1, nt):
+        if D:
+            dnow = problem.depth[0, ticks[i]]
+            due = np.nonzero((pred_tick < 0) & (depths <= dnow + 1e-9))[0]
+            pred_tick[due] = ticks[i]
+            started += due.size
+        pred_count[i] = started
+    # ---- outputs
+    states = np.empty((N, T, n))
+    layout = {"none": LAYOUT_NONE, "diag": LAYOUT_DIAG, "full": LAYOUT_FULL}[problem.cov_layout]
+    stride = int(problem.cov_stride)
+    Tc = len(range(0, T, stride))
+    cov_full = np.empty((N, Tc, n, n)) if layout == LAYOUT_FULL else np.empty((1, 1, 1, 1))
+    cov_diag = np.empty((N, Tc, n)) if layout == LAYOUT_DIAG else np.empty((1, 1, 1))
+    status = np.zeros(N, dtype=np.int64)
+    event = np.full(N, -1, dtype=np.int64)
+    repairs = np.zeros(N, dtype=np.int64)
+    hits = np.zeros(N, dtype=np.int64)
+    resets = np.zeros(N, dtype=np.int64)
+    used = np.zeros((N, max(C, 1)), dtype=np.int64)
+    gated = np.zeros((N, max(C, 1)), dtype=np.int64)
+    roll = np.full((N, D, n), np.nan)
+    prog = np.zeros(N, dtype=np.int64)
+    kind = 1 if mid in (UNICYCLE, MODIFIED_UNICYCLE) else 2 if mid == BINM else 0
+    kmax = float(s.kappa_max) if s.kappa_max is not None else np.nan
+    args = (mid, np.ascontiguousarray(x0, dtype=float), np.ascontiguousarray(P0, dtype=float),
+            np.ascontiguousarray(ticks, dtype=np.int64), u3, p_arr, dt_grid, angles, order_a, int(n_act), tmask,
+            np.ascontiguousarray(weights.wm), np.ascontiguousarray(weights.wc), float(np.sqrt(weights.scale)),
+            np.ascontiguousarray(Q, dtype=float), -1 if kappa_i is None else int(kappa_i), kmax, reset_target,
+            itf2 if itf2.shape[1] else np.zeros((1, 0)), depth2, float(s.max_cov_trace), kind,
+            float(model.singular_threshold),
+            vals, valids, ch_m if C else np.zeros(1, dtype=np.int64), ch_sel, ch_ang, ch_sig2, ch_gate, ch_growth,
+            ch_ga, ch_gd, ch_gtr, ch_pos, ev_ptr, ev_chan_a, ev_sptr_a, ev_samp_a, ev_any_a, mode, pred_count,
+            states, cov_full, cov_diag, layout, stride, status, event, repairs, hits, resets, used, gated, nisv, roll, prog)
+    total = N * max(nt - 1, 1)
+    poll = None if progress is None else (lambda: progress(int(prog.sum()) * (nt - 1) // total, nt - 1))
+    parallel_for(run, blocks(N), args, poll)
+    cov = None
+    if layout == LAYOUT_FULL:
+        cov = cov_full
+    elif layout == LAYOUT_DIAG:
+        cov = cov_diag
+    return {"states": states, "cov": cov, "status": status, "event": event, "repairs": repairs, "hits": hits,
+            "resets": resets, "used": used[:, :C], "gated": gated[:, :C], "nis": nisv[:C], "roll": roll,
+            "pred_tick": pred_tick}

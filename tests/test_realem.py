@@ -396,3 +396,60 @@ def test_along_across_table_and_plot(tmp_path):
     assert r.exit_code == 0, r.output
     png = out / "rep_error_along_across.png"
     assert png.exists() and png.stat().st_size > 10_000
+
+
+def test_from_fit_gives_the_ekf_the_offset_state_and_the_ukf_its_white_equivalent(needle_fit, tmp_path):
+    """An EKF (which has sensor states) takes the fitted offset itself: along_offset with the fit's tau and
+    sigma = sqrt(q^2 tau / 2), the white R along the needle alone; a UKF with ``offset: white`` takes
+    2 sigma^2 tau / dt along the needle, dt the mean interval between the channel's valid samples."""
+    d, fit = needle_fit
+    base = {"p0": {"x": 1.0, "y": 1.0, "z": 1.0, "alpha": 1e-3, "beta": 1e-3, "gamma": 0.1},
+            "init": {"first_measurement": {"x": "us.x", "y": "us.y", "z": "us.z"}}}
+    ekf = {"name": "ekf_em", "type": "ekf", "from_fit": {"file": str(fit), "model": "unicycle"}, **base}
+    ukf = {"name": "ukf_w", "type": "ukf", "from_fit": {"file": str(fit), "model": "unicycle", "offset": "white"}, **base}
+    cfg, _ = load_config(text=yaml.safe_dump(_sim_config([ekf, ukf])))
+    with h5py.File(fit) as f:
+        g = f["fit/unicycle"]
+        ok = g["status"][()].astype(str) == "ok"
+        R = np.median(g["R/us"][()][ok], axis=0)
+        q2 = np.median(g["Q"][()][ok], axis=0)[-1, -1]
+        t, valid = f["measurements/us/t"][()], f["measurements/us/valid"][()]
+    white = np.diag(R) * 5.0 / 3.0  # the Student-t's variance (nu = 5)
+    e = cfg.observers[0].measurements["us"]
+    assert e.along_offset.tau == 4.0
+    np.testing.assert_allclose(e.along_offset.sigma, np.sqrt(q2 * 4.0 / 2.0), rtol=1e-12)
+    np.testing.assert_allclose(e.sigma, np.sqrt(white), rtol=1e-12)
+    dt = np.median([(t[v][-1] - t[v][0]) / (v.sum() - 1) for v in valid[ok]])
+    u = cfg.observers[1].measurements["us"]
+    np.testing.assert_allclose(u.sigma[0] ** 2, white[0] + 2.0 * (q2 * 4.0 / 2.0) * 4.0 / dt, rtol=1e-12)
+    np.testing.assert_allclose(u.sigma[1:], np.sqrt(white[1:]), rtol=1e-12)
+    # the EKF runs with the offset as a state of its own
+    path = tmp_path / "e.yaml"
+    path.write_text(yaml.safe_dump(_sim_config([ekf])))
+    r = CliRunner().invoke(app, ["simulate", str(path), "--out", str(tmp_path / "e.h5"), "--quiet"])
+    assert r.exit_code == 0, r.output
+    with h5py.File(tmp_path / "e.h5") as f:
+        assert _s(f["estimates/ekf_em"].attrs["names"])[-1] == "us_offset"
+        assert np.isfinite(f["estimates/ekf_em/state"][()]).all()
+
+
+def test_white_equivalent_of_an_offset_is_the_variance_of_its_long_averages():
+    """Independent reference: the exact variance of the mean of n samples of the offset sampled every dt
+    (AR(1), phi = exp(-dt / tau): sigma^2 / n^2 sum_ij phi^|i - j|) approaches r / n with r the white
+    equivalent 2 sigma^2 tau / dt of from_fit's ``offset: white``, for n dt >> tau and dt << tau."""
+    from needlecli.experiments.from_fit import offset_variance
+
+    class _Meas:  # a channel of 4000 samples every 0.05 s, all valid
+        data = {"t": np.arange(4000) * 0.05, "valid": np.ones((1, 4000), dtype=bool)}
+
+    tau, sigma2, dt = 2.0, 1.7, 0.05
+    q2 = 2.0 * sigma2 / tau
+    assert offset_variance(q2, tau, "stationary", _Meas, np.ones(1, bool), "c", ()) == pytest.approx(sigma2)
+    r = offset_variance(q2, tau, "white", _Meas, np.ones(1, bool), "c", ())
+    n = 4000
+    phi = np.exp(-dt / tau)
+    k = np.arange(1, n)
+    exact = sigma2 / n**2 * (n + 2.0 * np.sum((n - k) * phi**k))
+    assert r / n == pytest.approx(exact, rel=0.02)
+    with pytest.raises(ConfigError, match="random walk"):
+        offset_variance(q2, np.inf, "white", _Meas, np.ones(1, bool), "c", ())

@@ -338,6 +338,7 @@ def take_fit(out: FitOutput, trials: Trials, idx) -> FitOutput:
                          R=[x[idx] for x in r.R], history={k: v[idx] for k, v in r.history.items()})
         if getattr(r, "roll_flipped", None) is not None:
             res.roll_flipped = np.asarray(r.roll_flipped)[idx]
+        system, res = _trim_ticks(system, res, len(trials.truth.time))
         idf = None
         if mf.identifiability is not None:
             s = trials.cfg.fit.identify
@@ -348,6 +349,31 @@ def take_fit(out: FitOutput, trials: Trials, idx) -> FitOutput:
             rob = RobustInfo([None if w is None else w[idx] for w in rb.weights], rb.dof, rb.passes[idx], rb.last_change[idx])
         sub.fits[name] = ModelFit(name, system, res, mf.seconds, idf, rob)
     return sub
+
+
+def _trim_ticks(S: System, res: EMResult, T: int) -> tuple[System, EMResult]:
+    """The fit on the first ``T`` grid steps only (ticks ``< T``): the subset's own time axis when the
+    trials left out ran longer (their ticks lie past its end; the subset has no samples there)."""
+    import dataclasses as dc
+
+    dm = S.dm
+    keep = int(np.searchsorted(dm.ticks, T))
+    if keep >= len(dm.ticks):
+        return S, res
+    out = object.__new__(type(dm))
+    out.__dict__.update(dm.__dict__)
+    out.ticks = dm.ticks[:keep]
+    out.dt = dm.dt[: keep - 1]
+    out.sub_dt = dm.sub_dt[: keep - 1]
+    out.sub_u = dm.sub_u[:, : keep - 1]
+    K1 = len(dm.ticks)
+    cut = {f.name: getattr(res, f.name)[:, :keep] for f in dc.fields(res)
+           if isinstance(getattr(res, f.name), np.ndarray) and getattr(res, f.name).ndim >= 2
+           and getattr(res, f.name).shape[1] == K1}
+    trimmed = dc.replace(res, **cut)
+    if getattr(res, "roll_flipped", None) is not None:
+        trimmed.roll_flipped = res.roll_flipped
+    return dc.replace(S, dm=out), trimmed
 
 
 def _rows(v, idx: np.ndarray, N: int):

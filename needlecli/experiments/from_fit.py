@@ -39,6 +39,9 @@ from needlecli.schema import Strict, validation_error
 
 log = logging.getLogger("needlecli")
 
+#: observers with a channel's sensor states (``measurements.<channel>.along_offset``): from_fit gives them the
+#: fitted offset itself; the others fold it into the channel's noise along the needle (``FromFit.offset``)
+SENSOR_STATES = ("ekf", "eks")
 TAKES = {"ukf": ("q_tick", True), "ekf": ("q_root_s", True), "eks": ("q_root_s", True), "open_loop": ("q_root_s", False)}
 
 
@@ -52,6 +55,12 @@ class FromFit(Strict):
     trials: list[int | str] | None = Field(
         None, min_length=1, description="with pick: median or mean, over these trials only (indices or ids; e.g. "
                                         "the trials recorded at the same insertion speed)")
+    offset: Literal["stationary", "white"] = Field(
+        "stationary", description="a fitted offset of a channel along the needle (an Ornstein-Uhlenbeck sensor "
+        "state) in an observer without that state (ukf, open_loop; ekf and eks take the state itself) joins the "
+        "channel's noise along the needle: stationary, its variance sigma^2 (what one sample sees), or white, as "
+        "white noise of the same power at low frequencies, 2 sigma^2 tau / dt (dt the mean interval between the "
+        "channel's valid samples: what a filter averaging over more than tau sees)")
 
 
 def _strs(v) -> list[str]:
@@ -122,6 +131,31 @@ def _apply_to_fit(fit: dict, source: str, base_dir: Path) -> str:
     return what
 
 
+def offset_variance(q2: float, tau: float, how: str, meas, sel: np.ndarray, source: str, loc: tuple) -> float:
+    """The variance an offset state of the fit (Ornstein-Uhlenbeck: ``d e = -e / tau dt + q dW``, stationary
+    variance ``sigma^2 = q^2 tau / 2``) adds to its channel's white noise along the needle in an observer
+    without the state: ``sigma^2`` (``stationary``), or ``2 sigma^2 tau / dt = q^2 tau^2 / dt`` (``white``:
+    the same spectral density at frequency 0, ``2 sigma^2 tau``, as white samples of variance ``r`` every
+    ``dt`` have, ``r dt``), ``dt`` the mean interval between the channel's valid samples (median over the
+    picked trials). A random-walk offset (``tau`` infinite) has neither."""
+    if not np.isfinite(tau):
+        raise ConfigError(source, loc + ("file",), "the fit's offset along the needle is a random walk (no tau): it "
+                          "has no stationary variance to add to an observer's noise")
+    var = q2 * tau / 2.0
+    if how == "stationary":
+        return var
+    t = np.asarray(meas.data["t"], dtype=float)
+    valid = np.asarray(meas.data["valid"], dtype=bool)
+    dts = []
+    for v in valid[sel]:
+        tv = t[v]
+        if tv.size > 1:
+            dts.append((tv[-1] - tv[0]) / (tv.size - 1))
+    if not dts:
+        raise ConfigError(source, loc + ("file",), "the channel with an offset has fewer than 2 valid samples")
+    return 2.0 * var * tau / float(np.median(dts))
+
+
 def fitted_values(spec: FromFit, base_dir: Path, source: str, loc: tuple) -> dict[str, Any]:
     """What the fit file gives: ``{"model", "names", "q_var" (state -> Q_ii per second), "r_var" (channel ->
     (m,) variances or None for a direction), "params" (constant -> value), "trials", "weak"}``."""
@@ -176,11 +210,13 @@ def fitted_values(spec: FromFit, base_dir: Path, source: str, loc: tuple) -> dic
     sensor = _strs(g.attrs.get("sensor_states", []))
     q_var = {s: float(Q[j, j]) for j, s in enumerate(names) if s in q_states and s not in consts and s not in sensor}
     # a sensor's offset along the needle (an Ornstein-Uhlenbeck state of the fit): these observers have no
-    # such state, so its stationary variance q^2 tau / 2 joins the channel's noise along the needle
-    offset_var = {}
+    # such state, so it joins the channel's noise along the needle (FromFit.offset)
+    offset_var, offsets = {}, {}
     for s_name, ch, tau in zip(sensor, _strs(g.attrs.get("sensor_state_channels", [])), np.atleast_1d(g.attrs.get("sensor_state_tau", []))):
-        j = names.index(s_name)
-        offset_var[ch] = float(Q[j, j]) * float(tau) / 2.0 if np.isfinite(tau) else 0.0
+        q2 = float(Q[names.index(s_name), names.index(s_name)])
+        offset_var[ch] = offset_variance(q2, float(tau), spec.offset, res.data["measurements"].data.get(ch), sel,
+                                         source, loc)
+        offsets[ch] = {"tau": float(tau), "sigma": float(np.sqrt(max(q2, 0.0) * float(tau) / 2.0))}
     r_var = {}
     wg = g.data.get("weights")  # Student-t channels: R is the scale; its variance is nu / (nu - 2) R
     dof = dict(zip(_strs(wg.attrs.get("student_t", [])), np.atleast_1d(wg.attrs.get("dof", [])))) if wg is not None else {}
@@ -196,16 +232,15 @@ def fitted_values(spec: FromFit, base_dir: Path, source: str, loc: tuple) -> dic
         if ch in dof and r_var[ch] is not None:  # the Gaussian of the Student-t's variance (infinite for nu <= 2)
             nu = float(dof[ch])
             r_var[ch] = r_var[ch] * (nu / (nu - 2.0) if nu > 2.0 else np.inf)
-        if ch in offset_var and r_var[ch] is not None:
-            if ch not in frames:
-                raise ConfigError(source, loc + ("file",), f"the fit's offset of {ch!r} along the needle needs its R "
-                                  "in needle coordinates (frame: needle) to be taken")
-            r_var[ch][0] += offset_var[ch]
+        if ch in offset_var and r_var[ch] is not None and ch not in frames:
+            raise ConfigError(source, loc + ("file",), f"the fit's offset of {ch!r} along the needle needs its R "
+                              "in needle coordinates (frame: needle) to be taken")
     params = {c: float(reduce(np.asarray(g.data["constant"].data[c], dtype=float)[sel])) for c in consts}
     from needlecli.reports.identify import weak_quantities
 
     weak = weak_quantities(res, spec.model)
     return {"model": spec.model, "names": names, "q_var": q_var, "r_var": r_var, "needle": frames, "params": params,
+            "offsets": offsets, "offset_var": offset_var,
             "trials": int(sel.sum()), "weak": weak, "path": str(path), "pick": spec.pick}
 
 
@@ -244,6 +279,14 @@ def _apply(obs: dict, v: dict, data: dict, source: str, loc: tuple) -> str:
             spec = meas.setdefault(ch, {})
             if "sigma" in spec:
                 raise ConfigError(source, loc + ("measurements", ch, "sigma"), "from_fit sets it: give one of them")
+            var = np.array(var, dtype=float)
+            if ch in v["offsets"] and kind in SENSOR_STATES:  # the observer has the offset state EM fitted
+                if "along_offset" in spec:
+                    raise ConfigError(source, loc + ("measurements", ch, "along_offset"),
+                                      "from_fit sets it: give one of them")
+                spec["along_offset"] = dict(v["offsets"][ch])
+            elif ch in v["offsets"]:  # it has none: the offset joins the noise along the needle
+                var[0] += v["offset_var"][ch]
             spec["sigma"] = [float(np.sqrt(max(x, 0.0))) for x in var]
             if ch in v.get("needle", {}):  # R fitted along and across the needle: the same coordinates here
                 for key, want in (("frame", "needle"), ("across_axis", v["needle"][ch])):

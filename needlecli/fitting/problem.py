@@ -187,7 +187,7 @@ def check_setup(setup: KalmanSetup, model_cls: type[Model], sensors: dict, augme
             out.append((("params", k), f"model {model_cls.registered_name!r} has no parameter {k!r}"))
     out += check_channels(setup, model_cls, sensors)
     for name, spec in setup.measurements.items():  # EM's robust weights and sensor states: fit-em only
-        for key in ("student_t", "along_offset"):
+        for key in ("student_t",):
             if getattr(spec, key) is not None:
                 out.append((("measurements", name, key), "is a setting of needle fit-em (the fit: section); "
                             "an observer takes what it fitted through from_fit"))

@@ -326,3 +326,29 @@ def test_validate_reports_a_missing_log_in_one_line(tmp_path):
     cfg.write_text("name: r\nsource: {logs: [nowhere.h5]}\nmodel: {type: unicycle}\nobservers: []\n")
     res = CliRunner().invoke(app, ["validate", str(cfg)])
     assert res.exit_code == 2 and "no such log file" in res.output and "Traceback" not in res.output
+
+
+@needs_data
+def test_crossval_folds_of_trials_of_unequal_length(log, tmp_path):
+    """Leave-one-out on three tracker trials of 9_18_15 at 1, 2 and 3 mm/s (64, 32 and 21 s): the folds
+    that hold out the longest trial have a shorter time axis than the fit over all trials, and their fit
+    files keep to it (ticks inside /time: the layout check at open), so the tuned observer runs."""
+    from needlecli.io.fit import read_fit
+
+    _, path = log
+    data = yaml.safe_load((ROOT / "configs" / "real" / "em_tracker.yaml").read_text())
+    data["source"]["logs"] = [str(path)]
+    data["source"]["trials"] = ["9_18_15-1mm-Trial1", "9_18_15-2mm-Trial1", "9_18_15-3mm-Trial1"]
+    data["fit"]["identify"] = {"enabled": False}
+    cfg = tmp_path / "em.yaml"
+    cfg.write_text(yaml.safe_dump(data))
+    res = CliRunner().invoke(app, ["crossval", str(cfg), "--observer", "open_loop", "--leave-one-out",
+                                   "--out", str(tmp_path / "cv"), "--quiet"])
+    assert res.exit_code == 0, res.output
+    lengths = []
+    for k in range(3):
+        f = read_fit(tmp_path / "cv" / "folds" / f"fold{k}_fit.h5")
+        T = len(f.data["time"])
+        assert int(np.max(f.data["fit"].data["unicycle"].data["ticks"])) < T
+        lengths.append(T)
+    assert len(set(lengths)) > 1  # the folds do have different time axes

@@ -106,7 +106,7 @@ regress:
 faults:
 	$(PY) tools/faults.py --points 20 --executor local --work results/faults
 
-# Recorded insertions (issue 8): the data stay outside the repository; not part of CI (about 7 minutes
+# Recorded insertions (issue 8): the data stay outside the repository; not part of CI (about 3 minutes
 # on 2 cores, most of it EM). NEEDLECLI_REAL_DATA overrides where they are.
 REAL := results/real
 REAL_DATA ?= $(or $(NEEDLECLI_REAL_DATA),../shared/real-data/ultrasteer)
@@ -134,7 +134,10 @@ real:
 	@# (d) the tracker trials cross-validated: EM on the other trials of the day, the held-out path from its first pose
 	needle crossval configs/real/em_tracker.yaml --observer open_loop --leave-one-out --group-by 'id~^[^-]+' --within \
 	  --out $(REAL)/crossval --quiet > /dev/null
-	@echo "tables: $(REAL)/tables, $(REAL)/crossval"
+	@# (d) again, EM on the other trials of the day at the held-out one's speed only
+	needle crossval configs/real/em_tracker.yaml --observer open_loop --leave-one-out --group-by 'id~^[^-]+-[^-]+' --within \
+	  --out $(REAL)/crossval_speed --quiet > /dev/null
+	@echo "tables: $(REAL)/tables, $(REAL)/crossval, $(REAL)/crossval_speed"
 
 # The time constant of the image plane's offset (configs/real/em_resultsorig.yaml): the ultrasound's
 # log-likelihood at EM's fit for each tau (needs `make real` first); tables in $(REAL)/tau.

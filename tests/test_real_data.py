@@ -149,7 +149,7 @@ def test_lost_ultrasound_frames_are_invalid(log, raws):
 
 @needs_data
 def test_ultrasound_error_along_the_needle_is_where_its_image_plane_is(raws):
-    """What README's real-data section builds on: resultsOrig's ultrasound point lies in its image plane
+    """What docs/real-data.md builds on: resultsOrig's ultrasound point lies in its image plane
     (the recorded corners and axes MeasFul, MeasBx, MeasBy), and its error along the needle is, frame by
     frame, where that plane crosses the needle's axis relative to the tracker's tip: the point is the
     axis's crossing of the plane (median 0.07 mm off), whatever the plane's distance (8 mm ahead to 14 mm

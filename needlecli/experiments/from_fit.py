@@ -17,7 +17,10 @@ What it sets, from the trials whose fit is ``ok`` (``pick: median`` / ``mean`` e
   correlations are dropped (these observers take a diagonal ``Q``);
 * ``measurements.<channel>.sigma``: ``sqrt(diag R_j)`` of each fitted channel the observer has a sensor
   for (not ``open_loop``); a measured direction's R is in its tangent plane and is not taken;
-* ``params``: each fitted constant (``c`` of the MNM, a curvature, ...).
+* ``params``: each fitted constant (``c`` of the MNM, a curvature, ...);
+* a channel's fitted offset along the needle (a sensor state, ``along_offset``): for ``ekf`` and ``eks``
+  that state (``measurements.<channel>.along_offset`` with the fitted ``tau`` and ``sigma``); for the
+  others its variance joins the channel's sigma along the needle (``offset``: :func:`offset_variance`).
 
 Checked before any work, with the key path: the file is a fit file, it fitted ``model``, that model is
 the observer's (its ``model`` key, else the experiment's), the picked trial exists and is ``ok``, every

@@ -7,6 +7,7 @@ one common start for several observers, and the along/across error table and plo
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -453,3 +454,28 @@ def test_white_equivalent_of_an_offset_is_the_variance_of_its_long_averages():
     assert r / n == pytest.approx(exact, rel=0.02)
     with pytest.raises(ConfigError, match="random walk"):
         offset_variance(q2, np.inf, "white", _Meas, np.ones(1, bool), "c", ())
+
+
+def test_needle_frame_offset_and_weights_take_the_numpy_path(monkeypatch):
+    """The compiled linearisation covers channels that select states in world axes: a channel in the
+    needle's frame, with an offset state or with robust weights (all with a state-selecting h, which the
+    kernel would otherwise take) linearises as the numpy reference does, and so do the transitions of a
+    system with a sensor state."""
+    from needlecli import kernels
+    from needlecli.fitting.smoother import linearise
+    from needlecli.models.base import StateSelection
+
+    model, truth, y, _, inputs, ticks, dt = _synthetic([2.0, 0.5, 0.5], N=2, T=20.0, ou=(2.0, 1.0))
+    dm, mm = _system(model, y, inputs, ticks, dt, offset=2.0)
+    N, M = y.shape[:2]
+    chans = [dataclasses.replace(mm, h=StateSelection([0, 1, 2])),  # needle frame and offset
+             dataclasses.replace(mm, h=StateSelection([0, 1, 2]), frame="world", tangent_fn=None, offset_index=None,
+                                 weight=np.random.default_rng(1).uniform(0.2, 1.0, (N, M)))]
+    rng = np.random.default_rng(4)
+    m0, _ = _start(model, y, truth, dm)
+    zbar = m0[:, None, :] + 0.1 * rng.standard_normal((N, len(dm.ticks), dm.n))
+    got = linearise(dm, chans, zbar)
+    monkeypatch.setenv(kernels.ENV, "numpy")
+    ref = linearise(dm, chans, zbar)
+    for a, b in [(got.A, ref.A), (got.b, ref.b), *zip(got.H, ref.H), *zip(got.y, ref.y), *zip(got.d, ref.d)]:
+        np.testing.assert_array_equal(a, b)

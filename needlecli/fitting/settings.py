@@ -29,7 +29,8 @@ class AlongOffset(Strict):
     """An offset of a measured position along the needle's tangent, a state of the sensor that EM
     estimates (``h = p + o t``): the image plane of a 2D transverse ultrasound sits ahead of or behind the
     tip. An Ornstein-Uhlenbeck process of time constant ``tau`` (mean 0: the probe follows the tip; EM fits
-    its process noise), or with ``tau: null`` a constant (EM estimates it through the initial state)."""
+    its process noise), or with ``tau: null`` a constant (EM estimates it through the initial state). The
+    ``ekf`` and ``eks`` observers carry it as a state too (``from_fit`` gives them the fitted one)."""
 
     tau: Positive | None = Field(description="time constant of the offset, s; null: a constant")
     sigma: NonNeg = Field(description="std of the offset (model length unit): the process's stationary std "

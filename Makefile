@@ -106,7 +106,7 @@ regress:
 faults:
 	$(PY) tools/faults.py --points 20 --executor local --work results/faults
 
-# Recorded insertions (issue 8): the data stay outside the repository; not part of CI (about 3 minutes
+# Recorded insertions (issue 8): the data stay outside the repository; not part of CI (about 4 minutes
 # on 2 cores, most of it EM). NEEDLECLI_REAL_DATA overrides where they are.
 REAL := results/real
 REAL_DATA ?= $(or $(NEEDLECLI_REAL_DATA),../shared/real-data/ultrasteer)

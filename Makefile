@@ -3,7 +3,7 @@ PY ?= python
 
 STUDIES := results/studies
 
-.PHONY: help install demo test bench lint docs clean seed000 seed001 seed003 seed004 datasets regress real owndata faults
+.PHONY: help install demo test bench lint docs clean seed000 seed001 seed003 seed004 datasets regress real real-tau owndata faults
 
 help:
 	@echo "make install  - install needlecli with test extras (editable)"
@@ -19,6 +19,7 @@ help:
 	@echo "make regress  - replay every bundled data set and check its tables against datasets/baselines/"
 	@echo "make faults   - kill needle simulate and needle sweep at 20 random points each and check what is on disk"
 	@echo "make real     - import the recorded ultrasteer insertions (../shared/real-data) and make their tables in $(REAL)"
+	@echo "make real-tau - after make real: the ultrasound's likelihood against the image plane offset's time constant"
 	@echo "make seed004  - seed 004's synthetic study and T2prelim: EM fits, Tables 1-3, Figs. 5, 10 (in $(STUDIES))"
 	@echo "make owndata  - a lab's exports made by needlecli, imported by a mapping, fitted with and without the slip (in $(OWN))"
 	@echo "make clean    - remove results/ and caches"
@@ -101,8 +102,8 @@ regress:
 faults:
 	$(PY) tools/faults.py --points 20 --executor local --work results/faults
 
-# Recorded insertions (issue 8): the data stay outside the repository; not part of CI (about 3 minutes
-# on 2 cores, half of it EM). NEEDLECLI_REAL_DATA overrides where they are.
+# Recorded insertions (issue 8): the data stay outside the repository; not part of CI (about 4 minutes
+# on 2 cores, most of it EM). NEEDLECLI_REAL_DATA overrides where they are.
 REAL := results/real
 REAL_DATA ?= $(or $(NEEDLECLI_REAL_DATA),../shared/real-data/ultrasteer)
 
@@ -120,7 +121,31 @@ real:
 	else \
 	  echo "needle fit-em is not available: table (c), EM on the 18 tracker trials, is skipped"; \
 	fi
-	@echo "tables: $(REAL)/tables"
+	@# (a2) the UKF tuned by EM: the needle from the day's other tracker trials, the ultrasound from its own data
+	needle fit-em configs/real/em_tracker_9_18_15_others.yaml --out $(REAL)/em_tracker_9_18_15_others.h5 --quiet
+	needle fit-em configs/real/em_resultsorig.yaml --out $(REAL)/em_resultsorig.h5 --quiet
+	needle evaluate $(REAL)/em_resultsorig.h5 --out $(REAL)/tables --tables identifiability,em_per_trial --no-plots --quiet
+	needle simulate configs/real/ukf_resultsorig_em.yaml --out $(REAL)/ukf_resultsorig_em.h5 --quiet > /dev/null
+	needle evaluate $(REAL)/ukf_resultsorig_em.h5 --out $(REAL)/tables --quiet
+	@# (d) the tracker trials cross-validated: EM on the other trials of the day, the held-out path from its first pose
+	needle crossval configs/real/em_tracker.yaml --observer open_loop --leave-one-out --group-by 'id~^[^-]+' --within \
+	  --out $(REAL)/crossval --quiet > /dev/null
+	@# (d) again, EM on the other trials of the day at the held-out one's speed only
+	needle crossval configs/real/em_tracker.yaml --observer open_loop --leave-one-out --group-by 'id~^[^-]+-[^-]+' --within \
+	  --out $(REAL)/crossval_speed --quiet > /dev/null
+	@echo "tables: $(REAL)/tables, $(REAL)/crossval, $(REAL)/crossval_speed"
+
+# The time constant of the image plane's offset (configs/real/em_resultsorig.yaml): the ultrasound's
+# log-likelihood at EM's fit for each tau (needs `make real` first); tables in $(REAL)/tau.
+TAUS := 0.5 1.0 2.0 4.0 8.0 16.0
+real-tau:
+	@mkdir -p $(REAL)/tau
+	@for t in $(TAUS); do \
+	  needle fit-em configs/real/em_resultsorig.yaml --out $(REAL)/tau/em_resultsorig_tau$$t.h5 --quiet \
+	    --set fit.measurements.us.along_offset.tau=$$t --set fit.identify.enabled=false > /dev/null && \
+	  needle evaluate $(REAL)/tau/em_resultsorig_tau$$t.h5 --out $(REAL)/tau/$$t --tables em_per_trial --no-plots --quiet || exit 1; \
+	  echo "tau $$t s: $$(grep resultsOrig $(REAL)/tau/$$t/*em_per_trial.md)"; \
+	done
 
 # Bringing your own recorded data (issue 18, docs/tutorials/own-data.md): a synthetic study in
 # the shape of a lab's exports (step-indexed tracker poses with quaternions, zero rows, per-sample rms, a

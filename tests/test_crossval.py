@@ -34,7 +34,7 @@ def test_folds_keep_groups_together_and_leave_one_out_within_a_group():
         make_folds(ids, groups, k=4, leave_one_out=False, within=False)
 
 
-def test_crossval_tunes_a_wrong_constant_on_held_out_trials(tmp_path):
+def test_crossval_tunes_a_wrong_constant_on_held_out_trials(tmp_path, monkeypatch):
     data = yaml.safe_load((ROOT / "configs" / "seed004" / "study.yaml").read_text())
     data["model"].pop("param_cases")
     data["runs"]["count"] = 4
@@ -48,7 +48,8 @@ def test_crossval_tunes_a_wrong_constant_on_held_out_trials(tmp_path):
     cfg = tmp_path / "study.yaml"
     cfg.write_text(yaml.safe_dump(data, sort_keys=False))
     out = tmp_path / "cv"
-    r = CliRunner().invoke(app, ["crossval", str(cfg), "--observer", "model", "--folds", "2", "--out", str(out), "--quiet"])
+    monkeypatch.chdir(tmp_path)  # a relative --out (the folds' configs live elsewhere than the fit files' paths)
+    r = CliRunner().invoke(app, ["crossval", str(cfg), "--observer", "model", "--folds", "2", "--out", "cv", "--quiet"])
     assert r.exit_code == 0, r.output
     s = pd.read_csv(out / "crossval_summary.csv").set_index("Observer")
     assert set(s.index) == {"model", "model_em"} and (s["Held-out trials"] == 4).all()  # 2 folds of 2
@@ -61,6 +62,19 @@ def test_crossval_tunes_a_wrong_constant_on_held_out_trials(tmp_path):
         held = yaml.safe_load((out / "folds" / f"fold{k}.yaml").read_text()) if (out / "folds" / f"fold{k}.yaml").exists() else None
         assert held is None or not set(fit["source"]["trials"]) & set(held["source"]["trials"])
     assert (out / "crossval_by_depth.md").exists() and (out / "folds" / "fold0.h5").exists()
+    assert (out / "crossval_by_depth.png").stat().st_size > 10_000
+    # each fold takes its training trials' fits from one EM over all of them: the same as fitting the fold
+    r = CliRunner().invoke(app, ["fit-em", str(out / "folds" / "fold0_train.yaml"), "--out", str(tmp_path / "direct.h5"),
+                                 "--quiet"])
+    assert r.exit_code == 0, r.output
+    import h5py
+
+    with h5py.File(out / "folds" / "fold0_fit.h5") as a, h5py.File(tmp_path / "direct.h5") as b:
+        ga, gb = a["fit/mnm"], b["fit/mnm"]
+        assert list(a["truth/trial_id"][()]) == list(b["truth/trial_id"][()])  # the fold's trials, in order
+        np.testing.assert_allclose(ga["constant/c"][()], gb["constant/c"][()], rtol=2e-3)
+        np.testing.assert_allclose(ga["identifiability/pooled_se"][()], gb["identifiability/pooled_se"][()], rtol=0.05)
+        assert list(ga["status"][()]) == list(gb["status"][()])
 
 
 def test_crossval_user_errors(tmp_path):

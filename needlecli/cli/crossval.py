@@ -28,7 +28,7 @@ def crossval(
 
     Example: needle crossval configs/real/em_tracker.yaml --observer open_loop --leave-one-out --group-by 'id~^[^-]+' --within
     """
-    from needlecli.experiments.crossval import check_args, crossval_tables
+    from needlecli.experiments.crossval import check_args, crossval_plot, crossval_tables
     from needlecli.experiments.crossval import crossval as run_crossval
     from needlecli.reports.tables import to_markdown, write_table
 
@@ -45,7 +45,8 @@ def crossval(
         "summary": f"Held-out trials ({how}): position error of each observer over every held-out trial and time "
                    f"step after the first; <name>_em: the observer with Q, R and constants fitted by EM ({result.model}) "
                    "on the training trials only (measurements, never the truth); all from one common start.",
-        "by_depth": f"Held-out trials ({how}): mean position error per inserted depth.",
+        "by_depth": f"Held-out trials ({how}): mean position error per inserted depth"
+                    + (", over all of them and per group of the held-out trials." if group_by else "."),
         "constants": f"Constants fitted by EM ({result.model}) on each fold's training trials: median over its trials "
                      "fitted ok and the pooled standard error (identifiability).",
     }
@@ -55,4 +56,6 @@ def crossval(
             typer.echo(f"## {name}\n\n{captions[name]}\n")
             typer.echo(to_markdown(df) if not df.empty else "(empty)")
             typer.echo("")
+    crossval_plot(tables["by_depth"], result.out_dir / "crossval_by_depth.png",
+                  f"held-out trials ({how}): mean position error against depth")
     typer.echo(f"tables: {result.out_dir}")

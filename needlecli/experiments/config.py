@@ -25,6 +25,7 @@ from needlecli.experiments.schema import all_tags, experiment_schema, used_types
 from needlecli.io.yamlfile import parse_yaml, read_text
 from needlecli.models import MODELS, Model
 from needlecli.observers import OBSERVERS
+from needlecli.observers.base import Observer
 from needlecli.registry import PluginError
 from needlecli.schema import validation_error, validation_errors
 from needlecli.sensors import PIPELINES, SENSORS
@@ -240,6 +241,23 @@ def check_consistency(cfg, source: str, problems: list | None = None) -> None:
         obs_names.add(name)
         for loc, msg in cls.check(o, model, names):
             report(("observers", i) + tuple(loc), msg + _hint(msg, names))
+    cs = cfg.runs.common_start
+    if cs is not None:
+        by_name = {o.name or o.type: o for o in cfg.observers if not isinstance(o, dict)}
+        known = True
+        for loc, name in [(("runs", "common_start", "observer"), cs.observer)] + [
+                (("runs", "common_start", "observers", i), n) for i, n in enumerate(cs.observers)]:
+            if name not in by_name:
+                report(loc, f"no observer named {name!r}; observers: {', '.join(by_name)}" + did_you_mean(name, by_name))
+                known = False
+        if known:
+            if OBSERVERS.get(by_name[cs.observer].type).initial_estimate.__func__ is Observer.initial_estimate.__func__:
+                report(("runs", "common_start", "observer"),
+                       f"observer {cs.observer!r} ({by_name[cs.observer].type}) gives no initial estimate to share")
+            for i, n in enumerate(cs.observers):
+                if not OBSERVERS.get(by_name[n].type).takes_common_start:
+                    report(("runs", "common_start", "observers", i),
+                           f"observer {n!r} ({by_name[n].type}) cannot start from another's estimate")
     # control: closed loops through a sensor measured while the truth is simulated
     check_control(cfg, model, names, source, report)
     # the fit section (needle fit-em)

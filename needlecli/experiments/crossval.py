@@ -1,7 +1,9 @@
 """``needle crossval``: EM-tuned observers judged on trials their fit never saw, beside the hand-tuned ones.
 
 For each fold, ``needle fit-em``'s EM fits the config's ``fit:`` section on the training trials (measurements
-only, never the truth), writes ``DIR/folds/fold<k>_fit.h5``, and the held-out trials are replayed through
+only, never the truth; each trial's EM is its own, so every trial that trains some fold is fitted once and
+each fold takes its training trials' fits, with their identifiability pooled anew), writes
+``DIR/folds/fold<k>_fit.h5``, and the held-out trials are replayed through
 every observer of the config as it is (hand-tuned) and through a copy of each observer named with
 ``--observer`` that takes its process noise, measurement noise and constants from that fit
 (``<name>_em``, :mod:`needlecli.experiments.from_fit`, ``pick: median``); every observer of a fold starts
@@ -53,6 +55,7 @@ class CrossvalResult:
     model: str
     out_dir: Path
     constants: pd.DataFrame = field(default_factory=pd.DataFrame)
+    groups: dict[str, str] = field(default_factory=dict)  # trial id -> its group (with group_by)
 
 
 def group_of(trial_id: str, meta: dict, spec: str | None) -> str:
@@ -161,7 +164,7 @@ def crossval(
     """Cross-validate EM-tuned copies of ``observers`` against the config's hand-tuned observers (module
     docstring). Every setting is checked before the first fit."""
     from needlecli.experiments.config import load_config
-    from needlecli.experiments.fit import fit_tree, fit_trials, load_trials
+    from needlecli.experiments.fit import fit_tree, fit_trials, load_trials, take_fit
     from needlecli.experiments.overrides import apply_overrides
     from needlecli.io.results import write_atomic
     from needlecli.io.yamlfile import parse_yaml
@@ -196,15 +199,22 @@ def crossval(
     results, fits = [], []
     tuned = {f"{o}_em": o for o in observers}
     rows = []
+    # every trial's EM is its own: fit each training trial once, and give each fold its training trials' fits
+    fitted = [t for t in ids if any(t in fd.train for fd in plan)]
+    every = copy.deepcopy(base)
+    every["source"]["trials"] = fitted
+    every["observers"] = []
+    every_path = out / "folds" / "all_train.yaml"
+    every_path.write_text(yaml.safe_dump(every, sort_keys=False))
+    em_cb = (lambda ph, k, n: progress(f"EM of {len(fitted)} training trials", k, n)) if progress else None
+    fo_all = fit_trials(load_trials(every_path), models=[fit_model], progress=em_cb)
     for fd in plan:
-        em_cb = (lambda ph, k, n, _f=fd.index: progress(f"fold {_f + 1}/{len(plan)}: EM", k, n)) if progress else None
         train = copy.deepcopy(base)
         train["source"]["trials"] = fd.train
         train["observers"] = []
         train_path = out / "folds" / f"fold{fd.index}_train.yaml"
         train_path.write_text(yaml.safe_dump(train, sort_keys=False))
-        tr = load_trials(train_path)
-        fo = fit_trials(tr, models=[fit_model], progress=em_cb)
+        fo = take_fit(fo_all, load_trials(train_path), [fitted.index(t) for t in fd.train])
         fit_path = write_atomic(out / "folds" / f"fold{fd.index}_fit.h5", fit_tree(fo))
         fits.append(fit_path)
         mf = fo.fits[fit_model]
@@ -225,7 +235,7 @@ def crossval(
         tcfg, ttext = load_config(out / "folds" / f"fold{fd.index}.yaml", text=test_text)
         results.append(_run_common_start(tcfg, ttext, out / "folds" / f"fold{fd.index}.h5", base_dir, progress, fd))
     return CrossvalResult(plan, results, fits, tuned, [n for n in names] + list(tuned), fit_model, out,
-                          constants=pd.DataFrame(rows))
+                          constants=pd.DataFrame(rows), groups=dict(zip(ids, groups)) if group_by else {})
 
 
 def _run_common_start(cfg, text, path: Path, base_dir: Path, progress, fd: Fold) -> Path:
@@ -260,12 +270,13 @@ DEPTH_BINS = (0.0, 10.0, 20.0, 30.0, 40.0, 60.0, 80.0, 120.0, 200.0)
 def crossval_tables(result: CrossvalResult) -> dict[str, pd.DataFrame]:
     """``summary``: per observer, the position error over every held-out trial and time (mean, std, final),
     its constants' error where the truth has them; ``by_depth``: the mean position error per depth bin
-    (what a planner needs); ``constants``: each fold's fitted constants."""
+    (what a planner needs), over all held-out trials and, with groups, per group of the held-out trials;
+    ``constants``: each fold's fitted constants."""
     from needlecli.io.results import read_results
     from needlecli.metrics import compute_errors
 
     per_obs: dict[str, list[np.ndarray]] = {}
-    depth_obs: dict[str, list[np.ndarray]] = {}
+    depth_obs: dict[tuple[str, str], list[np.ndarray]] = {}  # (observer, group or "all")
     final: dict[str, list[np.ndarray]] = {}
     unit = "mm"
     for path in result.results:
@@ -280,7 +291,12 @@ def crossval_tables(result: CrossvalResult) -> dict[str, pd.DataFrame]:
             v = q.values
             d = depth[q.runs] if depth.ndim == 2 else np.broadcast_to(depth, v.shape)
             per_obs.setdefault(name, []).append(v[:, 1:].ravel())
-            depth_obs.setdefault(name, []).append(np.stack([d.ravel(), v.ravel()], -1))
+            depth_obs.setdefault((name, "all"), []).append(np.stack([d.ravel(), v.ravel()], -1))
+            if result.groups:  # and per group of the held-out trials (a recording day)
+                ids = np.asarray(res.data["truth"].data.get("trial_id", [])).astype(str)[q.runs]
+                for g in dict.fromkeys(result.groups.get(t, t) for t in ids):
+                    sel = np.array([result.groups.get(t, t) == g for t in ids])
+                    depth_obs.setdefault((name, g), []).append(np.stack([d[sel].ravel(), v[sel].ravel()], -1))
             fin = np.isfinite(v)
             k_last = np.where(fin, np.arange(v.shape[1]), -1).max(axis=1)  # the last time with an error
             final.setdefault(name, []).append(np.where(k_last >= 0, v[np.arange(len(v)), np.maximum(k_last, 0)], np.nan))
@@ -298,16 +314,43 @@ def crossval_tables(result: CrossvalResult) -> dict[str, pd.DataFrame]:
                      "Held-out trials": int(f.size)})
     summary = pd.DataFrame(rows)
     brow = []
-    for name, parts in depth_obs.items():
+    for (name, group), parts in sorted(depth_obs.items(), key=lambda kv: (kv[0][1] != "all", kv[0][1], kv[0][0])):
         a = np.concatenate(parts)
-        row = {"Observer": name}
+        row = {"Observer": name, **({"Held-out group": group} if result.groups else {})}
         for lo, hi in zip(DEPTH_BINS[:-1], DEPTH_BINS[1:]):
             sel = (a[:, 0] >= lo) & (a[:, 0] < hi) & np.isfinite(a[:, 1])
             row[f"{lo:g}-{hi:g} mm"] = float(a[sel, 1].mean()) if sel.any() else np.nan
         brow.append(row)
     by_depth = pd.DataFrame(brow)
-    by_depth = by_depth.loc[:, [c for c in by_depth.columns if c == "Observer" or by_depth[c].notna().any()]]
+    by_depth = by_depth.loc[:, [c for c in by_depth.columns if c in ("Observer", "Held-out group") or by_depth[c].notna().any()]]
     return {"summary": summary, "by_depth": by_depth, "constants": result.constants}
+
+
+def crossval_plot(by_depth: pd.DataFrame, path: Path, title: str) -> Path | None:
+    """Mean held-out position error against inserted depth (the by-depth table, drawn at each bin's
+    centre): one colour per observer, one line style per held-out group (solid: all trials)."""
+    from needlecli.reports.plots import CASE_STYLES, save_figure, subplots
+
+    if by_depth.empty:
+        return None
+    bins = [c for c in by_depth.columns if c.endswith(" mm")]
+    centres = np.array([np.mean([float(x) for x in c[:-3].split("-")]) for c in bins])
+    observers = list(dict.fromkeys(by_depth["Observer"]))
+    groups = list(dict.fromkeys(by_depth["Held-out group"])) if "Held-out group" in by_depth else ["all"]
+    fig, ax = subplots(1, 1, figsize=(7.5, 4.2))
+    for _, row in by_depth.iterrows():
+        g = row.get("Held-out group", "all")
+        v = row[bins].to_numpy(dtype=float)
+        fin = np.isfinite(v)
+        ax.plot(centres[fin], v[fin], marker="o", ms=3.5, lw=1.4 if g == "all" else 1.0,
+                color=f"C{observers.index(row['Observer']) % 10}", ls=CASE_STYLES[groups.index(g) % len(CASE_STYLES)],
+                label=f"{row['Observer']} ({g})", gid=f"observer:{row['Observer']}")
+    ax.set_xlabel("inserted depth [mm] (bin centres)")
+    ax.set_ylabel("mean position error, held out [mm]")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize="small", ncol=2)
+    ax.set_title(title, fontsize=9)
+    return save_figure(fig, path)
 
 
 def check_args(leave_one_out: bool, within: bool, folds: int | None) -> None:

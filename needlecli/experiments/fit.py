@@ -25,12 +25,15 @@ from needlecli.experiments.runner import build_problem, simulate_and_measure
 from needlecli.experiments.truth import Truth
 from needlecli.fitting.canonical import flip_negative_curvature
 from needlecli.fitting.em import EMOptions, EMResult, fit_em
-from needlecli.fitting.identify import Identifiability, IdentifyOptions, identify
+from needlecli.fitting.identify import Identifiability, IdentifyOptions, identify, take_trials
 from needlecli.fitting.problem import System, build_system, fit_augment, own_model
+from needlecli.fitting.robust import RobustInfo, fit_em_robust
 from needlecli.fitting.settings import FitSettings
+from needlecli.fitting.statespace import param_unit
 from needlecli.io.fit import FIT_FORMAT, FIT_VERSION
 from needlecli.io.results import Group, root_attrs
 from needlecli.models import MODELS
+from needlecli.numerics.needle_frame import AXES
 
 CONFIG_SUFFIXES = (".yaml", ".yml")
 
@@ -135,6 +138,7 @@ def em_options(fit: FitSettings, system: System) -> EMOptions:
         max_iter=e.max_iter, tol=e.tol, estep_max=e.estep_max, estep_tol=e.estep_tol, update_x0=e.update_x0,
         q_index=system.q_index, q_floor=e.q_floor, r_floor=tuple(system.floors), ll_noise=e.ll_noise,
         accelerate=e.accelerate, relin_tol=e.relin_tol,
+        q_hold=tuple(i for i, s in enumerate(system.names) if s in fit.hold and i in system.q_index),
     )
 
 
@@ -145,6 +149,7 @@ class ModelFit:
     result: EMResult
     seconds: float = 0.0
     identifiability: Identifiability | None = None
+    robust: RobustInfo | None = None
 
 
 @dataclass
@@ -178,16 +183,25 @@ def fit_trials(
             raise DataError(f"unknown model {name!r}; known: {', '.join(MODELS.names())}")
         model = own_model(fit, trials.truth.model, name)
         try:
-            systems[name] = build_system(problem, fit, model, fit_augment(type(model), fit.constants))
+            # a held constant stays a parameter of the model (not a state the smoother could move)
+            systems[name] = build_system(problem, fit, model,
+                                         [c for c in fit_augment(type(model), fit.constants) if c not in fit.hold])
         except ValueError as e:
             raise DataError(f"{trials.source}: [fit] {e}") from None
+        S = systems[name]  # a state held at zero process noise has none (not a block of Q that EM fits)
+        S.q_index = tuple(i for i in S.q_index if not (S.names[i] in fit.hold and S.Qc[i, i] == 0.0))
 
     def run(name, cb):
         S = systems[name]
         t0 = time.perf_counter()
-        res = fit_em(S.dm, S.meas, S.m0, S.P0, S.Qc, S.R, em_options(fit, S), progress=cb)
+        dof = [fit.measurements[m.name].student_t if m.name in fit.measurements else None for m in S.meas]
+        if any(d is not None for d in dof):  # Student-t channels: iteratively reweighted EM
+            res, rob, meas = fit_em_robust(S.dm, S.meas, S.m0, S.P0, S.Qc, S.R, em_options(fit, S), dof,
+                                           max_passes=fit.em.reweight_max, tol=fit.em.reweight_tol, progress=cb)
+        else:
+            res, rob, meas = fit_em(S.dm, S.meas, S.m0, S.P0, S.Qc, S.R, em_options(fit, S), progress=cb), None, S.meas
         res.roll_flipped = flip_negative_curvature(S.dm.names, type(S.dm.model), res)  # kappa < 0 = roll + pi
-        return res, assess(S, res, fit), time.perf_counter() - t0
+        return res, assess(S, res, fit, meas), time.perf_counter() - t0, rob
 
     # models are independent: all but the first go to child processes (forked, so nothing is pickled
     # but the results), the first runs here; the children report progress through a queue
@@ -201,14 +215,16 @@ def fit_trials(
     return out
 
 
-def assess(S: System, res: EMResult, fit: FitSettings) -> Identifiability | None:
-    """What the data identify in each trial's fit (None when ``fit.identify.enabled`` is off)."""
+def assess(S: System, res: EMResult, fit: FitSettings, meas=None) -> Identifiability | None:
+    """What the data identify in each trial's fit (None when ``fit.identify.enabled`` is off); ``meas``:
+    the channels as fitted (with their robust weights), default the system's."""
     s = fit.identify
     if not s.enabled:
         return None
     sd = np.sqrt(np.maximum(np.diagonal(res.P[:, 0], axis1=-2, axis2=-1), 0.0))[:, S.dm.nx:]
-    return identify(S.dm, S.meas, res.x0, S.P0, res.Qc, res.R, res.status == "ok", const_sd=sd,
-                    options=IdentifyOptions(rse_max=s.rse_max, nats=s.nats), zbar=res.m)
+    return identify(S.dm, S.meas if meas is None else meas, res.x0, S.P0, res.Qc, res.R, res.status == "ok",
+                    const_sd=sd, options=IdentifyOptions(rse_max=s.rse_max, nats=s.nats), zbar=res.m,
+                    held=tuple(fit.hold))
 
 
 def add_data_hints(result: EMResult, problem) -> None:
@@ -284,8 +300,8 @@ def _run_models(names, workers, run, systems, out, progress) -> None:
                 if progress is not None:
                     progress(f"EM {_m}", k, n)
                 drain()
-            res, idf, secs = run(name, cb)
-            out.fits[name] = ModelFit(name, systems[name], res, secs, idf)
+            res, idf, secs, rob = run(name, cb)
+            out.fits[name] = ModelFit(name, systems[name], res, secs, idf, rob)
         for name, (p, conn) in children.items():
             while not conn.poll(0.2):
                 drain()
@@ -296,12 +312,73 @@ def _run_models(names, workers, run, systems, out, progress) -> None:
             drain()
             if kind != "ok":
                 raise RuntimeError(f"the EM of model {name!r} failed: {payload}")
-            res, idf, secs = payload
-            out.fits[name] = ModelFit(name, systems[name], res, secs, idf)
+            res, idf, secs, rob = payload
+            out.fits[name] = ModelFit(name, systems[name], res, secs, idf, rob)
     finally:
         for p, _ in children.values():
             if p.is_alive():
                 p.terminate()
+
+
+def take_fit(out: FitOutput, trials: Trials, idx) -> FitOutput:
+    """The fits of the trials ``idx`` of ``out`` as the fit of ``trials`` (those trials, in that order):
+    every trial's EM is its own (no parameter is shared between trials), so a subset of one fit over all
+    trials is the fit of the subset, up to when the shared E-step re-linearised (below EM's tolerance);
+    the pooled identifiability is recomputed from the subset's information. ``needle crossval`` fits every
+    trial once this way instead of once per fold."""
+    import dataclasses as dc
+
+    idx = np.asarray(idx, dtype=np.int64)
+    sub = FitOutput(trials)
+    for name, mf in out.fits.items():
+        S, r = mf.system, mf.result
+        system = dc.replace(S, dm=S.dm.take(idx), meas=[m.take(idx) for m in S.meas], m0=S.m0[idx])
+        res = dc.replace(r, **{f.name: _rows(getattr(r, f.name), idx, r.x0.shape[0]) for f in dc.fields(r)
+                               if f.name not in ("R", "history")},
+                         R=[x[idx] for x in r.R], history={k: v[idx] for k, v in r.history.items()})
+        if getattr(r, "roll_flipped", None) is not None:
+            res.roll_flipped = np.asarray(r.roll_flipped)[idx]
+        system, res = _trim_ticks(system, res, len(trials.truth.time))
+        idf = None
+        if mf.identifiability is not None:
+            s = trials.cfg.fit.identify
+            idf = take_trials(mf.identifiability, idx, IdentifyOptions(rse_max=s.rse_max, nats=s.nats))
+        rob = None
+        if mf.robust is not None:
+            rb = mf.robust
+            rob = RobustInfo([None if w is None else w[idx] for w in rb.weights], rb.dof, rb.passes[idx], rb.last_change[idx])
+        sub.fits[name] = ModelFit(name, system, res, mf.seconds, idf, rob)
+    return sub
+
+
+def _trim_ticks(S: System, res: EMResult, T: int) -> tuple[System, EMResult]:
+    """The fit on the first ``T`` grid steps only (ticks ``< T``): the subset's own time axis when the
+    trials left out ran longer (their ticks lie past its end; the subset has no samples there)."""
+    import dataclasses as dc
+
+    dm = S.dm
+    keep = int(np.searchsorted(dm.ticks, T))
+    if keep >= len(dm.ticks):
+        return S, res
+    out = object.__new__(type(dm))
+    out.__dict__.update(dm.__dict__)
+    out.ticks = dm.ticks[:keep]
+    out.dt = dm.dt[: keep - 1]
+    out.sub_dt = dm.sub_dt[: keep - 1]
+    out.sub_u = dm.sub_u[:, : keep - 1]
+    K1 = len(dm.ticks)
+    cut = {f.name: getattr(res, f.name)[:, :keep] for f in dc.fields(res)
+           if isinstance(getattr(res, f.name), np.ndarray) and getattr(res, f.name).ndim >= 2
+           and getattr(res, f.name).shape[1] == K1}
+    trimmed = dc.replace(res, **cut)
+    if getattr(res, "roll_flipped", None) is not None:
+        trimmed.roll_flipped = res.roll_flipped
+    return dc.replace(S, dm=out), trimmed
+
+
+def _rows(v, idx: np.ndarray, N: int):
+    """Rows ``idx`` of a per-trial array ``(N, ...)``; anything else as it is."""
+    return v[idx] if isinstance(v, np.ndarray) and v.ndim and v.shape[0] == N else v
 
 
 # ---------------------------------------------------------------------------------------------- the file
@@ -364,15 +441,22 @@ def fit_tree(out: FitOutput) -> Group:
 def _model_group(mf: ModelFit, fit: FitSettings) -> Group:
     S, r = mf.system, mf.result
     dm = S.dm
-    consts = dm.augment
+    held = [c for c in fit_augment(type(dm.model), fit.constants) if c in fit.hold]  # constants held at their initial value
+    consts = dm.augment + tuple(held)
     g = Group(attrs={
         "model": mf.name, "names": dm.names, "units": dm.units, "constants": consts,
         "q_states": [dm.names[i] for i in S.q_index], "channels": [m.name for m in S.meas],
+        "held": [h for h in fit.hold if h in dm.names or h in fit_augment(type(dm.model), fit.constants)],
         "max_iter": fit.em.max_iter, "tol": fit.em.tol, "seconds": mf.seconds,
         "singular_reason": dm.model.singular_reason,
+        "sensor_states": list(dm.sensor_states), "sensor_state_channels": [m.name for m in S.meas if m.offset_index is not None],
+        "sensor_state_tau": [float(1.0 / d) if d > 0 else float("inf") for d in dm.decay],
     })
     g.data["ticks"] = dm.ticks
-    g.data["constant"] = Group(data={c: r.x0[:, dm.nx + i] for i, c in enumerate(consts)})
+    g.data["constant"] = Group(data={
+        **{c: r.x0[:, dm.nx + i] for i, c in enumerate(dm.augment)},
+        **{c: np.broadcast_to(np.asarray(dm.params[c], dtype=float), (r.x0.shape[0],)).copy() for c in held}})
+    g.attrs["constant_units"] = [dm.units[dm.nx + i] for i in range(len(dm.augment))] + [param_unit(dm.model, c) for c in held]
     g.data["x0"] = r.x0
     g.data["x0_guess"] = S.m0
     g.data["Q"] = r.Qc
@@ -381,14 +465,17 @@ def _model_group(mf: ModelFit, fit: FitSettings) -> Group:
     for mm, Rj, R0 in zip(S.meas, r.R, S.R):
         Rg.data[mm.name] = Rj
         Rg.data[f"{mm.name}_guess"] = R0
-        Rg.dataset_attrs[mm.name] = {"coordinates": "tangent plane (2 components across the direction)"
-                                     if mm.tangent else "components " + ", ".join(mm.names)}
+        Rg.dataset_attrs[mm.name] = {"coordinates": channel_coordinates(mm)}
         floor = S.floors[S.meas.index(mm)]
         if floor is not None:  # additions older readers ignore (no version bump)
             Rg.attrs[f"{mm.name}_floor"] = float(floor)
         if mm.scale is not None:
             Rg.attrs[f"{mm.name}_per_sample"] = ("sample i has diag(s_i) R diag(s_i), s_i its recorded sigma over "
                                                  "the channel's nominal sigma")
+    needle = [mm for mm in S.meas if mm.frame == "needle"]
+    if needle:  # group attributes (what from_fit reads): channels in needle coordinates, their across axes
+        Rg.attrs["needle_frame"] = [mm.name for mm in needle]
+        Rg.attrs["needle_axis"] = [AXES[mm.frame_axis] for mm in needle]
     g.data["R"] = Rg
     g.data["state"] = r.m
     g.data["var" if fit.store == "diag" else "cov"] = (np.diagonal(r.P, axis1=-2, axis2=-1).copy()
@@ -401,6 +488,14 @@ def _model_group(mf: ModelFit, fit: FitSettings) -> Group:
         if v is not None:
             g.data[k] = v
     g.data["history"] = Group(data={k.replace("/", "_"): v for k, v in r.history.items()})
+    if mf.robust is not None:  # Student-t channels: the samples' final weights
+        rb = mf.robust
+        g.data["weights"] = Group(
+            data={mm.name: w for mm, w in zip(S.meas, rb.weights) if w is not None},
+            attrs={"student_t": [mm.name for mm, w in zip(S.meas, rb.weights) if w is not None],
+                   "dof": [float(d) for d in rb.dof if d is not None], "reweight_tol": fit.em.reweight_tol})
+        g.data["reweight_passes"] = rb.passes
+        g.data["reweight_change"] = rb.last_change
     flipped = getattr(r, "roll_flipped", None)
     if flipped is not None and dm.model.curvature_roll_state is not None and dm.model.curvature_param in consts:
         g.data["roll_flipped"] = np.asarray(flipped, dtype=bool)
@@ -408,6 +503,16 @@ def _model_group(mf: ModelFit, fit: FitSettings) -> Group:
     if mf.identifiability is not None:
         g.data["identifiability"] = identifiability_group(mf.identifiability, fit)
     return g
+
+
+def channel_coordinates(mm) -> str:
+    """What the components of a channel's R are (the fit file's ``R/<channel>`` attribute ``coordinates``;
+    ``from_fit`` reads it back)."""
+    if mm.tangent:
+        return "tangent plane (2 components across the direction)"
+    if mm.frame == "needle":
+        return f"needle frame (along the tangent, across_1, across_2; across axis {AXES[mm.frame_axis]})"
+    return "components " + ", ".join(mm.names)
 
 
 def identifiability_group(idf: Identifiability, fit: FitSettings) -> Group:

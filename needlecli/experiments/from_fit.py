@@ -17,7 +17,10 @@ What it sets, from the trials whose fit is ``ok`` (``pick: median`` / ``mean`` e
   correlations are dropped (these observers take a diagonal ``Q``);
 * ``measurements.<channel>.sigma``: ``sqrt(diag R_j)`` of each fitted channel the observer has a sensor
   for (not ``open_loop``); a measured direction's R is in its tangent plane and is not taken;
-* ``params``: each fitted constant (``c`` of the MNM, a curvature, ...).
+* ``params``: each fitted constant (``c`` of the MNM, a curvature, ...);
+* a channel's fitted offset along the needle (a sensor state, ``along_offset``): for ``ekf`` and ``eks``
+  that state (``measurements.<channel>.along_offset`` with the fitted ``tau`` and ``sigma``); for the
+  others its variance joins the channel's sigma along the needle (``offset``: :func:`offset_variance`).
 
 Checked before any work, with the key path: the file is a fit file, it fitted ``model``, that model is
 the observer's (its ``model`` key, else the experiment's), the picked trial exists and is ``ok``, every
@@ -39,6 +42,9 @@ from needlecli.schema import Strict, validation_error
 
 log = logging.getLogger("needlecli")
 
+#: observers with a channel's sensor states (``measurements.<channel>.along_offset``): from_fit gives them the
+#: fitted offset itself; the others fold it into the channel's noise along the needle (``FromFit.offset``)
+SENSOR_STATES = ("ekf", "eks")
 TAKES = {"ukf": ("q_tick", True), "ekf": ("q_root_s", True), "eks": ("q_root_s", True), "open_loop": ("q_root_s", False)}
 
 
@@ -49,6 +55,15 @@ class FromFit(Strict):
     model: str = Field(description="the fitted model to take (a model the fit file fitted)")
     pick: Literal["median", "mean", "trial"] = Field("median", description="over the trials whose fit is ok, or one trial")
     trial: int | str | None = Field(None, description="with pick: trial, its index or its trial id")
+    trials: list[int | str] | None = Field(
+        None, min_length=1, description="with pick: median or mean, over these trials only (indices or ids; e.g. "
+                                        "the trials recorded at the same insertion speed)")
+    offset: Literal["stationary", "white"] = Field(
+        "stationary", description="a fitted offset of a channel along the needle (an Ornstein-Uhlenbeck sensor "
+        "state) in an observer without that state (ukf, open_loop; ekf and eks take the state itself) joins the "
+        "channel's noise along the needle: stationary, its variance sigma^2 (what one sample sees), or white, as "
+        "white noise of the same power at low frequencies, 2 sigma^2 tau / dt (dt the mean interval between the "
+        "channel's valid samples: what a filter averaging over more than tau sees)")
 
 
 def _strs(v) -> list[str]:
@@ -59,10 +74,13 @@ def expand_from_fit(data: dict, source: str, base_dir: Path) -> list[str]:
     """Replace every observer's ``from_fit`` in a parsed config by the values it takes (in place).
     Returns one line per observer saying what came from where (the results file keeps them as comments
     above the expanded config)."""
+    changed = []
+    fit = data.get("fit") if isinstance(data, dict) else None
+    if isinstance(fit, dict) and "from_fit" in fit:
+        changed.append(_apply_to_fit(fit, source, base_dir))
     observers = data.get("observers") if isinstance(data, dict) else None
     if not isinstance(observers, list):
-        return []
-    changed = []
+        return changed
     for i, obs in enumerate(observers):
         if not isinstance(obs, dict) or "from_fit" not in obs:
             continue
@@ -79,6 +97,66 @@ def expand_from_fit(data: dict, source: str, base_dir: Path) -> list[str]:
         changed.append(_apply(obs, values, data, source, ("observers", i)))
         del obs["from_fit"]
     return changed
+
+
+def _apply_to_fit(fit: dict, source: str, base_dir: Path) -> str:
+    """A ``fit:`` section's ``from_fit``: its initial guesses of the process noise (``q``, per square-root
+    second) and of the constants (``params``) from another fit, e.g. to hold them (``hold``) while EM fits
+    a sensor's noise. Keys the section sets itself are kept; R is not taken (the section fits its own)."""
+    loc = ("fit", "from_fit")
+    try:
+        spec = FromFit.model_validate(fit["from_fit"])
+    except ValidationError as e:
+        raise validation_error(e, fit["from_fit"], source, prefix=loc) from None
+    models = fit.get("models") or []
+    if models and spec.model not in models:
+        raise ConfigError(source, loc + ("model",), f"the fit section fits {', '.join(map(str, models))}, not {spec.model!r}")
+    v = fitted_values(spec, base_dir, source, loc)
+    q = fit.setdefault("q", {})
+    if not isinstance(q, dict):
+        raise ConfigError(source, ("fit", "q"), "should be a mapping")
+    taken = [k for k in v["q_var"] if k not in q]
+    for k in taken:
+        q[k] = float(np.sqrt(max(v["q_var"][k], 0.0)))
+    params = fit.setdefault("params", {})
+    for c, val in v["params"].items():
+        if c in params:
+            raise ConfigError(source, ("fit", "params", c), "from_fit sets it: give one of them")
+        if c in ((fit.get("init") or {}).get("values") or {}):
+            raise ConfigError(source, ("fit", "init", "values", c), "from_fit sets the constant's initial value: give one of them")
+        params[c] = val
+    del fit["from_fit"]
+    what = (f"fit: q of {', '.join(taken) or 'no state'}; params {', '.join(v['params']) or 'none'} from_fit {v['path']} "
+            f"(model {v['model']}, {v['pick']} of {v['trials']} trial(s))")
+    log.info(what)
+    if v["weak"]:
+        log.warning("fit: from_fit takes quantities the fit did not identify: %s", "; ".join(f"{q} ({w})" for q, w in v["weak"].items()))
+    return what
+
+
+def offset_variance(q2: float, tau: float, how: str, meas, sel: np.ndarray, source: str, loc: tuple) -> float:
+    """The variance an offset state of the fit (Ornstein-Uhlenbeck: ``d e = -e / tau dt + q dW``, stationary
+    variance ``sigma^2 = q^2 tau / 2``) adds to its channel's white noise along the needle in an observer
+    without the state: ``sigma^2`` (``stationary``), or ``2 sigma^2 tau / dt = q^2 tau^2 / dt`` (``white``:
+    the same spectral density at frequency 0, ``2 sigma^2 tau``, as white samples of variance ``r`` every
+    ``dt`` have, ``r dt``), ``dt`` the mean interval between the channel's valid samples (median over the
+    picked trials). A random-walk offset (``tau`` infinite) has neither."""
+    if not np.isfinite(tau):
+        raise ConfigError(source, loc + ("file",), "the fit's offset along the needle is a random walk (no tau): it "
+                          "has no stationary variance to add to an observer's noise")
+    var = q2 * tau / 2.0
+    if how == "stationary":
+        return var
+    t = np.asarray(meas.data["t"], dtype=float)
+    valid = np.asarray(meas.data["valid"], dtype=bool)
+    dts = []
+    for v in valid[sel]:
+        tv = t[v]
+        if tv.size > 1:
+            dts.append((tv[-1] - tv[0]) / (tv.size - 1))
+    if not dts:
+        raise ConfigError(source, loc + ("file",), "the channel with an offset has fewer than 2 valid samples")
+    return 2.0 * var * tau / float(np.median(dts))
 
 
 def fitted_values(spec: FromFit, base_dir: Path, source: str, loc: tuple) -> dict[str, Any]:
@@ -98,6 +176,8 @@ def fitted_values(spec: FromFit, base_dir: Path, source: str, loc: tuple) -> dic
     g = fits[spec.model]
     status = np.asarray(_strs(g.data["status"]))
     N = len(status)
+    if spec.trials is not None and spec.pick == "trial":
+        raise ConfigError(source, loc + ("trials",), "is used with pick: median or mean (pick: trial takes trial)")
     if spec.pick == "trial":
         if spec.trial is None:
             raise ConfigError(source, loc + ("trial",), "required key is missing (pick: trial)")
@@ -112,27 +192,58 @@ def fitted_values(spec: FromFit, base_dir: Path, source: str, loc: tuple) -> dic
         sel[k] = True
     else:
         sel = status == "ok"
+        if spec.trials is not None:
+            ids = _strs(res.data["truth"].data.get("trial_id", np.arange(N)))
+            chosen = np.zeros(N, dtype=bool)
+            for i, t in enumerate(spec.trials):
+                k = t if isinstance(t, int) else (ids.index(t) if t in ids else -1)
+                if not 0 <= k < N:
+                    raise ConfigError(source, loc + ("trials", i), f"no trial {t!r}; the fit has {N} (ids {', '.join(ids[:5])}"
+                                      + (", ..." if N > 5 else "") + ")")
+                chosen[k] = True
+            sel &= chosen
         if not sel.any():
-            raise ConfigError(source, loc + ("file",), f"no trial of {spec.model!r} in {path} was fitted ok")
+            raise ConfigError(source, loc + ("file",), f"no trial of {spec.model!r} in {path} was fitted ok"
+                              + (" among the trials listed" if spec.trials is not None else ""))
     reduce = np.median if spec.pick == "median" else np.mean
     names = _strs(g.attrs["names"])
     consts = _strs(g.attrs.get("constants", []))
     Q = reduce(np.asarray(g.data["Q"], dtype=float)[sel], axis=0)
     q_states = set(_strs(g.attrs.get("q_states", names)))
-    q_var = {s: float(Q[j, j]) for j, s in enumerate(names) if s in q_states and s not in consts}
+    sensor = _strs(g.attrs.get("sensor_states", []))
+    q_var = {s: float(Q[j, j]) for j, s in enumerate(names) if s in q_states and s not in consts and s not in sensor}
+    # a sensor's offset along the needle (an Ornstein-Uhlenbeck state of the fit): these observers have no
+    # such state, so it joins the channel's noise along the needle (FromFit.offset)
+    offset_var, offsets = {}, {}
+    for s_name, ch, tau in zip(sensor, _strs(g.attrs.get("sensor_state_channels", [])), np.atleast_1d(g.attrs.get("sensor_state_tau", []))):
+        q2 = float(Q[names.index(s_name), names.index(s_name)])
+        offset_var[ch] = offset_variance(q2, float(tau), spec.offset, res.data["measurements"].data.get(ch), sel,
+                                         source, loc)
+        offsets[ch] = {"tau": float(tau), "sigma": float(np.sqrt(max(q2, 0.0) * float(tau) / 2.0))}
     r_var = {}
-    for ch, R in g.data["R"].data.items():
+    wg = g.data.get("weights")  # Student-t channels: R is the scale; its variance is nu / (nu - 2) R
+    dof = dict(zip(_strs(wg.attrs.get("student_t", [])), np.atleast_1d(wg.attrs.get("dof", [])))) if wg is not None else {}
+    Rg = g.data["R"]
+    frames = dict(zip(_strs(Rg.attrs.get("needle_frame", [])), _strs(Rg.attrs.get("needle_axis", []))))
+    for ch, R in Rg.data.items():
         if ch.endswith("_guess"):
             continue
         Rm = reduce(np.asarray(R, dtype=float)[sel], axis=0)
         meas = res.data["measurements"].data.get(ch)
         m_raw = np.asarray(meas.data["value"]).shape[-1] if meas is not None else Rm.shape[-1]
         r_var[ch] = None if m_raw != Rm.shape[-1] else np.diag(Rm).copy()  # a direction: R in its tangent plane
+        if ch in dof and r_var[ch] is not None:  # the Gaussian of the Student-t's variance (infinite for nu <= 2)
+            nu = float(dof[ch])
+            r_var[ch] = r_var[ch] * (nu / (nu - 2.0) if nu > 2.0 else np.inf)
+        if ch in offset_var and r_var[ch] is not None and ch not in frames:
+            raise ConfigError(source, loc + ("file",), f"the fit's offset of {ch!r} along the needle needs its R "
+                              "in needle coordinates (frame: needle) to be taken")
     params = {c: float(reduce(np.asarray(g.data["constant"].data[c], dtype=float)[sel])) for c in consts}
     from needlecli.reports.identify import weak_quantities
 
     weak = weak_quantities(res, spec.model)
-    return {"model": spec.model, "names": names, "q_var": q_var, "r_var": r_var, "params": params,
+    return {"model": spec.model, "names": names, "q_var": q_var, "r_var": r_var, "needle": frames, "params": params,
+            "offsets": offsets, "offset_var": offset_var,
             "trials": int(sel.sum()), "weak": weak, "path": str(path), "pick": spec.pick}
 
 
@@ -171,7 +282,25 @@ def _apply(obs: dict, v: dict, data: dict, source: str, loc: tuple) -> str:
             spec = meas.setdefault(ch, {})
             if "sigma" in spec:
                 raise ConfigError(source, loc + ("measurements", ch, "sigma"), "from_fit sets it: give one of them")
+            var = np.array(var, dtype=float)
+            if ch in v["offsets"] and kind in SENSOR_STATES:  # the observer has the offset state EM fitted
+                if "along_offset" in spec:
+                    raise ConfigError(source, loc + ("measurements", ch, "along_offset"),
+                                      "from_fit sets it: give one of them")
+                spec["along_offset"] = dict(v["offsets"][ch])
+            elif ch in v["offsets"]:  # it has none: the offset joins the noise along the needle
+                var[0] += v["offset_var"][ch]
             spec["sigma"] = [float(np.sqrt(max(x, 0.0))) for x in var]
+            if ch in v.get("needle", {}):  # R fitted along and across the needle: the same coordinates here
+                for key, want in (("frame", "needle"), ("across_axis", v["needle"][ch])):
+                    if spec.get(key, want) != want:
+                        raise ConfigError(source, loc + ("measurements", ch, key),
+                                          f"the fit's R of {ch!r} is in needle coordinates ({key} {want}): "
+                                          f"from_fit sets it")
+                    spec[key] = want
+            elif spec.get("frame", "world") != "world":
+                raise ConfigError(source, loc + ("measurements", ch, "frame"),
+                                  f"the fit's R of {ch!r} is in world axes; its sigma does not apply to frame {spec['frame']}")
         taken.append("R of " + ", ".join(ch for ch, var in v["r_var"].items() if var is not None))
     what = (f"observer {obs.get('name') or kind}: {'; '.join(taken)} from_fit {v['path']} (model {v['model']}, "
             f"{v['pick']} of {v['trials']} trial(s))")

@@ -3,6 +3,7 @@ Monte-Carlo runs at once and writes the results file. It knows no component by n
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -110,11 +111,13 @@ def run_experiment(
         truth, sensors, streams, control = simulate_and_measure(
             cfg, progress=(lambda k, n: progress("truth", k, n)) if progress else None, measure_progress=progress)
     problem = build_problem(cfg, truth, sensors, streams)
+    shared = common_start_problem(cfg, problem)
     estimates: dict[str, Posterior] = {}
     for o in cfg.observers:
         obs = OBSERVERS.get(o.type)(o)
         cb = (lambda k, n, _name=obs.name: progress(f"observer {_name}", k, n)) if progress else None
-        estimates[obs.name] = obs.run(problem, stream(seed, f"observer/{obs.name}"), progress=cb)
+        own = shared if shared is not None and obs.name in cfg.runs.common_start.observers else problem
+        estimates[obs.name] = obs.run(own, stream(seed, f"observer/{obs.name}"), progress=cb)
     path = tree = None
     if write:
         path = Path(out) if out is not None else default_output(cfg)
@@ -123,6 +126,17 @@ def run_experiment(
                      progress=(lambda k, n: progress("results file", k, n)) if progress else None)
     return ExperimentResult(truth=truth, measurements=streams, estimates=estimates, path=path, control=control,
                             tree=tree if write else None)
+
+
+def common_start_problem(cfg, problem):
+    """The problem with ``runs.common_start``'s shared initial estimate (the named observer's own draw from
+    its own stream, so that its results do not change), or None without one."""
+    cs = cfg.runs.common_start
+    if cs is None:
+        return None
+    ref = next(o for o in cfg.observers if (o.name or o.type) == cs.observer)
+    start = OBSERVERS.get(ref.type).initial_estimate(ref, problem, stream(cfg.runs.seed, f"observer/{cs.observer}"))
+    return dataclasses.replace(problem, start=start)
 
 
 def results_tree(cfg, config_text, truth: Truth, streams, estimates, sensors, control=None) -> Group:

@@ -53,10 +53,20 @@ class ProcessNoise(Strict):
                                                               "unit per square-root second, by state name)")
 
 
+class CommonStartSettings(Strict):
+    """Observers that start from another's initial estimate (its own draw, made once): common random
+    numbers for the start, as ``needle compare`` does for every observer."""
+
+    observer: str = Field(description="the observer whose initial estimate (mean of every run and covariance) is shared")
+    observers: list[str] = Field(min_length=1, description="the observers that start from it instead of their own init")
+
+
 class Runs(Strict):
     count: int = Field(1, ge=1, le=1_000_000, description="number of Monte-Carlo runs")
     seed: int = Field(0, ge=0, le=MAX_SEED, description="seed of every random stream of the experiment (stored "
                       "in the results file as a 64-bit integer)")
+    common_start: CommonStartSettings | None = Field(
+        None, description="observers that start from the same initial estimate as another (default: each its own)")
 
 
 class Stop(Strict):

@@ -49,6 +49,7 @@ class EMOptions:
     """Settings of :func:`fit_em` (the config's ``fit.em`` section maps onto these).
 
     q_index : states with process noise (the others' rows and columns of Q stay zero); all if None
+    q_hold : states whose process noise is held at the initial guess (rows and columns: not fitted)
     r_floor : per channel, a floor on the eigenvalues of R_j (variance, unit^2) or None
     """
 
@@ -58,6 +59,7 @@ class EMOptions:
     estep_tol: float = 0.05
     update_x0: bool = True
     q_index: tuple[int, ...] | None = None
+    q_hold: tuple[int, ...] = ()
     q_floor: float = 0.0
     r_floor: tuple[float | None, ...] = ()
     ll_noise: float = 1e-8
@@ -160,6 +162,7 @@ def fit_em(
         q_keep[:] = False
         q_keep[list(o.q_index)] = True
         Q = Q * (q_keep[:, None] & q_keep[None, :])
+    Q0_held = Q.copy()
     R = [np.array(np.broadcast_to(r, (N, mm.m, mm.m)), dtype=float) for r, mm in zip(R0, meas)]
     floors = list(o.r_floor) + [None] * (J - len(o.r_floor))
     # a unit-vector channel (a measured direction) has no noise along the direction itself: H has no row
@@ -268,6 +271,8 @@ def fit_em(
         with np.errstate(all="ignore"):
             Qn = em_process_noise(res.sm, res.lin.A, res.lin.b, dm.dt, index=qi, state_angles=dm.angles)
             Qn[blk], _ = floor_eigenvalues(Qn[blk], np.maximum(o.q_floor, o.rel_floor * _largest(Qn[blk])))
+            if o.q_hold:  # held rows and columns: the initial guess (uncorrelated with the fitted states)
+                Qn = hold_rows(Qn, Q0_held[active], o.q_hold)
             Rn = []
             for j, mm in enumerate(meas_a):
                 r, count = em_measurement_noise(res.sm, mm.channel(R_a[j], res.lin.y[j]), res.lin.H[j], res.lin.d[j])
@@ -388,6 +393,17 @@ def fit_em(
         ll_worst_drop=ll_drop, floor_hits=floor_hits, repairs=repairs, history=hist,
         extrapolations=accepted, rejections=rejected,
     )
+
+
+def hold_rows(Q: np.ndarray, Q0: np.ndarray, hold: Sequence[int]) -> np.ndarray:
+    """``Q (N, n, n)`` with the rows and columns ``hold`` replaced by those of ``Q0`` (their covariances with
+    the other states zero): process noise held at its guess, the rest as fitted."""
+    Q = Q.copy()
+    h = np.asarray(hold, dtype=np.int64)
+    Q[:, h, :] = 0.0
+    Q[:, :, h] = 0.0
+    Q[:, h[:, None], h[None, :]] = Q0[:, h[:, None], h[None, :]]
+    return Q
 
 
 # ---------------------------------------------------------------------------------------------- SQUAREM

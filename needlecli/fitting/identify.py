@@ -66,7 +66,8 @@ class IdentifyOptions:
 @dataclass
 class Quantity:
     """One reported quantity: ``kind`` constant | Q | R; ``index`` the state index (constant), the state
-    indices of the block (Q) or the channel's position (R)."""
+    indices of the block (Q), the channel's position (R), or ``(channel, components)`` for a block of a
+    channel's R (a needle-frame channel: along, across)."""
 
     name: str
     kind: str
@@ -107,16 +108,25 @@ class Identifiability:
         return [q.name for q in self.quantities]
 
 
-def fit_quantities(dm: DiscreteModel, meas: Sequence[MeasurementModel], Q: np.ndarray) -> list[Quantity]:
-    """The quantities of a fit: constants, the Q blocks with process noise (in any trial), each R_j."""
-    out = [Quantity(c, "constant", dm.nx + i, dm.units[dm.nx + i]) for i, c in enumerate(dm.augment)]
+def fit_quantities(dm: DiscreteModel, meas: Sequence[MeasurementModel], Q: np.ndarray,
+                   held: Sequence[str] = ()) -> list[Quantity]:
+    """The quantities of a fit: constants, the Q blocks with process noise (in any trial), each R_j;
+    not those ``held`` at their initial guess (constants by name, a Q block when all its states are)."""
+    out = [Quantity(c, "constant", dm.nx + i, dm.units[dm.nx + i]) for i, c in enumerate(dm.augment) if c not in held]
     for b, idx in state_blocks(dm.names, skip=dm.augment).items():
+        if all(dm.names[i] in held for i in idx):
+            continue
         if np.any(Q[:, idx][:, :, idx]):
             unit = dm.units[idx[0]]
             out.append(Quantity(f"tr(Q_{b})", "Q", idx, f"{unit}^2/s" if unit not in ("", "1") else "1/s"))
     for j, mm in enumerate(meas):
         unit = mm.units[0] if getattr(mm, "units", None) else ""
-        out.append(Quantity(f"tr(R_{mm.name})", "R", j, f"{unit}^2" if unit not in ("", "1") else "1"))
+        unit = f"{unit}^2" if unit not in ("", "1") else "1"
+        if getattr(mm, "frame", "world") == "needle":  # along and across the needle: what the sensor's geometry separates
+            out.append(Quantity(f"tr(R_{mm.name}_along)", "R", (j, [0]), unit))
+            out.append(Quantity(f"tr(R_{mm.name}_across)", "R", (j, [1, 2]), unit))
+        else:
+            out.append(Quantity(f"tr(R_{mm.name})", "R", j, unit))
     return out
 
 
@@ -133,6 +143,11 @@ def _loglik(lin, dm, meas, x0, P0, Q, R, qs: list[Quantity], theta: np.ndarray, 
             d = np.ones((M, Qe.shape[-1]))
             d[:, q.index] = np.exp(0.5 * theta[:, k])[:, None]
             Qe = d[:, :, None] * Qe * d[:, None, :]
+        elif isinstance(q.index, tuple):  # a block of components of R_j: D R_j D, D = e^(r/2) on the block
+            j, comps = q.index
+            d = np.ones((M, Re[j].shape[-1]))
+            d[:, comps] = np.exp(0.5 * theta[:, k])[:, None]
+            Re[j] = d[:, :, None] * Re[j] * d[:, None, :]
         else:
             Re[q.index] = Re[q.index] * np.exp(theta[:, k])[:, None, None]
     with np.errstate(all="ignore"):
@@ -151,6 +166,7 @@ def identify(
     const_sd: np.ndarray | None = None,
     options: IdentifyOptions = IdentifyOptions(),
     zbar: np.ndarray | None = None,
+    held: Sequence[str] = (),
 ) -> Identifiability:
     """Standard errors and verdicts of every quantity of a fit (module docstring).
 
@@ -163,11 +179,12 @@ def identify(
     const_sd : (N, p) a scale for the finite-difference step of each constant (e.g. its smoothed SD)
     zbar : (N, K+1, n) the trajectory the model is linearised around (the fit's smoothed one; default: an
         extended Kalman smoother's at the estimate)
+    held : names of constants and states held at their initial guess (not fitted: not assessed)
     """
     o = options
     N, n = x0.shape
     P0 = np.array(np.broadcast_to(P0, (N, n, n)), dtype=float)
-    for i in range(dm.nx, n):  # the constants are parameters here: fixed in the filter
+    for i in range(dm.nx, dm.nx + len(dm.augment)):  # the constants are parameters here: fixed in the filter
         P0[:, i, :] = 0.0
         P0[:, :, i] = 0.0
     if zbar is None:
@@ -175,7 +192,7 @@ def identify(
             zbar = eks(dm, meas, x0, P0, Q, list(R)).sm.m
     zbar = np.where(np.isfinite(zbar), zbar, 0.0)  # failed trials (not assessed) stay finite
     lin = linearise(dm, meas, zbar)
-    qs = fit_quantities(dm, meas, Q)
+    qs = fit_quantities(dm, meas, Q, held)
     d = len(qs)
     est = np.full((N, d), np.nan)
     h = np.full((N, d), o.step_log)
@@ -188,6 +205,9 @@ def identify(
             h[:, k] = np.where(np.isfinite(scale) & (scale > 0), 0.5 * scale, np.maximum(1e-3 * np.abs(c), 1e-9))
         elif q.kind == "Q":
             est[:, k] = np.trace(Q[:, q.index][:, :, q.index], axis1=-2, axis2=-1)
+        elif isinstance(q.index, tuple):
+            j, comps = q.index
+            est[:, k] = np.trace(R[j][:, comps][:, :, comps], axis1=-2, axis2=-1)
         else:
             est[:, k] = np.trace(R[q.index], axis1=-2, axis2=-1)
     # evaluation points: the estimate, +-h_i, +-(h_i + h_j) (i < j), and a decade either way of each noise level
@@ -247,6 +267,13 @@ def identify(
     verdict, reason = _verdicts(qs, rse, decade, bad, o)
     verdict[~ok], reason[~ok] = "", "trial not assessed (the fit failed)"
     used = ok & np.isfinite(H).all((-1, -2))
+    pse, prse, pverdict, preason = _pooled(qs, est, H, decade, used, o)
+    return Identifiability(qs, est, h, H, se, rse, decade, verdict, reason, used, pse, prse, pverdict, preason, l0)
+
+
+def _pooled(qs, est, H, decade, used, o: IdentifyOptions):
+    """Pooled SE, relative SE, verdict and reason ``(d,)`` from the summed information of the ``used`` trials."""
+    d = len(qs)
     info = -np.nansum(np.where(used[:, None, None], H, 0.0), axis=0)
     pse_theta, pbad = _standard_errors(info[None])
     pest = np.nanmedian(np.where(used[:, None], est, np.nan), axis=0) if used.any() else np.full(d, np.nan)
@@ -255,7 +282,20 @@ def identify(
         prse = np.abs(pse / pest)
     pdec = np.nansum(np.where(used[:, None, None], decade, 0.0), axis=0)[None] if used.any() else np.full((1, d, 2), np.nan)
     pverdict, preason = _verdicts(qs, prse[None], pdec, pbad, o)
-    return Identifiability(qs, est, h, H, se, rse, decade, verdict, reason, used, pse, prse, pverdict[0], preason[0], l0)
+    return pse, prse, pverdict[0], preason[0]
+
+
+def take_trials(idf: Identifiability, idx: np.ndarray, options: IdentifyOptions = IdentifyOptions()) -> Identifiability:
+    """The assessment of the trials ``idx`` only: their rows, and the pooled figures from their summed
+    information (what :func:`identify` gives on those trials alone: each trial's information is its own)."""
+    idx = np.asarray(idx)
+    rows = {k: getattr(idf, k)[idx] for k in ("estimate", "theta_step", "hessian", "se", "rse", "decade", "verdict",
+                                              "reason", "used", "loglik")}
+    pse, prse, pverdict, preason = _pooled(idf.quantities, rows["estimate"], rows["hessian"], rows["decade"],
+                                           rows["used"], options)
+    return Identifiability(idf.quantities, rows["estimate"], rows["theta_step"], rows["hessian"], rows["se"], rows["rse"],
+                           rows["decade"], rows["verdict"], rows["reason"], rows["used"], pse, prse, pverdict, preason,
+                           rows["loglik"])
 
 
 def _is_scale(qs: list[Quantity]) -> np.ndarray:

@@ -13,6 +13,7 @@ from needlecli.fitting.settings import KalmanSetup
 from needlecli.fitting.statespace import DiscreteModel, MeasurementModel, make_ticks
 from needlecli.initial import check_initial_sensors, check_initial_states, initial_covariance, initial_mean
 from needlecli.models import MODELS, Model
+from needlecli.numerics.needle_frame import AXES, reference_axis
 from needlecli.problem import EstimationProblem
 
 
@@ -85,7 +86,15 @@ def build_system(
         cols.extend(range(sl.start, sl.stop))
     inputs = np.ascontiguousarray(problem.inputs[..., cols])
     params = model.param_arrays()
-    dm = DiscreteModel(model, params, augment, grid_dt, ticks, inputs, setup.substeps)
+    offsets = {name: setup.measurements[name].along_offset for name, _, _ in chans
+               if name in setup.measurements and setup.measurements[name].along_offset is not None}
+    for name in offsets:
+        if tuple(problem.channels[name].names) != ("x", "y", "z") or not model.provides("tangent"):
+            raise ValueError(f"channel {name!r}: along_offset needs a position with axes x, y, z and a model "
+                             f"with a tangent (model {model.registered_name!r})")
+    sensor_states = [(f"{name}_offset", model.length_unit, 0.0 if o.tau is None else 1.0 / o.tau)
+                     for name, o in offsets.items()]
+    dm = DiscreteModel(model, params, augment, grid_dt, ticks, inputs, setup.substeps, sensor_states)
     meas, R, floors = [], [], []
     for name, ch, h in chans:
         tick = np.searchsorted(ticks, ch.index)
@@ -93,10 +102,19 @@ def build_system(
         if not ok.all():  # cannot happen with make_ticks (every sample is a tick), kept as a guard
             raise ValueError(f"channel {name!r}: samples off the filter's ticks")
         m = len(ch.names)
-        mm = MeasurementModel(name, h, model.n, tick, ch.value, ch.valid, np.asarray(ch.angle, dtype=bool),
-                              tuple(ch.names), tuple(ch.units), bool(ch.unit_vector), sample_scale(ch))
-        meas.append(mm)
         spec = setup.measurements.get(name)
+        frame = spec.frame if spec is not None else "world"
+        if frame == "needle" and (tuple(ch.names) != ("x", "y", "z") or not model.provides("tangent")):
+            raise ValueError(f"channel {name!r}: frame needle needs a position with axes x, y, z and a model with a "
+                             f"tangent (it has {', '.join(ch.names)}; model {model.registered_name!r})")
+        scale = sample_scale(ch)
+        if scale is not None and (frame == "needle" or name in offsets):  # per-axis sigmas of the world's axes
+            raise ValueError(f"channel {name!r}: per-sample sigmas cannot be used with frame needle or along_offset")
+        mm = MeasurementModel(name, h, model.n, tick, ch.value, ch.valid, np.asarray(ch.angle, dtype=bool),
+                              tuple(ch.names), tuple(ch.units), bool(ch.unit_vector), scale, frame,
+                              model.tangent if frame == "needle" or name in offsets else None,
+                              offset_index=dm.names.index(f"{name}_offset") if name in offsets else None)
+        meas.append(mm)
         sigma = spec.sigma if spec is not None and spec.sigma is not None else ch.sigma
         sig = np.asarray(sigma, dtype=float)
         if sig.size not in (1, m):
@@ -107,14 +125,27 @@ def build_system(
         R.append(np.diag(sig**2))
         floors.append(spec.floor if spec is not None else None)
     # ---- process noise and initial guesses
-    q = setup.q
-    if q:
+    q = dict(setup.q)
+    moving = {f"{c}_offset": o for c, o in offsets.items() if o.tau is not None}
+    for k, o in moving.items():  # an Ornstein-Uhlenbeck offset: q^2 = 2 sigma^2 / tau keeps its variance sigma^2
+        q[k] = o.sigma * np.sqrt(2.0 / o.tau)
+    if setup.q:
         q_index = tuple(i for i, s in enumerate(dm.names) if s in q)
     else:
-        q_index = tuple(range(dm.nx))
+        q_index = tuple(range(dm.nx)) + tuple(dm.names.index(k) for k in moving)
     Qc = np.diag([q.get(s, 0.0) ** 2 for s in dm.names])
     m0 = initial_mean(setup.init, problem, model, model.param_arrays(), rng, augment=dm.augment)
+    if offsets:
+        m0 = np.concatenate([m0, np.tile([o.value for o in offsets.values()], (m0.shape[0], 1))], -1)
+    for mm in meas:  # the reference axis of needle coordinates: given, or far from the initial tangent
+        if mm.frame == "needle":
+            spec = setup.measurements[mm.name]
+            mm.frame_axis = (AXES.index(spec.across_axis) if spec.across_axis is not None
+                             else reference_axis(model.tangent(m0[:, : dm.nx])))
     P0 = initial_covariance(setup.init, dm.names, setup.p0, 1e-18, start=problem.start)
+    for c, o in offsets.items():  # the offset's prior: its stationary (or a constant's) variance
+        k = dm.names.index(f"{c}_offset")
+        P0[k, k] = max(o.sigma**2, 1e-18)
     return System(dm, meas, m0, P0, Qc, R, floors, q_index)
 
 
@@ -155,6 +186,11 @@ def check_setup(setup: KalmanSetup, model_cls: type[Model], sensors: dict, augme
         if k not in model_cls.Params.model_fields:
             out.append((("params", k), f"model {model_cls.registered_name!r} has no parameter {k!r}"))
     out += check_channels(setup, model_cls, sensors)
+    for name, spec in setup.measurements.items():  # EM's robust weights and sensor states: fit-em only
+        for key in ("student_t",):
+            if getattr(spec, key) is not None:
+                out.append((("measurements", name, key), "is a setting of needle fit-em (the fit: section); "
+                            "an observer takes what it fitted through from_fit"))
     return out
 
 
@@ -176,6 +212,16 @@ def check_channels(setup: KalmanSetup, model_cls: type[Model], sensors: dict) ->
         m = len(sensors[name].channel_names)
         if spec.sigma is not None and np.size(spec.sigma) not in (1, m):
             out.append((("measurements", name, "sigma"), f"has {np.size(spec.sigma)} entries for {m} components"))
+        if spec.frame == "needle" and (tuple(sensors[name].channel_names) != ("x", "y", "z") or not own.provides("tangent")):
+            out.append((("measurements", name, "frame"), f"needle coordinates need a position with axes x, y, z and a "
+                        f"model with a tangent (sensor {name!r}: {', '.join(sensors[name].channel_names)}; model "
+                        f"{model_cls.registered_name!r})"))
+        if spec.across_axis is not None and spec.frame != "needle":
+            out.append((("measurements", name, "across_axis"), "is used only with frame: needle"))
+        if spec.along_offset is not None and (tuple(sensors[name].channel_names) != ("x", "y", "z")
+                                              or not own.provides("tangent")):
+            out.append((("measurements", name, "along_offset"), "an offset along the needle needs a position with "
+                        f"axes x, y, z and a model with a tangent (model {model_cls.registered_name!r})"))
     out += [(("init", *loc), msg) for loc, msg in check_initial_sensors(setup.init, sensors)]
     return out
 
@@ -222,6 +268,11 @@ def check_fit(fit, sensors: dict) -> list:
     for k in fit.params:
         if not any(k in cls.Params.model_fields for cls in classes):
             out.append((("params", k), f"no fitted model has a parameter {k!r}"))
+    for i, k in enumerate(fit.hold):
+        if k not in known:
+            out.append((("hold", i), f"no fitted model ({', '.join(fit.models)}) has a state or fitted constant {k!r}"))
+        elif k not in fit.q and not any(k in fit_augment(cls) for cls in classes):
+            out.append((("hold", i), f"{k!r} has no process noise (not in q) and is no fitted constant: nothing to hold"))
     for cls in classes:
         out += check_channels(fit, cls, sensors)
     return out

@@ -25,12 +25,37 @@ class KalmanInit(InitialEstimate):
     from_: Literal["truth", "nominal"] = Field("nominal", alias="from", description=InitialEstimate.model_fields["from_"].description)
 
 
+class AlongOffset(Strict):
+    """An offset of a measured position along the needle's tangent, a state of the sensor that EM
+    estimates (``h = p + o t``): the image plane of a 2D transverse ultrasound sits ahead of or behind the
+    tip. An Ornstein-Uhlenbeck process of time constant ``tau`` (mean 0: the probe follows the tip; EM fits
+    its process noise), or with ``tau: null`` a constant (EM estimates it through the initial state). The
+    ``ekf`` and ``eks`` observers carry it as a state too (``from_fit`` gives them the fitted one)."""
+
+    tau: Positive | None = Field(description="time constant of the offset, s; null: a constant")
+    sigma: NonNeg = Field(description="std of the offset (model length unit): the process's stationary std "
+                          "(EM's initial guess), or a constant's prior std (0: held at value)")
+    value: float = Field(0.0, description="initial value (a constant's prior mean), model length unit")
+
+
 class ChannelNoise(Strict):
     """How a filter treats one measurement channel (a sensor, by name)."""
 
     sigma: NonNeg | list[NonNeg] | None = Field(
         None, description="noise std per component (R = diag(sigma^2)); default: the sensor's nominal sigma")
     floor: NonNeg | None = Field(None, description="EM: floor on the eigenvalues of R (variance, unit^2)")
+    frame: Literal["world", "needle"] = Field(
+        "world", description="coordinates of sigma and R: world axes, or (a position) along the needle's tangent, "
+        "then across it (needlecli.numerics.needle_frame): a 2D transverse ultrasound's error along the needle is "
+        "where its image plane is, across it the image's resolution")
+    across_axis: Literal["x", "y", "z"] | None = Field(
+        None, description="frame: needle: the world axis a of the across directions e1 = a x t / |a x t|, "
+                          "e2 = t x e1 (default: the axis least aligned with the initial tangent)")
+    along_offset: AlongOffset | None = Field(
+        None, description="a position offset along the needle's tangent, estimated as a state of the sensor")
+    student_t: Positive | None = Field(
+        None, description="EM: Student-t noise with these degrees of freedom (robust weights in the E-step: "
+                          "outliers weigh less); off if unset")
 
 
 Ticks = Literal["grid", "measurements"] | Positive
@@ -72,6 +97,10 @@ class EMSettings(Strict):
                                "is reported")
     accelerate: bool = Field(True, description="SQUAREM extrapolation of Q and R_j (log-matrices), with a "
                              "fall-back to the plain EM step when it lowers the likelihood")
+    reweight_max: int = Field(50, ge=1, le=1000, description="Student-t channels (measurements.<c>.student_t): "
+                              "EM passes at most, each with the robust weights of the previous one")
+    reweight_tol: Positive = Field(0.01, description="Student-t channels: stop when no sample's weight moved "
+                                   "by more than this (and no R_j by more than tol)")
 
 
 class IdentifySettings(Strict):
@@ -111,6 +140,8 @@ class FitSettings(KalmanSetup):
 
     models: list[str] = Field(default_factory=lambda: ["mnm", "binm"], min_length=1,
                               description="models fitted by default (needle fit-em --model)")
+    hold: list[str] = Field(default_factory=list, description="states whose process noise, and constants, held at "
+                            "their initial guess, not fitted (e.g. taken from another fit with from_fit)")
     constants: list[str] | None = Field(
         None, description="model parameters EM estimates as constant states (default: the curvature parameter; "
         "e.g. [kappa, speed_scale] for a needle that slips)")

@@ -21,6 +21,7 @@ import numpy as np
 from needlecli import kernels
 from needlecli.models import Model, StateSelection
 from needlecli.numerics.kalman import Channel, finite_difference_h, rk4_with_jacobian
+from needlecli.numerics.needle_frame import needle_basis
 
 
 def make_ticks(n_grid: int, sample_indices: Sequence[np.ndarray], mode: str | float, grid_dt: float) -> np.ndarray:
@@ -53,6 +54,10 @@ class DiscreteModel:
     inputs : (N, T, m) the model's inputs on the grid, held over each grid step
     substeps : None: one RK4 step per grid step, with that step's input (the truth's own integration);
         an int s: s equal RK4 steps per tick interval with the interval's mean input (faster)
+    sensor_states : ``(name, unit, decay)`` of states that belong to a sensor, not to the needle (an image
+        plane's offset along the needle, :class:`MeasurementModel`'s ``offset_index``), after the augmented
+        constants: ``s' = -decay s`` (an Ornstein-Uhlenbeck process with its process noise; decay 1/tau in
+        1/s; 0: a constant)
     """
 
     def __init__(
@@ -64,19 +69,23 @@ class DiscreteModel:
         ticks: np.ndarray,
         inputs: np.ndarray,
         substeps: int | None = None,
+        sensor_states: Sequence[tuple[str, str, float]] = (),
     ) -> None:
         self.model = model
         self._inputs = inputs
         self.augment = tuple(augment)
+        self.sensor_states = tuple(s[0] for s in sensor_states)
+        self.decay = np.array([float(s[2]) for s in sensor_states])
         for a in self.augment:
             if a not in model.Params.model_fields:
                 raise ValueError(f"model {model.registered_name!r} has no parameter {a!r}")
             if a in model.state_names:
                 raise ValueError(f"{a!r} is already a state of model {model.registered_name!r}")
         self.nx = model.n
-        self.n = model.n + len(self.augment)
-        self.names = tuple(model.state_names) + self.augment
-        self.units = tuple(model.state_units) + tuple(_param_unit(model, a) for a in self.augment)
+        self.n = model.n + len(self.augment) + len(self.sensor_states)
+        self.names = tuple(model.state_names) + self.augment + self.sensor_states
+        self.units = (tuple(model.state_units) + tuple(param_unit(model, a) for a in self.augment)
+                      + tuple(s[1] for s in sensor_states))
         self.angles = np.array([s in model.angle_states for s in self.names])
         self.N = inputs.shape[0]
         self.params = {k: np.asarray(v, dtype=float) for k, v in params.items()}
@@ -121,20 +130,26 @@ class DiscreteModel:
     def f(self, z: np.ndarray, u: np.ndarray) -> np.ndarray:
         p = self._p(z, z.ndim - 1)
         dx = self.model.f(z[..., : self.nx], u, p)
-        if not self.augment:
+        if self.n == self.nx:
             return dx
-        return np.concatenate([dx, np.zeros(dx.shape[:-1] + (len(self.augment),))], -1)
+        parts = [dx, np.zeros(dx.shape[:-1] + (len(self.augment),))]
+        if self.sensor_states:
+            parts.append(-self.decay * z[..., self.n - len(self.sensor_states) :])
+        return np.concatenate(parts, -1)
 
     def jac(self, z: np.ndarray, u: np.ndarray) -> np.ndarray:
         p = self._p(z, z.ndim - 1)
         x = z[..., : self.nx]
         jx = self.model.jacobian(x, u, p)
-        if not self.augment:
+        if self.n == self.nx:
             return jx
         J = np.zeros(jx.shape[:-2] + (self.n, self.n))
         J[..., : self.nx, : self.nx] = jx
         for i, a in enumerate(self.augment):
             J[..., : self.nx, self.nx + i] = self.model.param_jacobian(x, u, p, a)
+        for i, d in enumerate(self.decay):
+            k = self.n - len(self.sensor_states) + i
+            J[..., k, k] = -d
         return J
 
     # ------------------------------------------------------------------ transitions
@@ -156,7 +171,8 @@ class DiscreteModel:
     def transition_all(self, zbar: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Every interval at once from ``zbar (N, K, n)`` (the states at ticks ``0..K-1``):
         ``(f_k(zbar_k) (N, K, n), A (N, K, n, n))``."""
-        if kernels.compiled() and self.model.registered_name in kernels.COMPILED["linearised"]:
+        if (not self.sensor_states and kernels.compiled()
+                and self.model.registered_name in kernels.COMPILED["linearised"]):  # sensor states: numpy
             from needlecli.kernels import kalman as compiled
 
             if compiled.transitions_supported(self):
@@ -226,7 +242,7 @@ def _rk4(f, x, h):
     return x + (h / 6.0) * (k1 + 2.0 * (k2 + k3) + k4)
 
 
-def _param_unit(model: Model, name: str) -> str:
+def param_unit(model: Model, name: str) -> str:
     field = model.Params.model_fields.get(name)
     desc = (field.description or "") if field is not None else ""
     return desc.rsplit(",", 1)[-1].strip() if "," in desc else "1"
@@ -275,6 +291,19 @@ class MeasurementModel:
     units: tuple[str, ...] = ()
     unit_vector: bool = False  # the components form a measured direction (renormalised)
     scale: np.ndarray | None = None  # (N, M, m) per-sample noise std over the reference (None: all 1)
+    #: ``"needle"``: a position used in coordinates along and across the needle (components ``t, e1, e2``
+    #: of :func:`~needlecli.numerics.needle_frame.needle_basis` at the linearisation point, reference axis
+    #: ``frame_axis``), so that its R is a covariance in the needle's frame; ``tangent_fn`` is the model's
+    #: tangent ``x (..., nx) -> (..., 3)``
+    frame: str = "world"
+    tangent_fn: Callable[[np.ndarray], np.ndarray] | None = None
+    frame_axis: int = 0
+    #: index of a sensor state (:class:`DiscreteModel`'s ``sensor_states``) that offsets the measured
+    #: position along the needle: ``h(z) = h(x) + z[offset_index] t(x)`` (``tangent_fn`` normalised)
+    offset_index: int | None = None
+    #: (N, M) robust weights of the samples (Student-t EM, :mod:`needlecli.fitting.robust`): a sample of
+    #: weight ``w`` is used with noise ``R / w`` (``y``, ``h`` and ``H`` scaled by ``sqrt(w)``); None: all 1
+    weight: np.ndarray | None = None
 
     @property
     def m(self) -> int:
@@ -296,29 +325,39 @@ class MeasurementModel:
     def take(self, idx: np.ndarray) -> MeasurementModel:
         out = MeasurementModel(self.name, self.h, self.nx, self.tick, self.y[idx], self.valid[idx], self.angle,
                                self.names, self.units, self.unit_vector,
-                               None if self.scale is None else self.scale[idx])
+                               None if self.scale is None else self.scale[idx], self.frame, self.tangent_fn,
+                               self.frame_axis, self.offset_index, None if self.weight is None else self.weight[idx])
         if self.tangent:
             out._axis_cache = self._axis()
         return out
 
     def h_aug(self, z: np.ndarray) -> np.ndarray:
-        return self.h(z[..., : self.nx])
+        x = z[..., : self.nx]
+        if self.offset_index is None:
+            return self.h(x)
+        t = self.tangent_fn(x)
+        return self.h(x) + z[..., self.offset_index, None] * t / np.linalg.norm(t, axis=-1, keepdims=True)
 
     def linearise(self, z: np.ndarray, y: np.ndarray | None = None, sample: int | None = None):
         """At states ``z (..., n)``: ``(h(z), H (..., m, n), d = h(z) - H z, y)`` with the measurements
         ``y (..., m_raw)`` (default: every sample, ``z`` then ``(N, M, n)``) in the same coordinates
-        (whitened by ``scale``: of every sample, or of sample ``sample`` when ``z`` is ``(N, n)``)."""
-        if self.scale is None and kernels.compiled() and z.ndim in (2, 3) and z.shape[0] == self.valid.shape[0]:
-            from needlecli.kernels import kalman as compiled  # (per-sample whitening: the numpy path below)
-
+        (whitened by ``scale``: of every sample, or of sample ``sample`` when ``z`` is ``(N, n)``; weighted
+        by ``weight`` likewise)."""
+        if (self.scale is None and self.weight is None and self.frame == "world" and self.offset_index is None
+                and kernels.compiled() and z.ndim in (2, 3) and z.shape[0] == self.valid.shape[0]):
+            from needlecli.kernels import kalman as compiled  # (whitening, weights, the needle's frame and
+                                                              # offsets: the numpy path below)
             kind = measurement_kind(self)
             if kind is not None:
                 return compiled.linearise(self, kind, z, y)
         yh, H = finite_difference_h(self.h_aug, z)
         if y is None:
             y = np.where(self.valid[..., None], self.y, 0.0)
-        if self.tangent:
-            E = tangent_basis(yh / np.linalg.norm(yh, axis=-1, keepdims=True), self._axis())
+        if self.tangent or self.frame == "needle":
+            if self.tangent:
+                E = tangent_basis(yh / np.linalg.norm(yh, axis=-1, keepdims=True), self._axis())
+            else:
+                E = needle_basis(self.tangent_fn(z[..., : self.nx]), self.frame_axis)
             Et = np.swapaxes(E, -1, -2)
             yh = (Et @ yh[..., None])[..., 0]
             H = Et @ H
@@ -326,6 +365,10 @@ class MeasurementModel:
         if self.scale is not None:
             w = self.scale if sample is None else self.scale[:, sample]
             yh, H, y = yh / w, H / w[..., None], y / w
+        if self.weight is not None:
+            w = self.weight if sample is None else self.weight[:, sample]
+            s = np.sqrt(np.broadcast_to(w, yh.shape[:-1]))[..., None]
+            yh, H, y = s * yh, s[..., None] * H, s * y
         d = yh - (H @ z[..., None])[..., 0]
         return yh, H, d, y
 
@@ -338,8 +381,9 @@ class MeasurementModel:
         """The channel for the filter with noise ``R``; ``y`` the measurements in the filter's coordinates
         (from :meth:`linearise`; needed for a measured direction)."""
         if y is None:
-            if self.tangent:
-                raise ValueError("a measured direction needs its measurements in tangent coordinates")
+            if self.tangent or self.frame == "needle" or self.weight is not None:
+                raise ValueError("a measured direction, a needle-frame or weighted channel needs its measurements "
+                                 "in the filter's coordinates (from linearise)")
             y = np.where(self.valid[..., None], self.y, 0.0)
         return Channel(tick=self.tick, y=y, valid=self.valid, R=R,
                        angle=None if self.tangent else self.angle)

@@ -33,6 +33,7 @@ from pydantic import Field, model_validator
 from needlecli.initial import InitialEstimate, check_initial, initial_covariance, initial_mean, make_start
 from needlecli.models import MODELS, Model, StateSelection
 from needlecli.numerics import wrap_angle
+from needlecli.numerics.needle_frame import AXES, block_noise, needle_basis, reference_axis, world_covariance
 from needlecli.numerics.unscented import (
     MerweWeights,
     angle_selection,
@@ -66,6 +67,20 @@ class MeasurementSpec(Strict):
     sigma: NonNeg | list[NonNeg] = Field(description="noise std per component (R = diag(sigma^2))")
     growth: DistanceGrowth | None = Field(None, description="R reset by distance to the transducer")
     gate: Probability | None = Field(None, description="chi-square gate probability, e.g. 0.999; off if unset")
+    frame: Literal["world", "needle"] = Field(
+        "world", description="coordinates of sigma: world axes, or (a position x, y, z) along the needle's tangent "
+                             "then across it, R = F diag(sigma^2) F^T at the predicted tangent (needlecli.numerics.needle_frame)")
+    across_axis: Literal["x", "y", "z"] | None = Field(
+        None, description="frame: needle: the world axis of the across directions (default: the one least aligned "
+                          "with the initial tangent)")
+
+    @model_validator(mode="after")
+    def _frame(self):
+        if self.frame == "needle" and self.growth is not None:
+            raise ValueError("growth is a distance law of world-axis noise: not with frame: needle")
+        if self.across_axis is not None and self.frame != "needle":
+            raise ValueError("across_axis is used only with frame: needle")
+        return self
 
 
 class KappaReset(Strict):
@@ -154,6 +169,10 @@ class UnscentedKalmanFilter(Observer):
             elif measurement_function(sensors[name], own) is None:
                 out.append((("measurements", name),
                             f"model {mcls.registered_name!r} cannot predict what sensor {name!r} measures"))
+            elif settings.measurements[name].frame == "needle" and (
+                    tuple(sensors[name].channel_names) != ("x", "y", "z") or not mcls.provides("tangent")):
+                out.append((("measurements", name, "frame"), "needle coordinates need a position with axes x, y, z "
+                            f"and a model with a tangent (sensor {name!r}: {', '.join(sensors[name].channel_names)})"))
         out += [(("init", *loc), msg) for loc, msg in
                 check_initial(settings.init, mcls.state_names, mcls.registered_name, sensors)]
         for k in mcls.input_names:
@@ -211,6 +230,9 @@ class UnscentedKalmanFilter(Observer):
 
         # --- initial estimate
         x, P0 = self._initial(problem, model, params, rng, chans)
+        for c in chans:  # needle coordinates: the reference axis, given or far from the initial tangent
+            if c["frame"] == "needle":
+                c["axis"] = c["axis"] if c["axis"] is not None else reference_axis(model.tangent(x))
         P = np.broadcast_to(P0, (N, n, n)).copy()
         Q = np.diag(np.array([s.q.get(k, 0.0) for k in model.state_names]) ** 2)
         kappa_i = model.index(model.curvature_param) if model.curvature_param in model.state_names else None
@@ -222,7 +244,8 @@ class UnscentedKalmanFilter(Observer):
         if kernels.compiled(problem.kernels) and kernels.has_model(model.registered_name):
             from needlecli.kernels import ukf as compiled
 
-            if compiled.supports(model, chans):
+            # a channel in the needle's frame (a full R at the predicted tangent): the numpy path below
+            if compiled.supports(model, chans) and all(c["frame"] == "world" for c in chans):
                 return self._from_kernel(compiled.filter_runs(
                     model, params, problem, s, chans, ticks, inputs, x, P0, Q, kappa_i, interfaces, depths, w, order,
                     n_act, progress), model, s, chans, time, stride, dt_grid, depths)
@@ -455,6 +478,8 @@ class UnscentedKalmanFilter(Observer):
                 "gate": _chi2_quantile(spec.gate, m) if spec and spec.gate else None,
                 "angle": np.asarray(ch.angle, dtype=bool), "value": ch.value, "valid": ch.valid,
                 "avail": avail[order], "order": order, "channel": ch,
+                "frame": spec.frame if spec else "world", "tangent": model.tangent if spec and spec.frame == "needle" else None,
+                "axis": AXES.index(spec.across_axis) if spec and spec.across_axis else None,
             })
             c = out[-1]
             c["scalar"] = m == 1 and c["select"] is not None and c["gate"] is None and not pos_cols
@@ -536,7 +561,9 @@ class UnscentedKalmanFilter(Observer):
             if not v.any():
                 continue
             r = np.broadcast_to(c["sigma"] ** 2, (N, c["m"]))
-            if c["growth"] is not None and c["pos_cols"]:
+            if c["frame"] == "needle":  # a covariance in the needle's frame at the predicted tangent
+                r = world_covariance(needle_basis(c["tangent"](x), c["axis"]), c["sigma"] ** 2)
+            elif c["growth"] is not None and c["pos_cols"]:
                 f = c["growth"].factor(y[:, c["pos_cols"]], axes=c["pos_axes"])
                 r = r.copy()
                 r[:, c["pos_cols"]] *= (f**2)[:, None]
@@ -554,7 +581,7 @@ class UnscentedKalmanFilter(Observer):
         else:
             y = np.concatenate(ys, -1)
             mask = np.concatenate(masks, -1).astype(float)
-            R = np.concatenate(rs, -1)
+            R = block_noise(rs) if any(r.ndim == 3 for r in rs) else np.concatenate(rs, -1)
             Y = np.concatenate(hs, -1)  # (N, S, M)
             ang_y = np.concatenate(angs)
         M = y.shape[-1]
@@ -568,7 +595,10 @@ class UnscentedKalmanFilter(Observer):
             dY = residual(Y, y_hat[:, None, :], ang_y)
             Pyy = weighted_cov(dY, dY, w.wc)
             Pxy = weighted_cov(dX, dY, w.wc)
-        Pyy[:, np.arange(M), np.arange(M)] += R
+        if R.ndim == 3:  # a full block (needle coordinates)
+            Pyy = Pyy + R
+        else:
+            Pyy[:, np.arange(M), np.arange(M)] += R
         nu = residual(y, y_hat, ang_y) * mask
         # chi-square gating per channel block
         for c, b0, m, jsel in blocks:

@@ -20,6 +20,7 @@ _TABLE_MODULES = {
     "needlecli.reports.real": ("real_tip_error", "measurement_use", "real_error_vs_depth", "per_trial",
                                "em_per_trial", "em_per_speed", "em_loglik"),
     "needlecli.reports.design": ("fit_by_design", "fit_regression", "fit_warnings"),
+    "needlecli.reports.along_across": ("real_error_along_across",),
 }
 _PLOT_MODULES = {
     "needlecli.reports.plots": ("error_vs_depth", "trajectories"),
@@ -29,6 +30,7 @@ _PLOT_MODULES = {
     "needlecli.reports.imaging": ("imaging_frames",),
     "needlecli.reports.consistency": ("nees_vs_depth",),
     "needlecli.reports.design": ("fit_regression",),
+    "needlecli.reports.along_across": ("error_along_across",),
 }
 
 #: the tables that read a fit file of ``needle fit-em`` (the others read results files); ``needle evaluate

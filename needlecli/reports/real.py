@@ -242,17 +242,25 @@ def em_per_trial(res: Group, errors=None) -> pd.DataFrame:
                            "Iterations": np.asarray(g.data["iterations"]),
                            "Log-lik. first": ll[:, 0], "Log-lik. last": _last_finite(ll),
                            "LL decreases": np.asarray(g.data["ll_decreases"])})
+        c_units = dict(zip([str(c) for c in g.attrs.get("constants", [])], [str(u) for u in g.attrs.get("constant_units", [])]))
         for c, v in g.data["constant"].data.items():
-            unit = units[names.index(c)] if c in names else ""
+            unit = units[names.index(c)] if c in names else c_units.get(c, "")
             df[f"{c} [{unit}]"] = np.asarray(v, dtype=float)
             if unit.startswith("1/"):
                 with np.errstate(divide="ignore"):
                     df[f"1/{c} [{unit[2:]}]"] = 1.0 / np.asarray(v, dtype=float)
+        sensor = [str(s) for s in g.attrs.get("sensor_states", [])]
         pos = [names.index(s) for s in q_states if s in _POSITION_STATES and s in names]
-        other = [names.index(s) for s in q_states if s not in _POSITION_STATES and s in names]
+        other = [names.index(s) for s in q_states if s not in _POSITION_STATES and s in names and s not in sensor]
         pos_unit = units[pos[0]] if pos else ""
         df[f"Q position rms [{pos_unit}/sqrt(s)]"] = _rms_block(Q, pos)
         df["Q other states rms [/sqrt(s)]"] = _rms_block(Q, other)
+        for s_name, tau in zip(sensor, np.atleast_1d(g.attrs.get("sensor_state_tau", []))):  # a sensor's offset
+            j, tau = names.index(s_name), float(tau)
+            if np.isfinite(tau):  # an Ornstein-Uhlenbeck state: its stationary std sqrt(q^2 tau / 2)
+                df[f"{s_name} std [{units[j]}] (tau {tau:g} s)"] = np.sqrt(Q[:, j, j] * tau / 2.0)
+            else:  # a constant: its estimate
+                df[f"{s_name} [{units[j]}]"] = np.asarray(g.data["x0"])[:, j]
         for ch, R in g.data["R"].data.items():
             if ch.endswith("_guess"):
                 continue
@@ -266,13 +274,15 @@ def em_per_trial(res: Group, errors=None) -> pd.DataFrame:
 def em_per_speed(res: Group, errors=None) -> pd.DataFrame:
     """EM fit per model and insertion speed (a fit file of needle fit-em): trials, how many converged,
     and each fitted constant over the converged trials (median, mean, SD; a curvature also as the radius
-    1/kappa)."""
+    1/kappa) with its standard error from the summed observed information of the speed's assessed
+    trials (identifiability; the radius's by the delta method at the median)."""
     per = em_per_trial(res)
     if per.empty:
         return per
     const = [c for c in per.columns if c.split(" [")[0] in {str(k) for _, g in _fit_models(res) for k in g.data["constant"].data}
              or c.startswith("1/")]
     rows = []
+    info = {model: _constant_information(g) for model, g in _fit_models(res)}
     for (model, sp), d in per.groupby(["Model", "Speed [mm/s]"], dropna=False):
         ok = d[d["Status"] == "ok"]
         row = {"Model": model, "Speed [mm/s]": sp, "Converged": count_cell(len(ok), len(d))}
@@ -281,8 +291,42 @@ def em_per_speed(res: Group, errors=None) -> pd.DataFrame:
             row[f"{c} median"] = float(np.median(v)) if v.size else np.nan
             row[f"{c} mean"] = float(np.mean(v)) if v.size else np.nan
             row[f"{c} SD"] = float(np.std(v, ddof=1)) if v.size > 1 else np.nan
+            name = c.split(" [")[0]
+            trials = d.index.to_numpy() - per.index[per["Model"] == model][0]  # the speed's trials in the fit
+            se = _pooled_se(info[model], name.removeprefix("1/"), trials)
+            if name.startswith("1/"):  # the radius r = 1/c: SE(r) = r^2 SE(c) at the median
+                se = se * row[f"{c} median"] ** 2
+            row[f"{c} SE (pooled)"] = se
         rows.append(row)
     return pd.DataFrame(rows)
+
+
+def _constant_information(g: Group):
+    """``(names, information (N, d, d), used (N,))`` of a fit's identifiability group, or None."""
+    idf = g.data.get("identifiability")
+    if idf is None:
+        return None
+    return ([str(q) for q in idf.attrs["quantities"]], -np.asarray(idf.data["hessian"], dtype=float),
+            np.asarray(idf.data["used"], dtype=bool))
+
+
+def _pooled_se(info, name: str, trials: np.ndarray) -> float:
+    """Standard error of quantity ``name`` from the summed observed information of ``trials`` (those
+    assessed): ``sqrt((sum_i I_i)^-1)`` on its diagonal; NaN without the information."""
+    if info is None or name not in info[0]:
+        return np.nan
+    names, I, used = info
+    sel = trials[used[trials]]
+    if not sel.size:
+        return np.nan
+    tot = np.nansum(I[sel], axis=0)
+    k = names.index(name)
+    with np.errstate(all="ignore"):
+        try:
+            cov = np.linalg.pinv(0.5 * (tot + tot.T))
+        except np.linalg.LinAlgError:
+            return np.nan
+    return float(np.sqrt(cov[k, k])) if cov[k, k] > 0 else np.nan
 
 
 _LL_AT = (1, 2, 5, 10, 20, 50, 100, 200, 500)

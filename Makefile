@@ -9,7 +9,7 @@ help:
 	@echo "make install  - install needlecli with test extras (editable)"
 	@echo "make demo     - run the bundled default experiment and write its tables"
 	@echo "make test     - run the test suite (what .ci/run runs)"
-	@echo "make bench    - speed benchmarks (figures also as ratios against an in-run reference; issue 14's targets first)"
+	@echo "make bench    - speed benchmarks (ratios against in-run references; issue 14's targets) -> docs/benchmarks.md"
 	@echo "make lint     - ruff"
 	@echo "make docs     - the documentation site in site/ (mkdocs build --strict; pip install -e '.[docs]')"
 	@echo "make seed000  - seed 000's simulation and experiment-like studies: Table I, the sweep of theta (in $(STUDIES))"
@@ -34,15 +34,11 @@ demo:
 test:
 	$(PY) -m pytest
 
+# Every benchmark in order (tools/bench_page.py lists them), their output as it comes, then written down as
+# the documentation's benchmark page, docs/benchmarks.md (only when all finished). BENCH_ARGS: arguments of
+# benchmarks/bench_kernels.py, e.g. BENCH_ARGS=--quick.
 bench:
-	$(PY) benchmarks/bench_startup.py
-	$(PY) benchmarks/bench_kernels.py
-	$(PY) benchmarks/bench_simulate.py
-	$(PY) benchmarks/bench_ukf.py
-	$(PY) benchmarks/bench_sweep.py
-	$(PY) benchmarks/bench_observers.py
-	$(PY) benchmarks/bench_imaging.py
-	$(PY) benchmarks/bench_em.py
+	$(PY) tools/bench_page.py --out docs/benchmarks.md -- $(BENCH_ARGS)
 
 lint:
 	$(PY) -m ruff check needlecli tests benchmarks

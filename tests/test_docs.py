@@ -101,7 +101,24 @@ def test_readme_is_a_front_page_with_the_two_commands():
     ci = (ROOT / ".ci" / "run").read_text()
     assert "python -m pip install -e '.[test]' && python -m pytest" in ci and "'.[docs]'" in ci
     assert "needle evaluate" in text and "docs/img/default_error_vs_depth.png" in text
-    for link in re.findall(r"\]\((docs/[^)#]+)", text):  # benchmarks.md: the benchmark round's page (the
-        assert (ROOT / link).exists() or link == "docs/benchmarks.md", link  # build makes one while it is absent)
+    for link in re.findall(r"\]\((docs/[^)#]+)", text):
+        assert (ROOT / link).exists(), link
     for seed in ("000", "001", "003", "004"):
         assert f"docs/papers/seed{seed}.md" in text, seed
+
+
+# ---------------------------------------------------------------------------------------------- benchmarks
+def test_the_benchmark_page_is_what_make_bench_wrote():
+    """docs/benchmarks.md is the output of a whole ``make bench`` round (tools/bench_page.py), not a page
+    written by hand: its mark, every benchmark's section and issue 14's targets with their verdicts."""
+    sys.path.insert(0, str(ROOT / "tools"))
+    import bench_page
+
+    text = (ROOT / "docs" / "benchmarks.md").read_text(encoding="utf-8")
+    assert text.startswith(bench_page.MARK)
+    for name in bench_page.BENCHMARKS:
+        assert f"\n## {name}\n" in text and (ROOT / "benchmarks" / f"{name}.py").exists(), name
+    targets = text.split("## Issue 14's targets", 1)[1].split("\n## ", 1)[0]
+    rows = [line for line in targets.splitlines() if line.startswith("| ")][2:]  # below the header
+    assert len(rows) >= 7 and "FilterPy" in targets
+    assert {line.rsplit("|", 2)[1].strip(" *") for line in rows} <= {"MET", "NOT MET", "printed"}

@@ -396,7 +396,7 @@ def test_em_passes_equal_numpy(name, seed004_system, numpy_path):
     """Linearisation (RK4 Jacobians, measurement Jacobians in tangent planes), the affine filter, the RTS
     smoother and the M-step sums, compiled against numpy on the same random trajectory, to 1e-10
     relative (an entry's difference to the largest entry of its array). Missing samples included."""
-    from needlecli.fitting.smoother import affine_pass, linearise
+    from needlecli.fitting.smoother import affine_loglik, affine_pass, linearise
     from needlecli.numerics.kalman import em_measurement_noise, em_process_noise
 
     S = seed004_system[name]
@@ -434,6 +434,11 @@ def test_em_passes_equal_numpy(name, seed004_system, numpy_path):
         assert _rel(getattr(ra.sm, k), getattr(rb.sm, k)) < 1e-10, k
     assert _rel(qa, qb) < 1e-10 and all(_rel(x, y) < 1e-10 for x, y in zip(Ra, Rb))
     np.testing.assert_array_equal(ra.fwd.repairs + ra.sm.repairs, rb.fwd.repairs + rb.sm.repairs)
+    # the log-likelihood alone (identifiability's evaluation points): the full pass's, bit for bit
+    ll = affine_loglik(lb, dm, meas, S.m0, P0, Q, R)
+    np.testing.assert_array_equal(ll, rb.fwd.loglik)
+    with numpy_path:
+        assert _rel(affine_loglik(la, dm, meas, S.m0, P0, Q, R), ll) < 1e-10
 
 
 def test_fit_em_iterations_equal_numpy(numpy_path):
@@ -487,3 +492,102 @@ def test_results_compression_where_it_pays(mode, tmp_path):
         np.testing.assert_array_equal(f["truth/state"][()], res.truth.states)
     want = {"auto": ["gzip"] * 3 + [None] * 2, "gzip": ["gzip"] * 5, "none": [None] * 5}[mode]
     assert list(filters.values()) == want
+
+
+def test_results_file_the_same_however_written(tmp_path, monkeypatch):
+    """The results file is written straight from the arrays into room reserved ahead (O_DIRECT for the
+    arrays where the file system has it, else the page cache) or, where room cannot be reserved, built in
+    memory first: every array reads back as it was, whichever way (and the first two give the same bytes);
+    arrays repeating along an axis are gzipped with each distinct chunk compressed once."""
+    import errno
+
+    from needlecli.io import results
+    from needlecli.io.tree import Group
+
+    cfg, text = load_config(ROOT / "configs/seed003/table1.yaml", runs=5, overrides=["stop.depth=10"])
+    res = run_experiment(cfg, text, write=False)
+    from needlecli.experiments.runner import build_sensors, results_tree
+
+    tree = results_tree(cfg, text, res.truth, res.measurements, res.estimates, build_sensors(cfg, res.truth.model))
+    tree.data["extra"] = Group(data={"rows_alike": np.broadcast_to(np.arange(7000.0), (30, 7000)),
+                                     "held": np.repeat(np.arange(30.0)[:, None], 9000, axis=1)})
+    results.write_atomic(tmp_path / "direct.h5", tree)
+    monkeypatch.setenv("NEEDLECLI_NO_DIRECT_IO", "1")
+    results.write_atomic(tmp_path / "cached.h5", tree)
+
+    def no_room(fd, offset, length):
+        raise OSError(errno.EOPNOTSUPP, "not supported")
+
+    monkeypatch.setattr(results.os, "posix_fallocate", no_room)
+    results.write_atomic(tmp_path / "image.h5", tree)
+    assert (tmp_path / "direct.h5").read_bytes() == (tmp_path / "cached.h5").read_bytes()
+
+    def arrays(g, prefix=""):
+        for k, v in g.data.items():
+            if isinstance(v, Group):
+                yield from arrays(v, f"{prefix}{k}/")
+            else:
+                yield prefix + k, np.asarray(v)
+
+    want = dict(arrays(tree))
+    for name in ("direct", "cached", "image"):
+        got = dict(arrays(results.read_results(tmp_path / f"{name}.h5")))
+        assert got.keys() == want.keys()
+        for k, a in want.items():
+            if a.dtype.kind in "UO":
+                np.testing.assert_array_equal(got[k].astype(str), a.astype(str), err_msg=k)
+            else:
+                np.testing.assert_array_equal(got[k], a, err_msg=k)
+    import h5py
+
+    with h5py.File(tmp_path / "direct.h5") as f:
+        assert f["extra/rows_alike"].compression == "gzip" and f["extra/held"].compression == "gzip"
+        assert f["extra/rows_alike"].id.get_storage_size() < 1e5 and f["truth/state"].compression is None
+
+
+@pytest.mark.parametrize("path,overrides", [("configs/seed003/table1.yaml", ["stop.depth=10"]),
+                                            ("configs/default.yaml", ["stop.depth=30"]),
+                                            ("configs/seed004/study.yaml", ["stop.time=3"])],
+                         ids=["seed003", "flips", "mnm"])
+def test_errors_equal_numpy(path, overrides, numpy_path):
+    """The errors of the summary tables straight from the state arrays: the position norm, the wrapped
+    angle errors and the other states' errors equal the numpy path's bit for bit, E_R to 1e-10; runs
+    excluded alike (a run made to diverge, one with a NaN estimate)."""
+    from needlecli.experiments.runner import build_sensors, results_tree
+    from needlecli.metrics import compute_errors
+
+    cfg, text = load_config(ROOT / path, runs=5, overrides=overrides)
+    res = run_experiment(cfg, text, write=False)
+    tree = results_tree(cfg, text, res.truth, res.measurements, res.estimates, build_sensors(cfg, res.truth.model))
+    for grp in tree.data["estimates"].data.values():
+        grp.data["status"] = np.asarray(grp.data["status"]).astype(object)
+        grp.data["status"][1] = "diverged"
+        grp.data["state"] = np.array(grp.data["state"])
+        grp.data["state"][2, 5:9] = np.nan
+    got = compute_errors(tree)
+    with numpy_path:
+        ref = compute_errors(tree)
+    assert got.keys() == ref.keys()
+    for obs, es in ref.items():
+        assert list(got[obs].quantities) == list(es.quantities) and got[obs].excluded == es.excluded
+        for q, qe in es.quantities.items():
+            g = got[obs].quantities[q]
+            assert g.unit == qe.unit and np.array_equal(g.runs, qe.runs), q
+            if q == "E_R":
+                np.testing.assert_allclose(g.values, qe.values, rtol=0, atol=1e-10 * 180 / np.pi, err_msg=q)
+            else:
+                np.testing.assert_array_equal(g.values, qe.values, err_msg=q)
+
+
+def test_the_commands_memory_policy():
+    """``needle`` maps numpy's large arrays on ordinary pages unless the user asks for huge ones, with or
+    without a glibc MALLOC_ variable set (then glibc's heap is left as it is; needlecli.cli.app.memory_policy)."""
+    code = ("from needlecli.cli.app import memory_policy\nmemory_policy()\nimport numpy\n"
+            "print(numpy._core.multiarray._get_madvise_hugepage())")
+    env = {k: v for k, v in os.environ.items() if k != "NUMPY_MADVISE_HUGEPAGE" and not k.startswith("MALLOC_")}
+    env["PYTHONPATH"] = str(ROOT)
+    for extra, want in (({}, "False"), ({"NUMPY_MADVISE_HUGEPAGE": "1"}, "True"),
+                        ({"MALLOC_ARENA_MAX_": "2"}, "False")):
+        out = subprocess.run([sys.executable, "-c", code], env={**env, **extra}, capture_output=True, text=True,
+                             check=True).stdout.strip()
+        assert out == want, (extra, out)

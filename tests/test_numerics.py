@@ -86,6 +86,23 @@ def test_wrap_angle_edges_and_shapes():
     assert np.all((w >= -PI) & (w < PI))
 
 
+def test_wrap_angle_in_place_is_the_same():
+    """``wrap_angle(a, out=...)`` (in place, the samples of a sensor) gives the same bits as the
+    expression, at the cut and its neighbours, zeros of both signs, huge, infinite and NaN angles."""
+    k = np.arange(-300, 300)
+    c = (2 * k + 1) * PI
+    a = np.concatenate([c, np.nextafter(c, np.inf), np.nextafter(c, -np.inf), [0.0, -0.0, 1e300, -1e17, np.inf,
+                        np.nan], np.random.default_rng(5).normal(0.0, 50.0, 10_000)]).reshape(-1, 2)
+    with np.errstate(invalid="ignore"):
+        ref = wrap_angle(a)
+        out = np.empty_like(a)
+        assert wrap_angle(a, out=out) is out
+        b = a.copy()
+        wrap_angle(b, out=b)
+    for got in (out, b):
+        assert np.array_equal(got, ref, equal_nan=True) and np.array_equal(np.signbit(got), np.signbit(ref))
+
+
 def test_wrap_angle_range_at_odd_multiples_of_pi():
     """Rounding at the branch cut: odd multiples of pi and their neighbours one ulp away, batched."""
     k = np.arange(-3000, 3000)

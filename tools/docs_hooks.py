@@ -7,20 +7,18 @@ that they cannot go stale. Nothing here is written into ``docs/``; the pages exi
 * ``reference/commands.md``: every command with its arguments and options, read from the typer app
   (click introspection of :data:`needlecli.cli.app.app`: what ``needle CMD --help`` prints);
 * ``reference/tables-plots.md``: the tables and plots registries (``needle evaluate --tables``), each
-  entry's description from its own docstring;
-* ``benchmarks.md``, only while the benchmark round's own page is not in ``docs/``: the figures of
-  ``make bench`` as they were last written down (``tools/docs_benchmarks_fallback.md``).
+  entry's description from its own docstring.
+
+``benchmarks.md`` is not made here: ``make bench`` writes it into ``docs/`` from what the benchmarks print
+(``tools/bench_page.py``), since it holds measurements of a machine, not facts of the code.
 """
 
 from __future__ import annotations
 
 import inspect
 import re
-from pathlib import Path
 
 from mkdocs.structure.files import File
-
-HERE = Path(__file__).resolve().parent
 
 
 def on_files(files, config):
@@ -32,8 +30,6 @@ def on_files(files, config):
         pages[f"reference/config/{name}.md"] = _config_intro(name) + text
     pages["reference/commands.md"] = commands_page()
     pages["reference/tables-plots.md"] = tables_page()
-    if files.get_file_from_path("benchmarks.md") is None:
-        pages["benchmarks.md"] = (HERE / "docs_benchmarks_fallback.md").read_text(encoding="utf-8")
     for uri, text in pages.items():
         old = files.get_file_from_path(uri)
         if old is not None:

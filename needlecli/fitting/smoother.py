@@ -18,7 +18,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from needlecli.fitting.statespace import DiscreteModel, MeasurementModel
-from needlecli.numerics.kalman import ForwardResult, SmoothResult, kalman_forward, kalman_forward_affine, rts_smoother
+from needlecli.numerics.kalman import (
+    ForwardResult,
+    SmoothResult,
+    kalman_forward,
+    kalman_forward_affine,
+    kalman_loglik_affine,
+    rts_smoother,
+)
 
 
 @dataclass
@@ -151,9 +158,8 @@ def affine_loglik(lin: Linearisation, dm: DiscreteModel, meas: Sequence[Measurem
                   P0: np.ndarray, Qc: np.ndarray, R: Sequence[np.ndarray]) -> np.ndarray:
     """The log-likelihood ``(N,)`` of the measurements under a fixed affine model (the forward pass of
     :func:`affine_pass` only: compiled where the kernels cover it)."""
-    fwd = kalman_forward_affine(m0, P0, Qc, dm.dt, lin.A, lin.b, _channels(meas, R, lin.y), lin.H, lin.d,
+    return kalman_loglik_affine(m0, P0, Qc, dm.dt, lin.A, lin.b, _channels(meas, R, lin.y), lin.H, lin.d,
                                 state_angles=dm.angles)
-    return fwd.loglik
 
 
 @dataclass

@@ -466,20 +466,26 @@ def _fsync(p: Path) -> None:
         os.close(fd)
 
 
+def write_fd(fd: int, data: bytes | memoryview, progress=None) -> None:
+    """Write ``data`` to descriptor ``fd`` in pieces (a signal between them stops the write cleanly);
+    ``progress(bytes written)`` after each piece, if given."""
+    view = memoryview(data)
+    for i in range(0, len(view), _CHUNK):
+        chunk = view[i : i + _CHUNK]
+        while chunk:
+            n = os.write(fd, chunk)
+            chunk = chunk[n:]
+        if progress is not None:
+            progress(min(i + _CHUNK, len(view)))
+
+
 def write_bytes_atomic(path: str | Path, data: bytes | memoryview, progress=None) -> Path:
     """Write ``data`` to ``path`` atomically, in pieces (a signal between them stops the write cleanly);
     ``progress(bytes written)`` after each piece, if given."""
-    view = memoryview(data)
     with atomic_path(path) as tmp:
         fd = os.open(tmp, os.O_WRONLY | os.O_TRUNC)
         try:
-            for i in range(0, len(view), _CHUNK):
-                chunk = view[i : i + _CHUNK]
-                while chunk:
-                    n = os.write(fd, chunk)
-                    chunk = chunk[n:]
-                if progress is not None:
-                    progress(min(i + _CHUNK, len(view)))
+            write_fd(fd, data, progress)
         finally:
             os.close(fd)
     return Path(path)

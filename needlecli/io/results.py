@@ -28,6 +28,10 @@
 from __future__ import annotations
 
 import datetime as _dt
+import errno
+import itertools
+import mmap
+import os
 from pathlib import Path
 
 import h5py
@@ -35,7 +39,7 @@ import numpy as np
 
 from needlecli import __version__
 from needlecli.errors import DataError
-from needlecli.io.atomic import deferred_signals, write_bytes_atomic
+from needlecli.io.atomic import atomic_path, deferred_signals, write_fd
 from needlecli.io.layout import RESULTS, check_layout
 from needlecli.io.tree import Group
 from needlecli.provenance import git_hash
@@ -53,19 +57,60 @@ def _attr(v):
 
 
 COMPRESSION = ("auto", "gzip", "none")
+_CHUNK_BYTES = 2**20  # target size of a chunk of a compressed dataset
 
 
-def _repeats(arr: np.ndarray) -> bool:
-    """Whether ``arr`` (2-d or more) repeats along its first or second axis (a broadcast, a value per run
-    held over time): gzip shrinks such arrays to almost nothing, fast. Checked on a corner first."""
-    if 0 in arr.strides:
-        return True
+def _repeat_axis(arr: np.ndarray) -> int | None:
+    """The axis (0 or 1) along which ``arr`` (2-d or more) repeats (a broadcast, a value per run held over
+    time), else None: gzip shrinks such arrays to almost nothing. Checked on a corner first."""
+    for axis in (0, 1):
+        if arr.strides[axis] == 0:
+            return axis
     for axis in (0, 1):
         first = np.take(arr, [0], axis=axis)
         corner = tuple(slice(0, 8) for _ in range(arr.ndim))
         if (arr[corner] == first[corner]).all() and (arr == first).all():
-            return True
-    return False
+            return axis
+    return None
+
+
+def _repeats(arr: np.ndarray) -> bool:
+    return _repeat_axis(arr) is not None
+
+
+def _repeat_chunks(shape: tuple[int, ...], itemsize: int, axis: int) -> tuple[int, ...]:
+    """Chunks of about :data:`_CHUNK_BYTES` for an array repeating along ``axis``: whole along the axes
+    after the first two, so that chunks at different positions along ``axis`` hold the same values."""
+    rest = int(np.prod(shape[2:], dtype=np.int64)) * itemsize
+    per = max(1, _CHUNK_BYTES // max(rest, 1))  # elements of the first two axes per chunk
+    if axis == 0:  # rows all alike: whole rows of the second axis if they fit
+        c1 = min(shape[1], per)
+        c0 = min(shape[0], max(1, per // c1))
+    else:  # each row constant along axis 1: as many rows as fit with a long run of axis 1
+        c0 = min(shape[0], 64)
+        c1 = min(shape[1], max(1, per // c0))
+    return (c0, c1) + tuple(shape[2:])
+
+
+def _write_repeating(g: h5py.Group, k: str, arr: np.ndarray, axis: int) -> None:
+    """A gzipped dataset of an array repeating along ``axis``: each distinct chunk compressed once (by HDF5,
+    from the array), then its bytes written at every position along ``axis`` where it recurs. The file is
+    the one HDF5 would write chunk by chunk; the work is that of one row of chunks."""
+    chunks = _repeat_chunks(arr.shape, arr.dtype.itemsize, axis)
+    d = g.create_dataset(k, shape=arr.shape, dtype=arr.dtype, chunks=chunks, compression="gzip",
+                         compression_opts=1, shuffle=True)
+    n_along = -(-arr.shape[axis] // chunks[axis])
+    grid = [range(0, arr.shape[i], chunks[i]) for i in range(arr.ndim)]
+    grid[axis] = range(0, 1)
+    for start in itertools.product(*grid):
+        region = tuple(slice(o, o + c) for o, c in zip(start, chunks))
+        d[region] = arr[region]
+        if n_along > 1:
+            mask, raw = d.id.read_direct_chunk(start)
+            for i in range(1, n_along):
+                offset = list(start)
+                offset[axis] = i * chunks[axis]
+                d.id.write_direct_chunk(tuple(offset), raw, mask)
 
 
 def _nbytes(grp: Group) -> int:
@@ -86,7 +131,9 @@ def _write_group(g: h5py.Group, grp: Group, compression: str = "auto", done=None
         big = arr.ndim >= 2 and arr.size > 4096
         if arr.dtype.kind in "UO":
             g.create_dataset(k, data=arr.astype(str).astype(_STR), dtype=_STR)
-        elif big and (compression == "gzip" or (compression == "auto" and _repeats(arr))):
+        elif big and compression != "none" and (axis := _repeat_axis(arr)) is not None:
+            _write_repeating(g, k, arr, axis)
+        elif big and compression == "gzip":
             g.create_dataset(k, data=arr, chunks=True, compression="gzip", compression_opts=1, shuffle=True)
         else:
             g.create_dataset(k, data=arr)
@@ -94,10 +141,32 @@ def _write_group(g: h5py.Group, grp: Group, compression: str = "auto", done=None
             g[k].attrs[ak] = _attr(av)
 
 
+def _size_bound(grp: Group) -> int:
+    """An upper bound of the size of the HDF5 file of ``grp`` (any compression): the arrays' bytes as they
+    are, plus generous room for HDF5's own structures, attributes and strings."""
+    total = 1 << 20
+    for v in grp.attrs.values():
+        total += 4096 + 2 * len(str(v).encode())
+    for k, v in grp.data.items():
+        if isinstance(v, Group):
+            total += _size_bound(v)
+            continue
+        arr = np.asarray(v)
+        total += 64 * 1024 + arr.nbytes // 64  # a chunk index, deflate's worst case (under 0.1 %)
+        if arr.dtype.kind in "UO":
+            total += sum(len(str(x).encode()) + 32 for x in arr.ravel())
+        else:
+            total += arr.nbytes
+        for av in grp.dataset_attrs.get(k, {}).values():
+            total += 4096 + 2 * len(str(av).encode())
+    return total
+
+
 def file_image(root: Group, compression: str = "auto", done=None) -> bytes:
-    """The HDF5 file of ``root``, built in memory. HDF5 itself never writes to disk here: a full disk
-    met inside it ends in a crash (h5py cannot recover from a failed write), and a signal that arrives
-    inside one of its callbacks is lost; so signals are held while it runs (acted on when it is done).
+    """The HDF5 file of ``root``, built in memory, for file systems that cannot reserve room ahead (see
+    :func:`write_atomic`). HDF5 itself never writes to disk here: a full disk met inside it ends in a
+    crash (h5py cannot recover from a failed write), and a signal that arrives inside one of its callbacks
+    is lost; so signals are held while it runs (acted on when it is done).
 
     ``compression``: ``auto`` compresses (gzip, level 1, shuffled) the large arrays that repeat along an
     axis (broadcast inputs, parameters held over time, constant noise levels: 10 to 1000 times smaller
@@ -106,33 +175,157 @@ def file_image(root: Group, compression: str = "auto", done=None) -> bytes:
     ``done(nbytes)``, if given, is called before each array is written (a progress bar's step)."""
     if compression not in COMPRESSION:
         raise ValueError(f"compression {compression!r}: expected one of {', '.join(COMPRESSION)}")
-    with deferred_signals(), h5py.File(f"needle-image-{id(root)}", "w", driver="core", backing_store=False) as f:
+    with deferred_signals(), h5py.File(f"needle-image-{id(root)}", "w", driver="core", backing_store=False,
+                                       block_size=min(1 << 26, max(1 << 16, _size_bound(root)))) as f:
         _write_group(f, root, compression, done)
         f.flush()
         return f.id.get_file_image()
 
 
+_ALIGN = 4096  # O_DIRECT: file offsets, lengths and buffer addresses in whole blocks
+_BOUNCE = 8 * 2**20  # the aligned buffer the arrays go through on their way to the disk
+
+
+class _Reserved:
+    """The file object HDF5 writes through (h5py's ``fileobj`` driver): positioned reads and writes on a
+    descriptor whose room has been reserved; the size HDF5 sees is what it has written.
+
+    With ``direct`` (a second descriptor of the file opened ``O_DIRECT``) the whole blocks of a large write
+    (an array's data) go to the disk without the page cache, through an aligned buffer: an array is copied
+    once, not into cache pages that the kernel must first find and later write back (which costs more than
+    the copy on virtual machines, where fresh memory is slow), and the final ``fsync`` has little left to
+    do. The ends of such a write, and everything small (HDF5's own structures), take the page cache."""
+
+    def __init__(self, fd: int, direct: int | None = None) -> None:
+        self.fd, self.pos, self.end = fd, 0, 0
+        self.direct = direct
+        self._bounce: mmap.mmap | None = None
+
+    def seek(self, pos: int, whence: int = 0) -> int:
+        self.pos = pos if whence == 0 else self.pos + pos if whence == 1 else self.end + pos
+        return self.pos
+
+    def tell(self) -> int:
+        return self.pos
+
+    def read(self, n: int = -1) -> bytes:
+        b = os.pread(self.fd, (self.end - self.pos) if n < 0 else n, self.pos)
+        self.pos += len(b)
+        return b
+
+    def readinto(self, buf) -> int:
+        k = os.preadv(self.fd, [buf], self.pos)
+        self.pos += k
+        return k
+
+    def _pwrite(self, fd: int, view: memoryview, at: int) -> None:
+        done = 0
+        while done < len(view):
+            done += os.pwrite(fd, view[done:], at + done)
+
+    def write(self, b) -> int:
+        view = memoryview(b).cast("B")
+        n, at = len(view), self.pos
+        lo = -at % _ALIGN  # bytes up to the first whole block
+        hi = (at + n) // _ALIGN * _ALIGN - at  # ... and to the end of the last one
+        if self.direct is None or hi - lo < _BOUNCE // 4:
+            self._pwrite(self.fd, view, at)
+        else:
+            self._pwrite(self.fd, view[:lo], at)
+            if self._bounce is None:
+                self._bounce = mmap.mmap(-1, _BOUNCE)
+            bounce = memoryview(self._bounce)
+            for i in range(lo, hi, _BOUNCE):
+                k = min(_BOUNCE, hi - i)
+                bounce[:k] = view[i : i + k]
+                self._pwrite(self.direct, bounce[:k], at + i)
+            self._pwrite(self.fd, view[hi:], at + hi)
+        self.pos = at + n
+        self.end = max(self.end, self.pos)
+        return n
+
+    def truncate(self, size: int | None = None) -> int:
+        size = self.pos if size is None else int(size)
+        os.ftruncate(self.fd, size)
+        self.end = size
+        return size
+
+    def flush(self) -> None:
+        pass
+
+    def close(self) -> None:
+        if self._bounce is not None:
+            self._bounce.close()
+            self._bounce = None
+
+
+def _open_direct(path: Path) -> int | None:
+    """A second descriptor of ``path`` for O_DIRECT writes, where the platform and file system have them."""
+    flag = getattr(os, "O_DIRECT", 0)
+    if not flag or os.environ.get("NEEDLECLI_NO_DIRECT_IO"):
+        return None
+    try:
+        return os.open(path, os.O_WRONLY | flag)
+    except OSError:  # tmpfs and others: no O_DIRECT
+        return None
+
+
 def write_atomic(path: str | Path, root: Group, compression: str = "auto", progress=None) -> Path:
-    """Write ``root`` to ``path``: the file is built in memory (:func:`file_image`), then written to a
-    temporary file beside ``path`` and renamed over it (:func:`~needlecli.io.atomic.write_bytes_atomic`),
-    so that a reader never sees a half-written file, a full disk is one clear error, and the earlier file
-    at ``path`` is kept until the new one is complete. ``progress(done, total)`` (bytes: the arrays
-    copied into the file, then the file written) reports how far it is."""
-    if progress is None:
-        return write_bytes_atomic(path, file_image(root, compression))
+    """Write ``root`` to ``path``, so that a reader never sees a half-written file, a full disk is one clear
+    error, and the earlier file at ``path`` is kept until the new one is complete: the file is written to
+    a temporary file beside ``path`` and renamed over it (:func:`~needlecli.io.atomic.atomic_path`).
+
+    HDF5 must never meet a full disk (it cannot recover from a failed write): the room for the whole file
+    (:func:`_size_bound`, more than it needs) is reserved first (``posix_fallocate``, a full disk fails
+    there, before HDF5 starts), then HDF5 writes the arrays straight from memory into it (one copy, no
+    file image; signals held while it works) and the file is cut to its size. Where the file system
+    cannot reserve room, the file is built in memory and written after (:func:`file_image`).
+
+    ``progress(done, total)`` (bytes: the arrays copied into the file, and the file image written where
+    one is built) reports how far it is."""
+    if compression not in COMPRESSION:
+        raise ValueError(f"compression {compression!r}: expected one of {', '.join(COMPRESSION)}")
+    path = Path(path)
     raw = max(_nbytes(root), 1)
-    state = {"built": 0}
+    state = {"built": 0, "total": raw}
 
     def built(n: int) -> None:
         state["built"] += n
-        progress(state["built"], 2 * raw)
+        progress(min(state["built"], state["total"]), state["total"])
 
-    image = file_image(root, compression, built)
-    total = raw + max(len(image), 1)
-    progress(raw, total)
-    out = write_bytes_atomic(path, image, progress=lambda k: progress(raw + k, total))
-    progress(total, total)
-    return out
+    done = built if progress is not None else None
+    with atomic_path(path) as tmp:
+        fd = os.open(tmp, os.O_RDWR)
+        try:
+            try:
+                os.posix_fallocate(fd, 0, _size_bound(root))
+                reserved = True
+            except OSError as e:
+                if e.errno not in (errno.EOPNOTSUPP, errno.EINVAL, errno.ENOSYS):
+                    raise
+                reserved = False
+            if reserved:
+                direct = _open_direct(tmp)
+                target = _Reserved(fd, direct)
+                try:
+                    with deferred_signals(), h5py.File(target, "w") as f:
+                        _write_group(f, root, compression, done)
+                finally:
+                    target.close()
+                    if direct is not None:
+                        os.close(direct)
+            else:
+                state["total"] = 2 * raw
+                image = file_image(root, compression, done)
+                total = state["total"] = raw + max(len(image), 1)
+                if progress is not None:
+                    progress(raw, total)
+                write_fd(fd, image, (lambda k: progress(raw + k, total)) if progress is not None else None)
+        finally:
+            os.close(fd)
+    if progress is not None:
+        progress(state["total"], state["total"])
+    return path
 
 
 def root_attrs(config_text: str, seed: int, extra: dict | None = None) -> dict:

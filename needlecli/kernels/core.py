@@ -49,15 +49,19 @@ def sincos(x):
     return (-a if q >= 2.0 else a), (-b if (q == 1.0) | (q == 2.0) else b)
 
 
-@jit
-def wrap(a):
-    """:func:`needlecli.numerics.wrap_angle` on one value (the same operations)."""
-    w = a - TWO_PI * math.floor((a + PI) * (0.5 / PI))
+def _wrap(a):
+    """:func:`needlecli.numerics.wrap_angle` on one value (the same operations; ``np.floor``: one vector
+    instruction in loops over lanes, where ``math.floor`` is a call)."""
+    w = a - TWO_PI * np.floor((a + PI) * (0.5 / PI))
     if w >= PI:
         w = w - TWO_PI
     if w < -PI:
         w = -PI
     return w
+
+
+wrap = jit(_wrap)
+wrap_inline = inline(_wrap)  # the same, inlined into the loops over lanes of the kernels
 
 
 @jit

@@ -259,8 +259,9 @@ def _fix_lanes(M, L, n, ok, scratch, Ls, count):
 # ---------------------------------------------------------------------------------------------- the filter
 @jit
 def forward_affine(lo, hi, m0, P0, Qc, dt, A, b, acnt, aidx, slot, ch_m, Y, V, R, H, D, ang_c, hcnt, hidx,
-                   m_pred, P_pred, m_filt, P_filt, loglik, repairs, state_angles):
-    """:func:`needlecli.numerics.kalman.kalman_forward_affine` for trials ``lo..hi-1`` (lanes of LANES).
+                   m_pred, P_pred, m_filt, P_filt, loglik, repairs, state_angles, store):
+    """:func:`needlecli.numerics.kalman.kalman_forward_affine` for trials ``lo..hi-1`` (lanes of LANES);
+    with ``store`` False only the log-likelihood and the repairs (the means and covariances not written).
 
     acnt, aidx: the sparse rows of A. Channels concatenated along the sample axis: slot (J, K+1) the
     sample of channel j at tick k (-1: none); ch_m (J,) components; Y (N, M, mm), V (N, M), R (N, J, mm, mm),
@@ -331,7 +332,7 @@ def forward_affine(lo, hi, m0, P0, Qc, dt, A, b, acnt, aidx, slot, ch_m, Y, V, R
                         for c in range(n):
                             P[a, c, l] += Qc[r, a, c] * h
             for l in range(LANES):
-                if r0 + l < hi:
+                if store and r0 + l < hi:
                     r = rl[l]
                     for a in range(n):
                         m_pred[r, k, a] = m[a, l]
@@ -433,7 +434,7 @@ def forward_affine(lo, hi, m0, P0, Qc, dt, A, b, acnt, aidx, slot, ch_m, Y, V, R
                     _fix_lanes(P, L, n, ok, sc_n, sc_nL, rep)
                     break
             for l in range(LANES):
-                if r0 + l < hi:
+                if store and r0 + l < hi:
                     r = rl[l]
                     for a in range(n):
                         m_filt[r, k, a] = m[a, l]
@@ -909,10 +910,12 @@ def _channels_concat(channels, H, d, N, n):
     return Y, V, R, Hc, Dc, ang, hcnt, hidx, ch_m, offsets
 
 
-def kalman_forward_affine(m0, P0, Qc, dt, A, b, channels, H, d, *, state_angles=None):
+def kalman_forward_affine(m0, P0, Qc, dt, A, b, channels, H, d, *, state_angles=None, store=True):
     """:func:`needlecli.numerics.kalman.kalman_forward_affine`, compiled: the fields of its ``ForwardResult``
     (``m_pred, P_pred, m_filt, P_filt, A, loglik, repairs``; the caller builds the result: the kernels import
-    nothing of the package above them)."""
+    nothing of the package above them). ``store=False``: the log-likelihood and repairs only (the four
+    arrays of means and covariances are then empty: 2.4 GB a pass not written for the evaluation points
+    of :mod:`needlecli.fitting.identify`)."""
     m0 = np.ascontiguousarray(m0, dtype=float)
     N, n = m0.shape
     K = len(dt)
@@ -929,15 +932,16 @@ def kalman_forward_affine(m0, P0, Qc, dt, A, b, channels, H, d, *, state_angles=
         ok = (t >= 0) & (t < K + 1)
         slot[j, t[ok]] = offsets[j] + np.nonzero(ok)[0]
     sa = np.zeros(n, dtype=np.bool_) if state_angles is None else np.ascontiguousarray(state_angles, dtype=np.bool_)
-    m_pred = np.empty((N, K + 1, n))
-    P_pred = np.empty((N, K + 1, n, n))
-    m_filt = np.empty((N, K + 1, n))
-    P_filt = np.empty((N, K + 1, n, n))
+    Ks = K + 1 if store else 0
+    m_pred = np.empty((N, Ks, n))
+    P_pred = np.empty((N, Ks, n, n))
+    m_filt = np.empty((N, Ks, n))
+    P_filt = np.empty((N, Ks, n, n))
     loglik = np.zeros(N)
     repairs = np.zeros(N, dtype=np.int64)
     parallel_for(forward_affine, _trials(N), (m0, P0, Qc, np.ascontiguousarray(dt, dtype=float), A, b, acnt, aidx,
                                                slot, ch_m, Y, V, R, Hc, Dc, ang, hcnt, hidx, m_pred, P_pred, m_filt,
-                                               P_filt, loglik, repairs, sa))
+                                               P_filt, loglik, repairs, sa, bool(store)))
     return m_pred, P_pred, m_filt, P_filt, A, loglik, repairs
 
 

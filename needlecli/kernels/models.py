@@ -209,19 +209,39 @@ def step(mid, X, U, Pm, dt, nl, W):
 
 # ---------------------------------------------------------------------------------------------- fused RK4
 # The same step as :func:`step`, each lane's four stages in one loop body (registers, no stage arrays, one
-# loop per step): 3-4x less overhead at the UKF's 9-17 lanes. The polynomial sin/cos is used without the
-# libm fallback; a lane whose argument leaves its range sets the returned flag and the caller redoes the
-# step with :func:`step`.
+# loop per step): 3-4x less overhead at the UKF's lanes. The angles of stages 2 to 4 differ from the
+# stage-1 angles by d = h k (milliradians at the models' rates): their sines and cosines come from the
+# stage-1 ones by angle addition with short series for sin d and cos d - 1 (a third of the polynomial's
+# work, within 2 ulp of libm as it is). Neither libm fallback is inlined: a lane whose stage-1 angle
+# leaves the polynomial's range, or whose stage angle moves by more than 1/8 rad, sets the returned flag
+# and the caller redoes the step with :func:`step`.
+D_MAX = 0.125  # |d| up to which the series below are exact to 2e-17 (relative): terms to d^9 and d^10
+_SD3, _SD5, _SD7, _SD9 = -1.0 / 6.0, 1.0 / 120.0, -1.0 / 5040.0, 1.0 / 362880.0
+_CD2, _CD4, _CD6, _CD8, _CD10 = -0.5, 1.0 / 24.0, -1.0 / 720.0, 1.0 / 40320.0, -1.0 / 3628800.0
+
+
 @inline
 def _big(a):
     return not abs(a) < SINCOS_MAX
 
 
 @inline
-def _f_lane(z3, z4, z5, kap, bc, v, w, modified):
-    sa, ca = sincos(z3)
-    sb, cb = sincos(z4)
-    sg, cg = sincos(z5)
+def _far(d):
+    return not abs(d) <= D_MAX
+
+
+@inline
+def shifted(s, c, d):
+    """``(sin(x + d), cos(x + d))`` from ``s = sin x``, ``c = cos x``, ``|d| <= D_MAX``: the correction to
+    ``s`` and ``c`` is summed first (within 1.5 ulp given ``s``, ``c`` to 1 ulp)."""
+    z = d * d
+    sd = d + d * (z * (_SD3 + z * (_SD5 + z * (_SD7 + z * _SD9))))
+    cm = z * (_CD2 + z * (_CD4 + z * (_CD6 + z * (_CD8 + z * _CD10))))
+    return s + (c * sd + s * cm), c + (c * cm - s * sd)
+
+
+@inline
+def _f_sc(sa, ca, sb, cb, sg, cg, kap, bc, v, w, modified):
     if modified:
         return _fmu(sa, ca, sb, cb, sg, cg, kap, bc, v, w)
     return _fu(sa, ca, sb, cb, sg, cg, kap, v, w)
@@ -232,26 +252,38 @@ def rk4_unicycles(X, U, Pm, dt, nl, Y, modified):
     """The fused step of the unicycle (``modified``: the modified unicycle, curvature the state x[6])."""
     half = 0.5 * dt
     sixth = dt / 6.0
-    big = False
+    bad = False
     for i in range(nl):
         v = _advance(U, Pm, i, modified)
         w = U[1, i]
         kap = X[6, i] if modified else Pm[0, i]
         bc = Pm[1, i] if modified else 0.0
         x3, x4, x5 = X[3, i], X[4, i], X[5, i]
-        big |= _big(x3) | _big(x4) | _big(x5)
-        a0, a1, a2, a3, a4, a5 = _f_lane(x3, x4, x5, kap, bc, v, w, modified)
-        z3, z4, z5 = a3 * half + x3, a4 * half + x4, a5 * half + x5
-        big |= _big(z3) | _big(z4) | _big(z5)
-        b0, b1, b2, b3, b4, b5 = _f_lane(z3, z4, z5, kap, bc, v, w, modified)
-        z3, z4, z5 = b3 * half + x3, b4 * half + x4, b5 * half + x5
+        bad |= _big(x3) | _big(x4) | _big(x5)
+        sa, ca = sincos(x3)
+        sb, cb = sincos(x4)
+        sg, cg = sincos(x5)
+        a0, a1, a2, a3, a4, a5 = _f_sc(sa, ca, sb, cb, sg, cg, kap, bc, v, w, modified)
+        d3, d4, d5 = (a3 * half + x3) - x3, (a4 * half + x4) - x4, (a5 * half + x5) - x5
+        bad |= _far(d3) | _far(d4) | _far(d5)
+        s3, c3 = shifted(sa, ca, d3)
+        s4, c4 = shifted(sb, cb, d4)
+        s5, c5 = shifted(sg, cg, d5)
+        b0, b1, b2, b3, b4, b5 = _f_sc(s3, c3, s4, c4, s5, c5, kap, bc, v, w, modified)
+        d3, d4, d5 = (b3 * half + x3) - x3, (b4 * half + x4) - x4, (b5 * half + x5) - x5
         a0, a1, a2, a3, a4, a5 = (a0 + b0) + b0, (a1 + b1) + b1, (a2 + b2) + b2, (a3 + b3) + b3, (a4 + b4) + b4, (a5 + b5) + b5
-        big |= _big(z3) | _big(z4) | _big(z5)
-        b0, b1, b2, b3, b4, b5 = _f_lane(z3, z4, z5, kap, bc, v, w, modified)
-        z3, z4, z5 = b3 * dt + x3, b4 * dt + x4, b5 * dt + x5
+        bad |= _far(d3) | _far(d4) | _far(d5)
+        s3, c3 = shifted(sa, ca, d3)
+        s4, c4 = shifted(sb, cb, d4)
+        s5, c5 = shifted(sg, cg, d5)
+        b0, b1, b2, b3, b4, b5 = _f_sc(s3, c3, s4, c4, s5, c5, kap, bc, v, w, modified)
+        d3, d4, d5 = (b3 * dt + x3) - x3, (b4 * dt + x4) - x4, (b5 * dt + x5) - x5
         a0, a1, a2, a3, a4, a5 = (a0 + b0) + b0, (a1 + b1) + b1, (a2 + b2) + b2, (a3 + b3) + b3, (a4 + b4) + b4, (a5 + b5) + b5
-        big |= _big(z3) | _big(z4) | _big(z5)
-        b0, b1, b2, b3, b4, b5 = _f_lane(z3, z4, z5, kap, bc, v, w, modified)
+        bad |= _far(d3) | _far(d4) | _far(d5)
+        s3, c3 = shifted(sa, ca, d3)
+        s4, c4 = shifted(sb, cb, d4)
+        s5, c5 = shifted(sg, cg, d5)
+        b0, b1, b2, b3, b4, b5 = _f_sc(s3, c3, s4, c4, s5, c5, kap, bc, v, w, modified)
         Y[0, i] = (a0 + b0) * sixth + X[0, i]
         Y[1, i] = (a1 + b1) * sixth + X[1, i]
         Y[2, i] = (a2 + b2) * sixth + X[2, i]
@@ -260,7 +292,7 @@ def rk4_unicycles(X, U, Pm, dt, nl, Y, modified):
         Y[5, i] = (a5 + b5) * sixth + x5
         if modified:
             Y[6, i] = 0.0 * sixth + kap  # kappa' = 0
-    return big
+    return bad
 
 
 @jit
@@ -268,8 +300,8 @@ def step_fast(mid, X, U, Pm, dt, nl, W):
     """:func:`step`, fused for the unicycles (the other models: :func:`step` itself); the same numbers."""
     if mid == MODIFIED_UNICYCLE or mid == UNICYCLE:
         Y = W[0]
-        big = rk4_unicycles(X, U, Pm, dt, nl, Y, mid == MODIFIED_UNICYCLE)
-        if big:
+        bad = rk4_unicycles(X, U, Pm, dt, nl, Y, mid == MODIFIED_UNICYCLE)
+        if bad:
             step(mid, X, U, Pm, dt, nl, W)
             return
         n = X.shape[0]

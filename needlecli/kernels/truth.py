@@ -149,10 +149,13 @@ class TruthKernel:
         chunk = max(1, min(-(-(sim.T - 1) // 20), _CHUNK_ELEMENTS // max(N * n, 1)))
         empty = np.zeros((0, 0, 0))
         model = sim.model
+        # one buffer for the draws of every chunk (the same numbers as fresh arrays): memory first touched
+        # costs more than the draws on virtual machines, and a fresh 32 MB array per chunk is 20 of them
+        buf = np.empty((min(chunk, k - sim.k), N, n)) if sim.use_q and k > sim.k else empty
         while sim.k < k:
             k0 = sim.k
             k1 = min(k, k0 + chunk)
-            noise = sim.rng_q.standard_normal((k1 - k0, N, n)) if sim.use_q else empty
+            noise = sim.rng_q.standard_normal(out=buf[: k1 - k0]) if sim.use_q else empty
             parallel_for(advance, blocks(N, per_thread=2, minimum=BLOCK), (
                 self.mid, sim.states, k0, k1, self.u, self.p_run, self.p_t, self.p_t_index, self.sync_index,
                 self.sync_param, self.q, noise, sim.dt, sim.alive, self.code, self.event_k, self.kind,

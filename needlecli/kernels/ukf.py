@@ -27,9 +27,9 @@ from collections import namedtuple
 
 import numpy as np
 
-from needlecli.kernels._jit import jit
+from needlecli.kernels._jit import inline, jit, lanes
 from needlecli.kernels._threads import blocks, parallel_for
-from needlecli.kernels.core import PI, cholesky_into, repaired_root, solve_into, wrap, wrap_if_needed
+from needlecli.kernels.core import PI, repaired_root, solve_into, wrap_if_needed, wrap_inline
 from needlecli.kernels.models import BINM, MODEL_IDS, MODIFIED_UNICYCLE, UNICYCLE, step_fast
 
 OK, DIVERGED, SINGULAR = 0, 1, 2
@@ -48,6 +48,12 @@ def supports(model, chans) -> bool:
 
 
 # ---------------------------------------------------------------------------------------------- the kernel
+#: runs per block: the lanes of every per-run quantity (``x (n, LANES)``, ``P (n, n, LANES)``), so that each
+#: scalar operation of the filter is one vector operation over LANES runs; in the model steps the lanes are
+#: sigma points times runs (``XL (n, rows * LANES)``, lane ``j * LANES + l``: point ``j`` of run ``l``)
+LANES = 8
+
+
 @jit
 def run(lo, hi, mid, x0, P0, ticks, inputs, params, dt, angles, order, n_act, tmask, wm, wc, sq_scale, Q,
         kappa_i, kappa_max, reset_target, interfaces, depth, max_trace, kind, sing_thr,
@@ -55,131 +61,409 @@ def run(lo, hi, mid, x0, P0, ticks, inputs, params, dt, angles, order, n_act, tm
         ev_ptr, ev_chan, ev_sptr, ev_samp, ev_any, tick_mode, pred_count,
         states, cov_full, cov_diag, layout, stride,
         status, event, repairs, hits, resets, used, gated, nisv, roll, progress):
-    """The whole filter for runs ``lo..hi-1``. Arguments as prepared by :func:`filter_runs` (one array per
-    quantity: the kernel knows no Python objects); outputs are written in place. Releases the GIL."""
-    for r in range(lo, hi):
-        _filter_run(r, mid, x0, P0, ticks, inputs, params, dt, angles, order, n_act, tmask, wm, wc, sq_scale, Q,
-                    kappa_i, kappa_max, reset_target, interfaces, depth, max_trace, kind, sing_thr,
-                    vals, valids, ch_m, ch_sel, ch_ang, ch_sig2, ch_gate, ch_growth, ch_ga, ch_gd, ch_gtr, ch_pos,
-                    ev_ptr, ev_chan, ev_sptr, ev_samp, ev_any, tick_mode, pred_count,
-                    states, cov_full, cov_diag, layout, stride,
-                    status, event, repairs, hits, resets, used, gated, nisv, roll, progress)
-
-
-@jit
-def _filter_run(r, mid, x0, P0, ticks, inputs, params, dt, angles, order, n_act, tmask, wm, wc, sq_scale, Q,
-                kappa_i, kappa_max, reset_target, interfaces, depth, max_trace, kind, sing_thr,
-                vals, valids, ch_m, ch_sel, ch_ang, ch_sig2, ch_gate, ch_growth, ch_ga, ch_gd, ch_gtr, ch_pos,
-                ev_ptr, ev_chan, ev_sptr, ev_samp, ev_any, tick_mode, pred_count,
-                states, cov_full, cov_diag, layout, stride,
-                status, event, repairs, hits, resets, used, gated, nisv, roll, progress):
-    """One run of :func:`run`: its whole time loop."""
+    """The whole filter for runs ``lo..hi-1``, in blocks of :data:`LANES` runs. Arguments as prepared by
+    :func:`filter_runs` (one array per quantity: the kernel knows no Python objects); outputs are written
+    in place. Releases the GIL."""
+    B = LANES
     n = x0.shape[1]
     nt = ticks.shape[0]
     m_in = inputs.shape[2]
     S = 1 + 2 * n_act
     D = roll.shape[1]
-    L = (S + D + 3) // 4 * 4
+    NL = (S + D) * B
     Mmax = 1
     for c in range(ch_m.shape[0]):
         Mmax += ch_m[c]
     K_if = interfaces.shape[1]
-    x = np.empty(n)
-    P = np.empty((n, n))
-    xs = np.empty(n)
-    Ps = np.empty((n, n))
-    cols = np.empty((n, n))
-    XL = np.zeros((n, L))
-    U = np.zeros((m_in, L))
-    Pm = np.zeros((max(params.shape[0], 1), L))
-    W = np.zeros((4, max(n, 6), L))
-    dX = np.empty((2 * n + 3, n))
-    ws = _work(n, Mmax)
-    ri = min(r, inputs.shape[0] - 1)  # inputs, depths, interfaces: per run, or one row for all
-    rd = min(r, depth.shape[0] - 1)
-    rf = min(r, interfaces.shape[0] - 1)
+    # the block's state, lanes last
+    x = np.empty((n, B))
+    P = np.empty((n, n, B))
+    xs = np.empty((n, B))
+    Ps = np.empty((n, n, B))
+    Pp = np.empty((n, n, B))
+    Lf = np.empty((n, n, B))
+    cols = np.empty((n, n, B))
+    dX = np.empty((2 * n + 1, n, B))
+    sh = np.empty((n, B))
+    Rw = np.empty((2 * n + 1, n, B))
+    uu = np.empty((n, B))
+    acc = np.empty(B)
+    dd = np.empty(B)
+    g_ = np.empty(B)
+    rs_ = np.empty(B)
+    nu_ = np.empty(B)
+    s_ = np.empty(B)
+    y_ = np.empty(B)
+    msk = np.empty(B, dtype=np.bool_)
+    ok = np.empty(B, dtype=np.bool_)
+    alive = np.zeros(B, dtype=np.bool_)
+    was = np.zeros(B, dtype=np.bool_)
+    rr = np.empty(B, dtype=np.int64)
+    XL = np.zeros((n, NL))
+    U = np.zeros((m_in, NL))
+    Pm = np.zeros((max(params.shape[0], 1), NL))
+    W = np.zeros((4, max(n, 6), NL))
     for j in range(params.shape[0]):
-        for i in range(L):
+        for i in range(NL):
             Pm[j, i] = params[j]
-    for a in range(n):
-        x[a] = x0[r, a]
-        for b in range(n):
-            P[a, b] = P0[a, b]
-    alive = True
-    _emit(states, cov_full, cov_diag, layout, stride, r, 0, x, P)
-    for it in range(1, nt):
-        k0 = ticks[it - 1]
-        k1 = ticks[it]
-        _copy(x, P, xs, Ps)
-        nr = pred_count[it - 1]
-        lane0 = S if alive else 0
-        if alive and _sigma_points(x, P, order, n_act, tmask, sq_scale, cols, XL, ws.Pp, ws.Lf):
-            repairs[r] += 1
-        for q in range(nr):  # the predictions in flight ride along with the sigma points
+    # one lane as plain arrays, for what is rare (repairs, joint updates, status)
+    x1 = np.empty(n)
+    P1 = np.empty((n, n))
+    L1 = np.empty((n, n))
+    ws = _work(n, Mmax)
+    for r0 in range(lo, hi, B):
+        nb = min(B, hi - r0)
+        for l in range(B):  # lanes past the last run repeat the first (computed, never stored)
+            rr[l] = r0 + l if l < nb else r0
+            alive[l] = l < nb
+        for l in range(B):
+            r = rr[l]
             for a in range(n):
-                XL[a, lane0 + q] = roll[r, q, a]
-        nl = min(L, (lane0 + nr + 3) // 4 * 4)  # whole vectors: the lanes past the last hold old, finite points
-        if lane0 + nr > 0:
+                x[a, l] = x0[r, a]
+                for b in range(n):
+                    P[a, b, l] = P0[a, b]
+        for q in range(D):  # prediction rows hold finite states until they start
+            for a in range(n):
+                for l in range(B):
+                    XL[a, (S + q) * B + l] = x[a, l]
+        for l in range(nb):
+            _emit(states, cov_full, cov_diag, layout, stride, rr[l], 0, x, P, l)
+        for it in range(1, nt):
+            k0 = ticks[it - 1]
+            k1 = ticks[it]
+            _copy_lanes(x, P, xs, Ps)
+            for l in range(B):
+                was[l] = alive[l]
+            nr = pred_count[it - 1]
+            # ---- sigma points of every lane (a stopped run's from its held estimate: computed, not used)
+            _permute_lanes(P, order, Pp)
+            cholesky_lanes(Pp, Lf, ok, acc, dd)
+            for l in range(B):
+                if not ok[l]:
+                    if alive[l]:
+                        for a in range(n):
+                            for b in range(n):
+                                P1[a, b] = Pp[a, b, l]
+                        repaired_root(P1, L1, n, 1e-12)
+                        for a in range(n):
+                            for b in range(n):
+                                Lf[a, b, l] = L1[a, b]
+                        repairs[rr[l]] += 1
+                    else:
+                        for a in range(n):
+                            for b in range(n):
+                                Lf[a, b, l] = 0.0
+            _sigma_lanes(x, Lf, order, n_act, tmask, sq_scale, cols, XL)
+            # ---- propagate the sigma points and the predictions in flight over the grid steps of the tick
+            nl = (S + nr) * B
             for k in range(k0, k1):
                 for c in range(m_in):
-                    u = inputs[ri, k, c]
-                    for i in range(nl):
-                        U[c, i] = u
+                    for l in range(B):
+                        u = inputs[min(rr[l], inputs.shape[0] - 1), k, c]
+                        for j in range(S + nr):
+                            U[c, j * B + l] = u
                 step_fast(mid, XL, U, Pm, dt, nl, W)
-        for q in range(nr):
-            for a in range(n):
-                roll[r, q, a] = XL[a, lane0 + q]
-        if alive:
-            _mean_cov(XL, cols, n_act, angles, tmask, wm, wc, Q, xs, x, P, dX, ws.C)
+            _mean_cov_lanes(XL, cols, n_act, angles, tmask, wm, wc, Q, xs, x, P, dX, sh, Rw, acc)
             # ---- tissue interface: reset the curvature variance
             if reset_target >= 0.0 and kappa_i >= 0 and K_if > 0:
-                d0 = depth[rd, k0]
-                d1 = depth[rd, k1]
-                crossed = False
-                for q in range(K_if):
-                    if d0 < interfaces[rf, q] and interfaces[rf, q] <= d1:
-                        crossed = True
-                if crossed:
-                    t_ = reset_target - P[kappa_i, kappa_i]
-                    P[kappa_i, kappa_i] += t_ if not t_ < 0.0 else 0.0
-                    resets[r] += 1
+                for l in range(B):
+                    if alive[l]:
+                        r = rr[l]
+                        rd = min(r, depth.shape[0] - 1)
+                        rf = min(r, interfaces.shape[0] - 1)
+                        d0 = depth[rd, k0]
+                        d1 = depth[rd, k1]
+                        crossed = False
+                        for q in range(K_if):
+                            if d0 < interfaces[rf, q] and interfaces[rf, q] <= d1:
+                                crossed = True
+                        if crossed:
+                            t_ = reset_target - P[kappa_i, kappa_i, l]
+                            P[kappa_i, kappa_i, l] += t_ if not t_ < 0.0 else 0.0
+                            resets[r] += 1
             # ---- update with what arrived in (t_k0, t_k1]
             mode = tick_mode[it]
             if mode == MODE_SCALAR:
                 e = ev_ptr[it]
                 c = ev_chan[e]
                 j = ev_samp[ev_sptr[e]]
-                if valids[c][r, j]:
-                    used[r, c] += 1
-                    nisv[c][r, j] = _update_scalar(x, P, ch_sel[c, 0], vals[c][r, j, 0], ch_ang[c, 0], ch_sig2[c, 0], ws.Kg)
+                vc = valids[c]
+                yc = vals[c]
+                for l in range(B):
+                    msk[l] = alive[l] and vc[rr[l], j]
+                    y_[l] = yc[rr[l], j, 0]
+                _update_scalar_lanes(x, P, ch_sel[c, 0], y_, msk, ch_ang[c, 0], ch_sig2[c, 0], uu, g_, rs_, nu_, s_)
+                nc = nisv[c]
+                for l in range(nb):
+                    if msk[l]:
+                        used[rr[l], c] += 1
+                        nc[rr[l], j] = nu_[l] * nu_[l] / s_[l]
             elif mode == MODE_SELECT:
-                _update_select(r, it, x, P, vals, valids, ch_m, ch_sel, ch_ang, ch_sig2, ch_gate, ch_growth, ch_ga,
-                               ch_gd, ch_gtr, ch_pos, ev_ptr, ev_chan, ev_sptr, ev_samp, ev_any, used, gated, nisv, ws)
+                for l in range(nb):
+                    if alive[l]:
+                        _get_lane(x, P, l, x1, P1)
+                        _update_select(rr[l], it, x1, P1, vals, valids, ch_m, ch_sel, ch_ang, ch_sig2, ch_gate,
+                                       ch_growth, ch_ga, ch_gd, ch_gtr, ch_pos, ev_ptr, ev_chan, ev_sptr, ev_samp,
+                                       ev_any, used, gated, nisv, ws)
+                        _set_lane(x1, P1, l, x, P)
             if mode != MODE_NONE:
+                _wrap_lanes(x, angles)
+            # ---- curvature constraint, divergence, singularity: per run (a stopped run holds its last
+            # good estimate)
+            for l in range(nb):
+                if not alive[l]:
+                    continue
+                r = rr[l]
+                if kappa_i >= 0 and not math.isnan(kappa_max):
+                    kk = x[kappa_i, l]
+                    if kk < 0.0 or kk > kappa_max:
+                        x[kappa_i, l] = xs[kappa_i, l]
+                        hits[r] += 1
+                code = _check_lane(x, xs, P, l, kind, sing_thr, max_trace)
+                if code != OK:
+                    alive[l] = False
+                    status[r] = code
+                    event[r] = k1
+            for l in range(B):
+                if not alive[l]:
+                    _restore_lane(xs, Ps, l, x, P)
+            # ---- store: the steps between ticks hold the last tick's estimate
+            for l in range(nb):
+                r = rr[l]
+                for k in range(k0 + 1, k1):
+                    _emit(states, cov_full, cov_diag, layout, stride, r, k, xs, Ps, l)
+                _emit(states, cov_full, cov_diag, layout, stride, r, k1, x, P, l)
+                progress[r] = it
+            for q in range(pred_count[it - 1], pred_count[it]):  # predictions that start now
                 for a in range(n):
-                    if angles[a]:
-                        x[a] = wrap_if_needed(x[a])
-            # ---- curvature constraint: keep the previous estimate outside [0, kappa_max]
-            if kappa_i >= 0 and not math.isnan(kappa_max):
-                kk = x[kappa_i]
-                if kk < 0.0 or kk > kappa_max:
-                    x[kappa_i] = xs[kappa_i]
-                    hits[r] += 1
-            # ---- divergence and model singularity: a stopped run holds its last good estimate
-            code = _check(x, xs, P, kind, sing_thr, max_trace)
-            if code != OK:
-                alive = False
-                status[r] = code
-                event[r] = k1
-                _copy(xs, Ps, x, P)
-        # ---- store: the steps between ticks hold the last tick's estimate
-        for k in range(k0 + 1, k1):
-            _emit(states, cov_full, cov_diag, layout, stride, r, k, xs, Ps)
-        _emit(states, cov_full, cov_diag, layout, stride, r, k1, x, P)
-        for q in range(pred_count[it - 1], pred_count[it]):  # predictions that start now
+                    for l in range(B):
+                        XL[a, (S + q) * B + l] = x[a, l]
+        for l in range(nb):
+            for q in range(pred_count[nt - 1]):
+                for a in range(n):
+                    roll[rr[l], q, a] = XL[a, (S + q) * B + l]
+
+
+# ---------------------------------------------------------------------------------------------- lanes
+@inline
+def _wrap_needed(a):
+    return wrap_inline(a) if not abs(a) < PI else a
+
+
+@lanes
+def _copy_lanes(x, P, x_to, P_to):
+    n = x.shape[0]
+    for a in range(n):
+        for l in range(LANES):
+            x_to[a, l] = x[a, l]
+        for b in range(n):
+            for l in range(LANES):
+                P_to[a, b, l] = P[a, b, l]
+
+
+@lanes
+def _permute_lanes(P, order, Pp):
+    n = P.shape[0]
+    for a in range(n):
+        for b in range(n):
+            for l in range(LANES):
+                Pp[a, b, l] = P[order[a], order[b], l]
+
+
+@lanes
+def cholesky_lanes(A, L, ok, acc, dd):
+    """:func:`~needlecli.kernels.core.cholesky_into` on every lane: ``ok[l]`` False where lane ``l`` is not
+    numerically positive definite (its factor is then garbage: the caller repairs it)."""
+    n = A.shape[0]
+    for l in range(LANES):
+        ok[l] = True
+    for j in range(n):
+        for l in range(LANES):
+            acc[l] = A[j, j, l]
+        for k in range(j):
+            for l in range(LANES):
+                acc[l] -= L[j, k, l] * L[j, k, l]
+        for l in range(LANES):
+            ok[l] = ok[l] and acc[l] > 0.0
+            dd[l] = np.sqrt(acc[l]) if acc[l] > 0.0 else 1.0
+            L[j, j, l] = dd[l]
+        for i in range(j + 1, n):
+            for l in range(LANES):
+                acc[l] = A[i, j, l]
+            for k in range(j):
+                for l in range(LANES):
+                    acc[l] -= L[i, k, l] * L[j, k, l]
+            for l in range(LANES):
+                L[i, j, l] = acc[l] / dd[l]
+        for i in range(j):
+            for l in range(LANES):
+                L[i, j, l] = 0.0
+
+
+@lanes
+def _sigma_lanes(x, Lf, order, n_act, tmask, sq_scale, cols, XL):
+    """Sigma points of every lane into rows ``0 .. 2 n_act`` of ``XL`` (translation states relative to the
+    central point); ``cols[j]`` the j-th column of ``sqrt(scale P)`` (the factor in the translation order)."""
+    n = x.shape[0]
+    B = LANES
+    for a in range(n):
+        for j in range(n):
+            for l in range(B):
+                cols[j, order[a], l] = Lf[a, j, l] * sq_scale
+    for a in range(n):
+        if tmask[a]:
+            for l in range(B):
+                XL[a, l] = 0.0
+            for j in range(n_act):
+                for l in range(B):
+                    XL[a, (1 + j) * B + l] = cols[j, a, l]
+                    XL[a, (1 + n_act + j) * B + l] = -cols[j, a, l]
+        else:
+            for l in range(B):
+                XL[a, l] = x[a, l]
+            for j in range(n_act):
+                for l in range(B):
+                    XL[a, (1 + j) * B + l] = x[a, l] + cols[j, a, l]
+                    XL[a, (1 + n_act + j) * B + l] = x[a, l] - cols[j, a, l]
+
+
+@lanes
+def _mean_cov_lanes(XL, cols, n_act, angles, tmask, wm, wc, Q, xs, x, P, dX, sh, Rw, acc):
+    """Weighted mean and covariance of the 2n+1 propagated points of every lane (the position-only ones
+    displaced as the central one), residuals about the central point, angles wrapped;
+    ``P = sum wc dX dX^T + Q`` (its lower triangle computed, mirrored). Every sum over points runs in point
+    order: the numbers of the scalar filter, lane by lane. ``dX``, ``Rw (2n + 1, n, LANES)``: the
+    residuals (centred in place), and them times their weights; ``acc (LANES,)`` scratch."""
+    n = x.shape[0]
+    B = LANES
+    S = 1 + 2 * n_act
+    n_fix = n - n_act
+    n_pts = 2 * n + 1
+    for a in range(n):
+        for l in range(B):
+            sh[a, l] = 0.0
+            dX[0, a, l] = 0.0  # the central point's residual
+    for j in range(1, S):
+        w_ = wm[j]
+        for a in range(n):
+            if angles[a]:
+                for l in range(B):
+                    d = _wrap_needed(XL[a, j * B + l] - XL[a, l])
+                    dX[j, a, l] = d
+                    sh[a, l] += w_ * d
+            else:
+                for l in range(B):
+                    d = XL[a, j * B + l] - XL[a, l]
+                    dX[j, a, l] = d
+                    sh[a, l] += w_ * d
+    for h in range(2):
+        sgn = 1.0 if h == 0 else -1.0
+        for j in range(n_fix):
+            p_ = S + h * n_fix + j
+            w_ = wm[p_]
             for a in range(n):
-                roll[r, q, a] = x[a]
-        progress[r] = it
+                for l in range(B):
+                    ref = XL[a, l]
+                    d = (ref + sgn * cols[n_act + j, a, l]) - ref
+                    if angles[a]:
+                        d = _wrap_needed(d)
+                    dX[p_, a, l] = d
+                    sh[a, l] += w_ * d
+    for a in range(n):
+        for l in range(B):
+            mv = XL[a, l] + sh[a, l]
+            if angles[a]:
+                mv = _wrap_needed(mv)
+            x[a, l] = mv + xs[a, l] if tmask[a] else mv
+    for j in range(n_pts):  # centred residuals, and times their weights
+        w_ = wc[j]
+        for a in range(n):
+            if angles[a]:
+                for l in range(B):
+                    d = _wrap_needed(dX[j, a, l] - sh[a, l])
+                    dX[j, a, l] = d
+                    Rw[j, a, l] = d * w_
+            else:
+                for l in range(B):
+                    d = dX[j, a, l] - sh[a, l]
+                    dX[j, a, l] = d
+                    Rw[j, a, l] = d * w_
+    for a in range(n):
+        for b in range(a + 1):
+            q_ = Q[a, b]
+            for l in range(B):  # the sum in registers (P[a, b] and P[b, a] are one array)
+                acc[l] = 0.0
+            for j in range(n_pts):
+                for l in range(B):
+                    acc[l] += Rw[j, a, l] * dX[j, b, l]
+            for l in range(B):
+                p_ = acc[l] + q_
+                P[a, b, l] = p_
+                P[b, a, l] = p_
+
+
+@lanes
+def _update_scalar_lanes(x, P, i_s, y, msk, angle, sig2, u, g, rs, nu, s0):
+    """:func:`_update_scalar` on the lanes where ``msk`` (one scalar sample ``y`` of state ``i_s``); the
+    others unchanged. ``nu``, ``s0``: the innovation and its variance (for the normalised innovation)."""
+    n = x.shape[0]
+    B = LANES
+    for l in range(B):
+        d = y[l] - x[i_s, l]
+        if angle:
+            d = wrap_inline(d)
+        nu[l] = d
+        sv = P[i_s, i_s, l] + sig2
+        s0[l] = sv
+        g[l] = d / sv
+        rs[l] = np.sqrt(sv)
+    for a in range(n):
+        for l in range(B):
+            pa = P[a, i_s, l]
+            u[a, l] = pa / rs[l]
+            xa = x[a, l] + pa * g[l]
+            x[a, l] = xa if msk[l] else x[a, l]
+    for a in range(n):
+        for b in range(n):
+            for l in range(B):
+                pn = P[a, b, l] - u[a, l] * u[b, l]
+                P[a, b, l] = pn if msk[l] else P[a, b, l]
+
+
+@lanes
+def _wrap_lanes(x, angles):
+    n = x.shape[0]
+    for a in range(n):
+        if angles[a]:
+            for l in range(LANES):
+                x[a, l] = _wrap_needed(x[a, l])
+
+
+@jit
+def _get_lane(x, P, l, x1, P1):
+    n = x.shape[0]
+    for a in range(n):
+        x1[a] = x[a, l]
+        for b in range(n):
+            P1[a, b] = P[a, b, l]
+
+
+@jit
+def _set_lane(x1, P1, l, x, P):
+    n = x.shape[0]
+    for a in range(n):
+        x[a, l] = x1[a]
+        for b in range(n):
+            P[a, b, l] = P1[a, b]
+
+
+@jit
+def _restore_lane(xs, Ps, l, x, P):
+    n = x.shape[0]
+    for a in range(n):
+        x[a, l] = xs[a, l]
+        for b in range(n):
+            P[a, b, l] = Ps[a, b, l]
 
 
 _Work = namedtuple("_Work", "Pp Lf C Kg yv msk Rv sel ang nu blk_c blk_0 Pyy Pxy A B Xs KS g1 g2 idx blk_j")
@@ -193,124 +477,6 @@ def _work(n, M):
                  np.empty(M, dtype=np.int64), np.empty(M, dtype=np.int64), np.empty((M, M)), np.empty((n, M)),
                  np.empty((M, max(M, n))), np.empty((M, n)), np.empty((M, n)), np.empty((n, M)), np.empty((M, 1)),
                  np.empty((M, 1)), np.empty(M, dtype=np.int64), np.empty(M, dtype=np.int64))
-
-
-@jit
-def _sigma_points(x, P, order, n_act, tmask, sq_scale, cols, XL, Pp, Lf):
-    """Sigma points into lanes ``XL[:, :1 + 2 n_act]`` (translation states relative to the central point);
-    ``cols[j]`` the j-th column of ``sqrt(scale P)``, the Cholesky factor taken in the translation order.
-    Returns whether the factor needed the repair."""
-    n = x.shape[0]
-    for a in range(n):
-        for b in range(n):
-            Pp[a, b] = P[order[a], order[b]]
-    repaired = False
-    if not cholesky_into(Pp, Lf, n):
-        repaired_root(Pp, Lf, n, 1e-12)
-        repaired = True
-    for a in range(n):
-        for j in range(n):
-            cols[j, order[a]] = Lf[a, j] * sq_scale
-    for a in range(n):
-        if tmask[a]:
-            XL[a, 0] = 0.0
-            for j in range(n_act):
-                XL[a, 1 + j] = cols[j, a]
-                XL[a, 1 + n_act + j] = -cols[j, a]
-        else:
-            xa = x[a]
-            XL[a, 0] = xa
-            for j in range(n_act):
-                XL[a, 1 + j] = xa + cols[j, a]
-                XL[a, 1 + n_act + j] = xa - cols[j, a]
-    return repaired
-
-
-@jit
-def _mean_cov(XL, cols, n_act, angles, tmask, wm, wc, Q, xs, x, P, dX, C):
-    """Weighted mean and covariance of the 2n+1 propagated points (the position-only ones displaced as
-    the central one), residuals about the central point, angles wrapped; ``P = sum wc dX dX^T + Q`` (its
-    lower triangle computed, mirrored). Every sum over points runs in point order. ``dX (2n + 3, n)``: the
-    residuals, then two rows of scratch."""
-    n = x.shape[0]
-    S = 1 + 2 * n_act
-    n_fix = n - n_act
-    n_pts = 2 * n + 1
-    sh = dX[n_pts]  # the weighted sum of the residuals (the mean's shift)
-    row = dX[n_pts + 1]
-    for a in range(n):
-        sh[a] = 0.0
-        dX[0, a] = 0.0  # the central point's residual
-    for j in range(1, S):
-        w_ = wm[j]
-        for a in range(n):
-            d = XL[a, j] - XL[a, 0]
-            if angles[a] and not abs(d) < PI:  # wrapping is the identity inside (-pi, pi): skipped there
-                d = wrap(d)
-            dX[j, a] = d
-            sh[a] += w_ * d
-    for j in range(n_fix):
-        w_ = wm[S + j]
-        for a in range(n):
-            ref = XL[a, 0]
-            d = (ref + cols[n_act + j, a]) - ref
-            if angles[a] and not abs(d) < PI:
-                d = wrap(d)
-            dX[S + j, a] = d
-            sh[a] += w_ * d
-    for j in range(n_fix):
-        w_ = wm[S + n_fix + j]
-        for a in range(n):
-            ref = XL[a, 0]
-            d = (ref - cols[n_act + j, a]) - ref
-            if angles[a] and not abs(d) < PI:
-                d = wrap(d)
-            dX[S + n_fix + j, a] = d
-            sh[a] += w_ * d
-    for a in range(n):
-        mv = XL[a, 0] + sh[a]
-        if angles[a] and not abs(mv) < PI:
-            mv = wrap(mv)
-        x[a] = mv + xs[a] if tmask[a] else mv
-        for b in range(a + 1):
-            C[a, b] = 0.0
-    for j in range(n_pts):
-        w_ = wc[j]
-        for a in range(n):
-            d = dX[j, a] - sh[a]
-            if angles[a] and not abs(d) < PI:
-                d = wrap(d)
-            row[a] = d
-        for a in range(n):
-            da = row[a] * w_
-            for b in range(a + 1):
-                C[a, b] += da * row[b]
-    for a in range(n):
-        for b in range(a + 1):
-            p_ = C[a, b] + Q[a, b]
-            P[a, b] = p_
-            P[b, a] = p_
-
-
-@jit
-def _update_scalar(x, P, i_s, y, angle, sig2, u):
-    """One scalar sample of state ``i_s``: ``Pyy = P_ii + r``, ``Pxy = P[:, i]``; ``P - u u^T`` exactly
-    symmetric (the numpy path's ``_update_scalar``). Returns the normalised innovation squared."""
-    n = x.shape[0]
-    nu0 = y - x[i_s]
-    if angle:
-        nu0 = wrap(nu0)
-    s0 = P[i_s, i_s] + sig2
-    g = nu0 / s0
-    rs = math.sqrt(s0)
-    for a in range(n):
-        pa = P[a, i_s]
-        x[a] = x[a] + pa * g
-        u[a, 0] = pa / rs
-    for a in range(n):
-        for b in range(n):
-            P[a, b] = P[a, b] - u[a, 0] * u[b, 0]
-    return nu0 * nu0 / s0
 
 
 @jit
@@ -452,26 +618,26 @@ def _update_select(r, it, x, P, vals, valids, ch_m, ch_sel, ch_ang, ch_sig2, ch_
 
 
 @jit
-def _check(x, xs, P, kind, sing_thr, max_trace):
+def _check_lane(x, xs, P, l, kind, sing_thr, max_trace):
     """Divergence (non-finite estimate or covariance, trace beyond ``max_trace``) and the model's
-    singularity (left the domain, or jumped over it since ``xs``): the run's status code."""
+    singularity (left the domain, or jumped over it since ``xs``) of lane ``l``: the run's status code."""
     n = x.shape[0]
     tr = 0.0
     for a in range(n):
-        tr += P[a, a]
+        tr += P[a, a, l]
     finite = np.isfinite(tr)
     for a in range(n):
-        if not np.isfinite(x[a]):
+        if not np.isfinite(x[a, l]):
             finite = False
     sing = False
     if kind == 1:
-        sing = not math.cos(x[4]) > sing_thr
+        sing = not math.cos(x[4, l]) > sing_thr
     elif kind == 2:
-        h0, h1, h2 = x[3], x[4], x[5]
-        b0, b1, b2 = x[6], x[7], x[8]
+        h0, h1, h2 = x[3, l], x[4, l], x[5, l]
+        b0, b1, b2 = x[6, l], x[7, l], x[8, l]
         dd = h0 * b0 + h1 * b1 + h2 * b2
         mg = abs(dd) / (math.sqrt(h0 * h0 + h1 * h1 + h2 * h2) * math.sqrt(b0 * b0 + b1 * b1 + b2 * b2))
-        d0 = xs[3] * xs[6] + xs[4] * xs[7] + xs[5] * xs[8]
+        d0 = xs[3, l] * xs[6, l] + xs[4, l] * xs[7, l] + xs[5, l] * xs[8, l]
         sing = (not mg > sing_thr) or d0 * dd < 0.0
     if (not finite) or tr > max_trace or sing:
         return SINGULAR if (sing and finite) else DIVERGED
@@ -479,29 +645,20 @@ def _check(x, xs, P, kind, sing_thr, max_trace):
 
 
 @jit
-def _copy(x, P, x_to, P_to):
+def _emit(states, cov_full, cov_diag, layout, stride, r, k, x, P, l):
     n = x.shape[0]
     for a in range(n):
-        x_to[a] = x[a]
-        for b in range(n):
-            P_to[a, b] = P[a, b]
-
-
-@jit
-def _emit(states, cov_full, cov_diag, layout, stride, r, k, x, P):
-    n = x.shape[0]
-    for a in range(n):
-        states[r, k, a] = x[a]
+        states[r, k, a] = x[a, l]
     if layout == LAYOUT_NONE or k % stride != 0:
         return
     j = k // stride
     if layout == LAYOUT_FULL:
         for a in range(n):
             for b in range(n):
-                cov_full[r, j, a, b] = P[a, b]
+                cov_full[r, j, a, b] = P[a, b, l]
     else:
         for a in range(n):
-            cov_diag[r, j, a] = P[a, a]
+            cov_diag[r, j, a] = P[a, a, l]
 
 
 # ---------------------------------------------------------------------------------------------- the seam
@@ -640,7 +797,7 @@ def filter_runs(model, params, problem, s, chans, ticks, inputs, x0, P0, Q, kapp
             states, cov_full, cov_diag, layout, stride, status, event, repairs, hits, resets, used, gated, nisv, roll, prog)
     total = N * max(nt - 1, 1)
     poll = None if progress is None else (lambda: progress(int(prog.sum()) * (nt - 1) // total, nt - 1))
-    parallel_for(run, blocks(N), args, poll)
+    parallel_for(run, blocks(N, minimum=LANES), args, poll)
     cov = None
     if layout == LAYOUT_FULL:
         cov = cov_full

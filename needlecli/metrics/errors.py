@@ -76,6 +76,27 @@ def _rotation(names: list[str], state: np.ndarray) -> np.ndarray | None:
     return None
 
 
+def _compiled_errors(t_names, e_names, t_angles, e_angles, pos_t, scale, t_state, est, keep) -> dict[str, np.ndarray]:
+    """The position norm and the per-state errors that :func:`compute_errors` computes from states (not
+    from truth parameters), by :func:`needlecli.kernels.metrics.state_errors` in one pass: the same
+    numbers, without the column copies and temporaries."""
+    from needlecli.kernels.metrics import ABS, ANGLE, NORM, state_errors
+
+    plan: list[tuple[str, tuple]] = []
+    if pos_t and all(a in e_names for a in pos_t):
+        plan.append(("E_xyz", (NORM, [t_names.index(a) for a in pos_t], [e_names.index(a) for a in pos_t], scale)))
+    skip = set(pos_t or ()) | set(_R)
+    for k in e_names:
+        if k in skip or k not in t_names or (k in ("hx", "hy", "hz", "Bx", "By", "Bz")):
+            continue
+        kind = ANGLE if (k in e_angles or k in t_angles) else ABS
+        plan.append((f"E_{k}", (kind, [t_names.index(k)], [e_names.index(k)], 1.0)))
+    if not plan or np.asarray(t_state).ndim != 3:
+        return {}
+    out = state_errors(np.asarray(t_state), np.asarray(est), keep, [q for _, q in plan])
+    return {name: out[i] for i, (name, _) in enumerate(plan)}
+
+
 def compute_errors(res: Group) -> dict[str, ErrorSet]:
     """Errors of every observer in a results file against its truth."""
     truth = res.data["truth"]
@@ -103,22 +124,28 @@ def compute_errors(res: Group) -> dict[str, ErrorSet]:
             for st in np.unique(grp.data["status"][t_ok & ~e_ok]):
                 es.excluded[f"estimate {st}"] = int(((grp.data["status"] == st) & t_ok).sum())
         ts, xs = (t_state, est) if keep.size == n_runs else (t_state[keep], est[keep])  # no copy when all are kept
+        pos_t = next((ax for ax in (("x", "y", "z"), ("px", "py", "pz")) if all(a in t_names for a in ax)), None)
+        fast = kernels.compiled()  # the errors straight from the state arrays (needlecli.kernels.metrics)
+        pre = _compiled_errors(t_names, e_names, t_angles, e_angles, pos_t, scale, t_state, est, keep) if fast else {}
 
         def col(names, arr, k):
             return arr[..., names.index(k)]
 
         used: set[str] = set()
-        pos_t = next((ax for ax in (("x", "y", "z"), ("px", "py", "pz")) if all(a in t_names for a in ax)), None)
         if pos_t and all(a in e_names for a in pos_t):
-            d = np.stack([col(e_names, xs, a) - col(t_names, ts, a) for a in pos_t], -1)
-            es.quantities["E_xyz"] = QuantityError("E_xyz", "mm", scale * np.linalg.norm(d, axis=-1), keep)
+            if "E_xyz" in pre:
+                err = pre["E_xyz"]
+            else:
+                d = np.stack([col(e_names, xs, a) - col(t_names, ts, a) for a in pos_t], -1)
+                err = scale * np.linalg.norm(d, axis=-1)
+            es.quantities["E_xyz"] = QuantityError("E_xyz", "mm", err, keep)
             used.update(pos_t)
         euler = ("alpha", "beta", "gamma")
-        if all(a in t_names for a in euler) and all(a in e_names for a in euler) and kernels.compiled():
+        if all(a in t_names for a in euler) and all(a in e_names for a in euler) and fast:
             from needlecli.kernels.metrics import rotation_error  # without the (N, T, 3, 3) matrices
 
-            err = rotation_error(ts[..., [t_names.index(a) for a in euler]], xs[..., [e_names.index(a) for a in euler]])
-            es.quantities["E_R"] = QuantityError("E_R", "deg", np.rad2deg(err), keep)
+            err = rotation_error(t_state, est, keep, [t_names.index(a) for a in euler], [e_names.index(a) for a in euler])
+            es.quantities["E_R"] = QuantityError("E_R", "deg", np.rad2deg(err, out=err), keep)
             used.update(_R)
         elif (r_t := _rotation(t_names, ts)) is not None and (r_e := _rotation(e_names, xs)) is not None:
             err = rotation_angle(np.swapaxes(r_t, -1, -2) @ r_e)
@@ -142,7 +169,10 @@ def compute_errors(res: Group) -> dict[str, ErrorSet]:
                 tv, unit = params[k][keep], e_units[e_names.index(k)]
             else:
                 continue
-            if k in e_angles or k in t_angles:
+            if f"E_{k}" in pre:
+                unit = "deg" if (k in e_angles or k in t_angles) else unit
+                es.quantities[f"E_{k}"] = QuantityError(f"E_{k}", unit, pre[f"E_{k}"], keep)
+            elif k in e_angles or k in t_angles:
                 err = np.rad2deg(np.abs(angle_diff(col(e_names, xs, k), tv)))
                 es.quantities[f"E_{k}"] = QuantityError(f"E_{k}", "deg", err, keep)
             else:

@@ -437,6 +437,17 @@ def kalman_forward_affine(
     return ForwardResult(m_pred, P_pred, m_filt, P_filt, np.asarray(A), loglik, repairs)
 
 
+def kalman_loglik_affine(*args: np.ndarray | Sequence, state_angles: np.ndarray | None = None) -> np.ndarray:
+    """The log-likelihood ``(N,)`` of :func:`kalman_forward_affine` (the same arguments ``m0, P0, Qc, dt, A,
+    b, channels, H, d``), the same numbers, without keeping its means and covariances (the compiled pass
+    does not write them: many evaluation points at a time)."""
+    if kernels.compiled():
+        from needlecli.kernels import kalman as compiled
+
+        return compiled.kalman_forward_affine(*args, state_angles=state_angles, store=False)[5]
+    return kalman_forward_affine(*args, state_angles=state_angles).loglik
+
+
 # ---------------------------------------------------------------------------------------------- smoother
 def rts_smoother(fwd: ForwardResult, *, state_angles: np.ndarray | None = None) -> SmoothResult:
     r"""Rauch-Tung-Striebel smoother on the filter's own linearisation.

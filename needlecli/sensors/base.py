@@ -143,12 +143,21 @@ class Sensor:
         raise NotImplementedError
 
     def perturb(self, ideal: np.ndarray, sigma: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """Add Gaussian noise; wrap angle channels; renormalise unit vectors."""
-        y = ideal + sigma * rng.standard_normal(ideal.shape)
+        """Add Gaussian noise; wrap angle channels; renormalise unit vectors. In place in the draws' array
+        (the same numbers as ``ideal + sigma * z``: no temporaries the size of the samples)."""
+        ideal, sigma = np.asarray(ideal, dtype=float), np.asarray(sigma, dtype=float)
+        y = rng.standard_normal(ideal.shape)
+        if np.broadcast_shapes(ideal.shape, sigma.shape) == ideal.shape:
+            y *= sigma
+            y += ideal
+        else:
+            y = ideal + sigma * y
         if self.unit_vector:
             y = y / np.linalg.norm(y, axis=-1, keepdims=True)
         mask = self.angle_channels
-        if mask.any():
+        if mask.size and mask.all():
+            wrap_angle(y, out=y)
+        elif mask.any():
             y[..., mask] = wrap_angle(y[..., mask])
         return y
 

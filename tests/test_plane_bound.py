@@ -205,3 +205,12 @@ def test_the_plane_is_not_an_ordinary_measurement_of_any_observer(tmp_path):
     out = tmp_path / "ok.h5"
     run_experiment(cfg, text, out=out, base_dir=tmp_path)
     assert Path(out).exists()
+
+
+def test_image_plane_takes_no_image_pipeline(tmp_path):
+    data = yaml.safe_load(SIM)
+    data["sensors"][0]["pipeline"] = "image"
+    p = tmp_path / "bad.yaml"
+    p.write_text(yaml.safe_dump(data))
+    with pytest.raises(ConfigError, match="no image pipeline"):
+        load_config(p)

@@ -187,8 +187,8 @@ class UnscentedKalmanFilter(Observer):
                 out.append((("measurements", name), f"no sensor named {name!r}; sensors: {known}"))
             elif getattr(sensors[name], "inequality", False):  # a one-sided bound (image_plane)
                 out += [(("measurements", name, *loc), msg) for loc, msg in cls._check_bound(sensors[name], own, spec)]
-            elif spec.sides != ["past", "short"] or spec.margin != 0.0:
-                out.append((("measurements", name, "sides" if spec.sides != ["past", "short"] else "margin"),
+            elif {"sides", "margin"} & spec.model_fields_set:
+                out.append((("measurements", name, "sides" if "sides" in spec.model_fields_set else "margin"),
                             f"only for a channel that bounds the state from one side; sensor {name!r} is a "
                             f"{sensors[name].registered_name}"))
             elif measurement_function(sensors[name], own) is None:

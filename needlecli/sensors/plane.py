@@ -24,7 +24,7 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from needlecli.models import NotMeasurable
 from needlecli.schema import NonNeg, Positive
@@ -38,6 +38,13 @@ class ImagePlaneSettings(SensorSettings):
     offset_sigma: NonNeg = Field(3.0, description="emulated: stationary std of the plane's offset from the tip "
                                                   "along the tangent (model length unit)")
     offset_tau: Positive = Field(8.0, description="emulated: time constant of the offset (Ornstein-Uhlenbeck), s")
+
+    @field_validator("pipeline")
+    @classmethod
+    def _pipeline(cls, v):
+        if v != "gaussian":
+            raise ValueError("an image plane is emulated from the truth (its own offset): no image pipeline")
+        return v
 
 
 @SENSORS.register("image_plane")

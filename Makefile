@@ -3,7 +3,7 @@ PY ?= python
 
 STUDIES := results/studies
 
-.PHONY: help install demo test bench lint docs clean seed000 seed001 seed003 seed004 datasets regress real real-tau owndata faults
+.PHONY: help install demo test bench lint docs clean seed000 seed001 seed003 seed004 datasets regress real real-tau real-plane owndata faults
 
 help:
 	@echo "make install  - install needlecli with test extras (editable)"
@@ -20,6 +20,7 @@ help:
 	@echo "make faults   - kill needle simulate and needle sweep at 20 random points each and check what is on disk"
 	@echo "make real     - import the recorded ultrasteer insertions (../shared/real-data) and make their tables in $(REAL)"
 	@echo "make real-tau - after make real: the ultrasound's likelihood against the image plane offset's time constant"
+	@echo "make real-plane - after make real: the image plane's bound with margins 0-8 mm and lost frames only (tip error against the tracker)"
 	@echo "make seed004  - seed 004's synthetic study and T2prelim: EM fits, Tables 1-3, Figs. 5, 10 (in $(STUDIES))"
 	@echo "make owndata  - a lab's exports made by needlecli, imported by a mapping, fitted with and without the slip (in $(OWN))"
 	@echo "make clean    - remove results/ and caches"
@@ -146,6 +147,25 @@ real-tau:
 	  needle evaluate $(REAL)/tau/em_resultsorig_tau$$t.h5 --out $(REAL)/tau/$$t --tables em_per_trial --no-plots --quiet || exit 1; \
 	  echo "tau $$t s: $$(grep resultsOrig $(REAL)/tau/$$t/*em_per_trial.md)"; \
 	done
+
+# The image plane as a one-sided bound (configs/real/ukf_resultsorig_em.yaml, observers ukf_em_plane and
+# ukf_em_white_plane_m5): the margin a seen needle's tip may lie short of the plane, swept (needs `make real`
+# first); the along/across tables in $(REAL)/plane/<margin>.
+MARGINS := 0.0 1.0 2.0 3.0 4.0 5.0 6.0 8.0
+real-plane:
+	@mkdir -p $(REAL)/plane
+	@for m in $(MARGINS); do \
+	  needle simulate configs/real/ukf_resultsorig_em.yaml --out $(REAL)/plane/margin$$m.h5 --quiet \
+	    --set observers.4.measurements.plane.margin=$$m --set observers.5.measurements.plane.margin=$$m > /dev/null && \
+	  needle evaluate $(REAL)/plane/margin$$m.h5 --out $(REAL)/plane/$$m --tables real_error_along_across --no-plots --quiet || exit 1; \
+	  echo "margin $$m mm:"; grep -E '^\| (ukf_em_plane|ukf_em_white_plane_m5) ' $(REAL)/plane/$$m/*along_across.md | cut -d'|' -f2-7; \
+	done
+	@# the lost frames only (sides: [short]), no margin
+	@needle simulate configs/real/ukf_resultsorig_em.yaml --out $(REAL)/plane/short.h5 --quiet \
+	  --set 'observers.4.measurements.plane.sides=[short]' --set 'observers.5.measurements.plane.sides=[short]' \
+	  --set observers.5.measurements.plane.margin=0.0 > /dev/null
+	@needle evaluate $(REAL)/plane/short.h5 --out $(REAL)/plane/short --tables real_error_along_across --no-plots --quiet
+	@echo "lost frames only:"; grep -E '^\| (ukf_em_plane|ukf_em_white_plane_m5) ' $(REAL)/plane/short/*along_across.md | cut -d'|' -f2-7
 
 # Bringing your own recorded data (issue 18, docs/tutorials/own-data.md): a synthetic study in
 # the shape of a lab's exports (step-indexed tracker poses with quaternions, zero rows, per-sample rms, a

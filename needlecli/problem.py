@@ -34,6 +34,9 @@ class Channel:
     sample_sigma : (N, M, m) each sample's noise std where the data give one (a recorded per-sample RMS
         error), else None; filters that use it weigh sample ``i`` by ``sample_sigma_i / sigma``
     angle : (m,) bool, channels compared wrapped
+    bound_for : ``bound_for(model)`` for a channel that bounds the state from one side (an image plane:
+        :func:`needlecli.sensors.base.inequality_function`): ``bound(x, value) -> (g, side)``, each sample
+        saying ``side * g(x) >= 0``; None for ordinary channels and models it cannot bound
     """
 
     name: str
@@ -52,6 +55,7 @@ class Channel:
     unit_vector: bool = False
     attrs: Mapping = field(default_factory=dict)
     sample_sigma: np.ndarray | None = None
+    bound_for: Callable[[Model], Callable | None] = lambda model: None
 
 
 @dataclass(frozen=True)

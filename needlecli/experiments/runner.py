@@ -16,7 +16,7 @@ from needlecli.io.results import Group, root_attrs, write_atomic
 from needlecli.observers import OBSERVERS, Channel, EstimationProblem, Posterior
 from needlecli.observers.base import cov_steps
 from needlecli.sensors import SENSORS, MeasurementStream
-from needlecli.sensors.base import measurement_function
+from needlecli.sensors.base import inequality_function, measurement_function
 
 Progress = Callable[[str, int, int], None]
 
@@ -74,6 +74,7 @@ def build_problem(cfg, truth: Truth, sensors, streams: dict[str, MeasurementStre
             sigma=nominal, angle=sensor.angle_channels, h=h, attrs=st.attrs,
             h_for=lambda model, _s=sensor: measurement_function(_s, model), unit_vector=sensor.unit_vector,
             sample_sigma=st.sigma if per_sample else None,
+            bound_for=lambda model, _s=sensor: inequality_function(_s, model),
         )
     n_runs = truth.states.shape[0]
     return EstimationProblem(

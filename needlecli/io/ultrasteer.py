@@ -10,7 +10,7 @@ Layout read (ASCII, whitespace-separated)::
     resultsOrig/   the same files plus FullStateGroundTruthRho.dat (N x 1, radius setting, mm), V.dat,
                    Thetas.dat, dts.dat (1 x N), MeasPos.dat (3 x N ultrasound tip), MeasUv.dat (2 x N image
                    coordinates), MeasDoppler.dat (1 x N), MeasFul/Fur/Fbl.dat (3 x N image corners),
-                   paramsFullState.dat (its ``lutBasePath`` names the trial: 9_18_15/1mm/Trial3)
+                   MeasBx/By.dat (3 x N image axes), paramsFullState.dat (its ``lutBasePath`` names the trial: 9_18_15/1mm/Trial3)
 
 Conventions found in the data (``tests/test_real_data.py`` checks them on every trial):
 
@@ -54,6 +54,10 @@ Each trial becomes one log trial with
 * sensor ``us`` (``position``, resultsOrig only): ``MeasPos`` with its outliers; frames whose image
   coordinates fall outside the image (the detector found no needle: Doppler 0 there), all-zero or
   non-finite rows are lost: kept in the file, marked invalid;
+* sensor ``plane`` (``image_plane``, resultsOrig only): the ultrasound's image plane at every frame, its
+  unit normal ``nx, ny, nz`` (``MeasBx x MeasBy``, turned along the insertion), its signed position along
+  it ``d = n . MeasFul`` (mm) and ``seen`` (1 where ``us`` is valid, 0 where lost): a one-sided bound on
+  the tip (:mod:`needlecli.sensors.plane`), valid wherever the plane's axes are;
 * input ``v`` (mm/s): ``V.dat`` where present (``V[k]`` drives ``(t_{k-1}, t_k]``), else the folder's
   speed (``05mm`` -> 0.5, ``1mm`` -> 1, ...); input ``u`` (rad/s) from the differences of ``Thetas.dat``
   over ``dts`` where present; the trials have no rotation record (``u`` absent: zero in replay);
@@ -176,6 +180,7 @@ class RawTrial:
     us: np.ndarray | None = None  # (N, 3) ultrasound tip, mm
     us_lost: np.ndarray | None = None  # (N,) bool
     us_reasons: dict[str, int] = field(default_factory=dict)
+    plane: tuple[np.ndarray, np.ndarray] | None = None  # (N, 3) a corner, (N, 3) unit normal along the insertion
     rho: float | None = None
     dt_source: str = "nominal 0.177 s"
     same_as: str | None = None  # a trial of trials/ holding the same tracker record
@@ -281,7 +286,32 @@ def read_trial(folder: Path, *, trial_id: str, session: str, speed_folder: str |
         if len(us) != N:
             raise DataError(f"{meas}: {len(us)} frames, the tracker has {N}")
         raw.us, raw.us_lost, raw.us_reasons = us, *_us_lost(folder, us)
+        raw.plane = _image_plane(folder, N)
     return raw
+
+
+def _image_plane(folder: Path, N: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """The image plane of each frame from ``MeasFul`` (its upper-left corner) and ``MeasBx``, ``MeasBy``
+    (its axes): the corner and the unit normal ``Bx x By``, turned to point along the insertion (the way
+    the plane travels: ``n . (c_last - c_first) > 0``, the plane's own record). Frames whose axes are not
+    finite or (nearly) parallel get a NaN normal. None if the files are absent."""
+    paths = [folder / f for f in ("MeasFul.dat", "MeasBx.dat", "MeasBy.dat")]
+    if not all(p.exists() for p in paths):
+        return None
+    c, bx, by = (_rows(p, 3) for p in paths)
+    for p, a in zip(paths, (c, bx, by)):
+        if len(a) != N:
+            raise DataError(f"{p}: {len(a)} frames, the tracker has {N}")
+    with np.errstate(all="ignore"):
+        n = np.cross(bx, by)
+        norm = np.linalg.norm(n, axis=-1, keepdims=True)
+        ok = np.isfinite(n).all(-1) & np.isfinite(c).all(-1) & (norm[:, 0] > 0.5 * np.linalg.norm(bx, axis=-1)
+                                                                 * np.linalg.norm(by, axis=-1))
+        n = np.where(ok[:, None], n / norm, np.nan)
+    idx = np.nonzero(ok)[0]
+    if idx.size >= 2 and np.dot(np.nanmean(n[idx], 0), c[idx[-1]] - c[idx[0]]) < 0:
+        n = -n
+    return c, n
 
 
 def _us_lost(folder: Path, us: np.ndarray) -> tuple[np.ndarray, dict[str, int]]:
@@ -477,6 +507,14 @@ def to_trial(raw: RawTrial, al: Alignment, *, frame: str = "trial") -> Trial:
         tr.sensors["us"] = SensorStream(
             t=t, value=np.where(np.isfinite(us), us, 0.0), valid=~lost, names=("x", "y", "z"), units=("mm",) * 3,
             settings={"type": "position", "name": "us", "rate": rate, "axes": ["x", "y", "z"], "sigma": 2.0})
+    if raw.plane is not None and raw.us is not None:
+        c, _ = express(G, p0, raw.plane[0][keep])
+        n = raw.plane[1][keep] @ G.T
+        ok_plane = np.isfinite(n).all(-1)
+        value = np.concatenate([n, np.sum(n * c, -1)[:, None], (~raw.us_lost[keep])[:, None].astype(float)], -1)
+        tr.sensors["plane"] = SensorStream(
+            t=t, value=np.where(ok_plane[:, None], value, 0.0), valid=ok_plane, names=("nx", "ny", "nz", "d", "seen"),
+            units=("1", "1", "1", "mm", "1"), settings={"type": "image_plane", "name": "plane", "rate": rate})
     # inputs, cut to the kept frames and shifted to t = 0
     vt, vv = raw.v
     sel = (vt >= raw.t[a] - 1e-9) & (vt < raw.t[b] - 1e-9)

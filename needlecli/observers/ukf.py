@@ -12,6 +12,13 @@ tip crosses a tissue interface, the curvature constraint ``0 <= kappa <= kappa_m
 previous estimate), and final-position prediction from chosen observation depths. Optional chi-square
 innovation gating rejects outliers per channel (counted per run).
 
+One-sided channels (an ultrasound image plane, :mod:`needlecli.sensors.plane`: a seen needle has its tip
+past the plane, a lost frame short of it) are inequalities, not measurements: named under
+``measurements`` they update by the first two moments of the truncated (``sigma = 0``) or
+probit-weighted Gaussian (:meth:`UnscentedKalmanFilter._update_bound`), one sample at a time after the
+tick's ordinary update, on the numpy path (the compiled kernel does not take them); per run, the samples
+used and those whose prediction broke the bound are counted (``used/<name>``, ``bound_violated/<name>``).
+
 Exact shortcuts (each tested against the plain computation): a channel whose ``h`` is a state selection
 (:class:`~needlecli.models.StateSelection`) is updated in closed form, which is what the unscented
 transform of a linear ``h`` gives (one scalar state, seed 003's 100 Hz roll, without a solve); the
@@ -64,7 +71,8 @@ from needlecli.schema import DistanceGrowth, NonNeg, Positive, Probability, Stri
 class MeasurementSpec(Strict):
     """How the filter treats one measurement channel (a sensor, by name)."""
 
-    sigma: NonNeg | list[NonNeg] = Field(description="noise std per component (R = diag(sigma^2))")
+    sigma: NonNeg | list[NonNeg] = Field(description="noise std per component (R = diag(sigma^2)); a one-sided channel "
+                                                     "(image_plane): the std of its bound (0: hard)")
     growth: DistanceGrowth | None = Field(None, description="R reset by distance to the transducer")
     gate: Probability | None = Field(None, description="chi-square gate probability, e.g. 0.999; off if unset")
     frame: Literal["world", "needle"] = Field(
@@ -73,6 +81,16 @@ class MeasurementSpec(Strict):
     across_axis: Literal["x", "y", "z"] | None = Field(
         None, description="frame: needle: the world axis of the across directions (default: the one least aligned "
                           "with the initial tangent)")
+
+    sides: list[Literal["past", "short"]] = Field(
+        default_factory=lambda: ["past", "short"], min_length=1,
+        description="a channel that bounds the state from one side (image_plane): the samples used, past (the "
+                    "bound g >= 0: the needle seen, its tip past the image plane) and/or short (g <= 0: the frame "
+                    "lost, the tip short of the plane); the update is the truncated-Gaussian one, sigma the "
+                    "bound's own std (0: a hard bound)")
+    margin: NonNeg = Field(0.0, description="a one-sided channel (image_plane): the bound moved by this much in the "
+                                           "sample's favour (side * g >= -margin: a tip seen up to margin short of "
+                                           "the plane, a slice thickness), model length unit")
 
     @model_validator(mode="after")
     def _frame(self):
@@ -163,9 +181,16 @@ class UnscentedKalmanFilter(Observer):
         from needlecli.sensors.base import measurement_function
 
         for name in settings.measurements:
+            spec = settings.measurements[name]
             if name not in sensors:
                 known = ", ".join(sensors) or "none"
                 out.append((("measurements", name), f"no sensor named {name!r}; sensors: {known}"))
+            elif getattr(sensors[name], "inequality", False):  # a one-sided bound (image_plane)
+                out += [(("measurements", name, *loc), msg) for loc, msg in cls._check_bound(sensors[name], own, spec)]
+            elif {"sides", "margin"} & spec.model_fields_set:
+                out.append((("measurements", name, "sides" if "sides" in spec.model_fields_set else "margin"),
+                            f"only for a channel that bounds the state from one side; sensor {name!r} is a "
+                            f"{sensors[name].registered_name}"))
             elif measurement_function(sensors[name], own) is None:
                 out.append((("measurements", name),
                             f"model {mcls.registered_name!r} cannot predict what sensor {name!r} measures"))
@@ -186,6 +211,24 @@ class UnscentedKalmanFilter(Observer):
             sensor = sensors.get(settings.kappa_reset.interfaces)
             if sensor is None or sensor.registered_name != "elastography":
                 out.append((("kappa_reset", "interfaces"), "must be 'experiment' or the name of an elastography sensor"))
+        return out
+
+    @staticmethod
+    def _check_bound(sensor, model, spec) -> list[tuple[tuple, str]]:
+        """What is wrong with the settings of a one-sided channel (an image plane), as (key path, message)."""
+        from needlecli.sensors.base import inequality_function
+
+        if inequality_function(sensor, model) is None:
+            return [((), f"model {model.registered_name!r} cannot be bounded by sensor {sensor.name!r}: "
+                          f"{sensor.registered_name} needs {', '.join(sensor.requires)}")]
+        out = []
+        if isinstance(spec.sigma, list) and len(spec.sigma) != 1:
+            out.append((("sigma",), "a one-sided channel has one bound: give one std"))
+        for key in ("growth", "gate", "across_axis"):
+            if getattr(spec, key) is not None:
+                out.append(((key,), "not for a one-sided channel (the truncated update has no innovation to gate)"))
+        if spec.frame != "world":
+            out.append((("frame",), "not for a one-sided channel (its bound is a plane in world coordinates)"))
         return out
 
     # ------------------------------------------------------------------ run
@@ -227,6 +270,7 @@ class UnscentedKalmanFilter(Observer):
 
         # --- channels used, and the tick at which each sample becomes available
         chans = self._channels(problem, model)
+        bounds = self._bounds(problem, model)  # one-sided channels: truncated updates (numpy path only)
 
         # --- initial estimate
         x, P0 = self._initial(problem, model, params, rng, chans)
@@ -244,13 +288,15 @@ class UnscentedKalmanFilter(Observer):
         if kernels.compiled(problem.kernels) and kernels.has_model(model.registered_name):
             from needlecli.kernels import ukf as compiled
 
-            # a channel in the needle's frame (a full R at the predicted tangent): the numpy path below
-            if compiled.supports(model, chans) and all(c["frame"] == "world" for c in chans):
+            # a channel in the needle's frame (a full R at the predicted tangent) or a one-sided channel
+            # (a truncated update): the numpy path below
+            if compiled.supports(model, chans) and all(c["frame"] == "world" for c in chans) and not bounds:
                 return self._from_kernel(compiled.filter_runs(
                     model, params, problem, s, chans, ticks, inputs, x, P0, Q, kappa_i, interfaces, depths, w, order,
                     n_act, progress), model, s, chans, time, stride, dt_grid, depths)
 
         schedule = self._schedule(chans, ticks)
+        bound_schedule = self._schedule(bounds, ticks)
         # --- outputs
         states = np.empty((N, T, n))
         keep = set(cov_steps(T, problem.cov_stride).tolist())
@@ -264,6 +310,8 @@ class UnscentedKalmanFilter(Observer):
         gated = {c["name"]: np.zeros(N, dtype=np.int64) for c in chans}
         used = {c["name"]: np.zeros(N, dtype=np.int64) for c in chans}
         nis = {c["name"]: np.full(c["valid"].shape, np.nan) for c in chans}  # per sample used: nu^T S^-1 nu
+        used.update({b["name"]: np.zeros(N, dtype=np.int64) for b in bounds})
+        violated = {b["name"]: np.zeros(N, dtype=np.int64) for b in bounds}  # the prediction broke the bound
         pred_final = np.full((N, len(depths), n), np.nan)
         pred_tick = np.full(len(depths), -1, dtype=np.int64)
         roll = np.zeros((N, 0, n))  # rollouts to the final depth, advanced with the sigma points
@@ -347,6 +395,11 @@ class UnscentedKalmanFilter(Observer):
                     x, P = self._update(x, P, X, dX, schedule[i], w, alive, gated, used, nis)
                     if ang_sel is not None:  # the update may carry an angle across the cut
                         wrap_where_needed(x, ang_sel)
+                for b, samples in bound_schedule[i]:  # one-sided channels: one truncated update per sample
+                    for j in samples:
+                        x, P = self._update_bound(x, P, b, j, w, angles, alive, used, violated, repairs)
+                    if ang_sel is not None:
+                        wrap_where_needed(x, ang_sel)
                 # ---- curvature constraint: keep the previous estimate outside [0, kappa_max]
                 if kappa_i is not None and s.kappa_max is not None:
                     kk = x[:, kappa_i]
@@ -388,8 +441,12 @@ class UnscentedKalmanFilter(Observer):
         if roll_ids:
             pred_final[:, roll_ids] = roll
         cov = np.stack(covs, 1) if covs is not None else None
-        return self._posterior(model, s, chans, time, stride, dt_grid, states, cov, status, reason, repairs,
+        post = self._posterior(model, s, chans, time, stride, dt_grid, states, cov, status, reason, repairs,
                                constraint_hits, resets, used, gated, nis, depths, pred_tick, pred_final)
+        for b in bounds:
+            post.extras[f"used/{b['name']}"] = used[b["name"]]
+            post.extras[f"bound_violated/{b['name']}"] = violated[b["name"]]
+        return post
 
     def _from_kernel(self, k, model, s, chans, time, stride, dt_grid, depths) -> Posterior:
         """The posterior from the compiled filter's arrays (status codes: 0 ok, 1 diverged, 2 singular)."""
@@ -456,7 +513,8 @@ class UnscentedKalmanFilter(Observer):
 
     def _channels(self, problem: EstimationProblem, model: Model) -> list[dict]:
         s = self.settings
-        names = list(s.measurements) or [c for c, ch in problem.channels.items() if ch.h_for(model) is not None]
+        names = [c for c in s.measurements if problem.channels[c].bound_for(model) is None] or (
+            [] if s.measurements else [c for c, ch in problem.channels.items() if ch.h_for(model) is not None])
         dt = float(problem.time[1] - problem.time[0]) if len(problem.time) > 1 else 1.0
         out = []
         for name in names:
@@ -484,6 +542,69 @@ class UnscentedKalmanFilter(Observer):
             c = out[-1]
             c["scalar"] = m == 1 and c["select"] is not None and c["gate"] is None and not pos_cols
         return out
+
+    def _bounds(self, problem: EstimationProblem, model: Model) -> list[dict]:
+        """The one-sided channels the settings name (``measurements``; never by default), with their
+        bound ``side * g(x) >= -margin``, softness ``sigma`` and the sides used."""
+        dt = float(problem.time[1] - problem.time[0]) if len(problem.time) > 1 else 1.0
+        out = []
+        for name, spec in self.settings.measurements.items():
+            ch = problem.channels[name]
+            bound = ch.bound_for(model)
+            if bound is None:
+                continue
+            avail = np.ceil(ch.t_available / dt - 1e-9).astype(np.int64)
+            order = np.argsort(avail, kind="stable")
+            out.append({"name": name, "bound": bound, "value": ch.value, "valid": ch.valid,
+                        "sigma": float(np.ravel(spec.sigma)[0]), "margin": float(spec.margin),
+                        "past": "past" in spec.sides, "short": "short" in spec.sides,
+                        "avail": avail[order], "order": order})
+        return out
+
+    @staticmethod
+    def _update_bound(x, P, b, j, w, angles, alive, used, violated, repairs):
+        r"""Truncated-Gaussian update with sample ``j`` of one-sided channel ``b``, per run where valid.
+
+        With ``z = side * g(x) + margin`` (the sample says ``z >= 0``, softened by ``z + e >= 0``,
+        ``e ~ N(0, sigma^2)``: a probit likelihood ``Phi(z / sigma)``, the hard bound at ``sigma = 0``),
+        the unscented transform of the prediction gives ``z``'s mean ``m``, variance ``s^2`` and cross
+        covariance ``P_xz``; the posterior's first two moments in ``z`` are those of the truncated (or
+        probit-weighted) Gaussian, ``E[z] = m + s^2 lambda / s_t`` and ``Var z = s^2 - s^4 lambda
+        (lambda + a) / s_t^2`` with ``s_t^2 = s^2 + sigma^2``, ``a = m / s_t``, ``lambda = phi(a) / Phi(a)``,
+        and the state follows by the linear regression on ``z`` (exact moments where ``g`` is linear and
+        the prediction Gaussian): ``x += P_xz lambda / s_t``, ``P -= P_xz P_xz^T lambda (lambda + a) / s_t^2``
+        (a rank-one downdate that keeps ``P`` positive: ``lambda (lambda + a) < 1``)."""
+        from scipy.special import log_ndtr
+
+        v = b["valid"][:, j] & alive
+        if not v.any():
+            return x, P
+        value = np.where(v[:, None], b["value"][:, j], 0.0)
+        root, bad = robust_cholesky(P)
+        repairs += bad & v
+        X = sigma_points(x, root, w, angles)
+        dX = residual(X, x[..., None, :], angles)
+        g, side = b["bound"](X, value[:, None, :])
+        side = np.broadcast_to(side, g.shape)[:, 0]
+        v = v & np.where(side > 0, b["past"], b["short"])
+        if not v.any():
+            return x, P
+        z = side[:, None] * g + b["margin"]  # (N, S)
+        m = z[:, 0] + (z - z[:, :1]) @ w.wm  # about the central point: the 1e-3 spread's weights are 7e4
+        dz = z - m[:, None]
+        s2 = (dz**2) @ w.wc
+        pxz = np.einsum("nsi,ns,s->ni", dX, dz, w.wc)
+        st2 = s2 + b["sigma"] ** 2
+        v = v & (st2 > 0) & np.isfinite(m) & np.isfinite(st2)
+        st = np.sqrt(np.where(v, st2, 1.0))
+        a = np.where(v, m, 0.0) / st
+        lam = np.exp(-0.5 * a**2 - 0.5 * np.log(2.0 * np.pi) - log_ndtr(a))  # phi(a) / Phi(a), stable for a << 0
+        shrink = np.where(v, lam * (lam + a), 0.0) / st**2
+        used[b["name"]] += v
+        violated[b["name"]] += v & (m < 0)
+        x = x + pxz * np.where(v, lam / st, 0.0)[:, None]
+        u = pxz * np.sqrt(shrink)[:, None]
+        return x, symmetrize(P - u[:, :, None] * u[:, None, :])
 
     def _initial(self, problem, model, params, rng, chans):
         s = self.settings

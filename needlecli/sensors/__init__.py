@@ -11,7 +11,8 @@ if TYPE_CHECKING:
     from needlecli.sensors.base import Pipeline, Sensor
 
 SENSORS: Registry[type[Sensor]] = Registry("sensor type", group="needlecli.sensors", builtins={
-    name: "needlecli.sensors.statistical" for name in ("position", "encoder", "elastography", "tangent", "bfield")
+    **{name: "needlecli.sensors.statistical" for name in ("position", "encoder", "elastography", "tangent", "bfield")},
+    "image_plane": "needlecli.sensors.plane",
 })
 PIPELINES: Registry[type[Pipeline]] = Registry("measurement pipeline", group="needlecli.pipelines", builtins={
     "gaussian": "needlecli.sensors.base",

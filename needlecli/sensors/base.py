@@ -275,3 +275,14 @@ def measurement_function(sensor, model):
         return None
     sel = sensor.state_selection()
     return sensor.h if sel is None else StateSelection(sel)
+
+
+def inequality_function(sensor, model):
+    """For a sensor whose samples bound the state from one side (``inequality = True``, e.g. an image
+    plane): ``bound(x, value) -> (g, side)`` for the state of ``model``, each sample saying
+    ``side * g >= 0``; None for other sensors or a model the sensor cannot bound."""
+    if not getattr(sensor, "inequality", False):
+        return None
+    if model is not sensor.model:
+        sensor = type(sensor)(sensor.settings, model)
+    return None if sensor.check_model() else sensor.bound

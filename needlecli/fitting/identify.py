@@ -27,7 +27,9 @@ Verdicts, per quantity and trial (and pooled):
 ``identified``          the relative standard error is at most ``rse_max`` and, for a noise level,
                         scaling it by 10 and by 1/10 each costs at least ``nats`` of log-likelihood;
 ``weakly identified``   otherwise, with the reason (a relative SE above the threshold; a likelihood that
-                        stays within ``nats`` over a decade: the data say little about it);
+                        stays within ``nats`` over a decade: the data say little about it; or one that
+                        rises by more than ``nats`` over the decade: the estimate is where EM stopped
+                        moving or a floor held it, not the likelihood's maximum);
 ``not identified``      the information in that direction is not positive (a flat or non-concave
                         likelihood at the estimate).
 
@@ -334,9 +336,13 @@ def _verdicts(qs, rse, decade, bad, o: IdentifyOptions):
         if bad[m, k]:
             return "no positive information: the log-likelihood is flat or not concave at the estimate"
         parts = [f"relative SE {rse[m, k]:.2g} > {o.rse_max:g}"] if big[m, k] else []
-        flat = [f"x{f} costs {decade[m, k, i]:.2g} nats" for i, f, on in ((0, "10", flat_up[m, k]), (1, "1/10", flat_down[m, k])) if on]
+        scaled = [(f, decade[m, k, i]) for i, f, on in ((0, "10", flat_up[m, k]), (1, "1/10", flat_down[m, k])) if on]
+        flat = [f"x{f} costs {c:.2g} nats" for f, c in scaled if not c < -o.nats]
+        rise = [f"x{f} raises it by {-c:.2g} nats" for f, c in scaled if c < -o.nats]
         if flat:
             parts.append(f"flat over a decade ({'; '.join(flat)}; < {o.nats:g})")
+        if rise:  # the estimate is not where the likelihood peaks: EM stopped moving, or a floor holds it
+            parts.append(f"not the log-likelihood's maximum ({'; '.join(rise)}: where EM stopped or a floor held it)")
         return "; ".join(parts)
 
     reason = np.array([[why(m, k) for k in range(rse.shape[1])] for m in range(rse.shape[0])], dtype=object).reshape(rse.shape)

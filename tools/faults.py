@@ -17,7 +17,7 @@ the length of an uninterrupted run, SIGKILL, SIGTERM or SIGINT (in turn). Then:
   no temporary file, and its table equals an uninterrupted sweep's (runtimes aside).
 
 Prints one line per kill point; exit status 1 if any check fails. ``tests/test_faults.py`` runs a few
-points of each; ``make faults`` runs at least 20 of each.
+points of each; ``make faults`` runs kill points until 20 of each stopped a running process.
 """
 
 from __future__ import annotations
@@ -155,10 +155,19 @@ def _timed(args, work: Path) -> float:
     return time.perf_counter() - t0
 
 
-def _kill_points(points: int, rng: np.random.Generator, length: float):
-    """``(index, signal, delay)`` of each kill point: the signals in turn, delays in [0, 1.1 length)."""
-    for i in range(points):
+def _kill_points(points: int, rng: np.random.Generator, length: float, out: list):
+    """``(index, signal, delay)`` of each kill point: the signals in turn, delays in [0, 1.1 length), until
+    ``points`` of them stopped a live process (a signal after the command had finished, exit 0, is
+    checked too but does not count; at most 3 x ``points`` in all)."""
+    i = 0
+    while _live(out) < points and i < 3 * points:
         yield i, SIGNALS[i % len(SIGNALS)], float(rng.uniform(0.0, 1.1 * length))
+        i += 1
+
+
+def _live(out: list) -> int:
+    """How many kill points stopped a process that was still running."""
+    return sum(p.code != 0 for p in out)
 
 
 def _status_problems(sig: int, code: int, err: str) -> tuple[list[str], bool]:
@@ -195,7 +204,7 @@ def simulate_faults(work: Path, points: int, rng: np.random.Generator, runs: int
     ref = _arrays(reference)
     earlier_bytes = earlier.read_bytes()
     out = []
-    for i, sig, delay in _kill_points(points, rng, length):
+    for i, sig, delay in _kill_points(points, rng, length, out):
         folder = work / f"simulate_{i:02d}"
         shutil.rmtree(folder, ignore_errors=True)
         folder.mkdir()
@@ -257,7 +266,7 @@ def sweep_faults(work: Path, points: int, rng: np.random.Generator, executor: st
     length = _timed([*args, "--out", work / "sweep_reference"], work)
     ref = _table(work / "sweep_reference")
     out = []
-    for i, sig, delay in _kill_points(points, rng, length):
+    for i, sig, delay in _kill_points(points, rng, length, out):
         folder = work / f"sweep_{i:02d}"
         shutil.rmtree(folder, ignore_errors=True)
         code, err = _kill_after(_needle(*args, "--out", folder), work, delay, sig, group=True)
@@ -305,7 +314,14 @@ def main(argv=None) -> int:
         print(p.line())
     bad = [p for p in points if p.problems]
     print(f"{len(points) - len(bad)} of {len(points)} kill points held")
-    return 1 if bad else 0
+    for command in ("simulate", "sweep"):
+        mine = [p for p in points if p.command == command]
+        print(f"{command}: {_live(mine)} of {len(mine)} kill points stopped a running process"
+              f" (the others came after it had finished)")
+    short = [c for c in ("simulate", "sweep") if _live([p for p in points if p.command == c]) < a.points]
+    if short:
+        print(f"fewer than {a.points} kill points stopped a running {' and '.join(short)}")
+    return 1 if bad or short else 0
 
 
 if __name__ == "__main__":

@@ -1016,6 +1016,19 @@ def transition_all(dm, zbar):
     return z, A
 
 
+def transition_one(dm, k, z):
+    """:meth:`DiscreteModel.transition` of interval ``k`` (before the normalisation), compiled: the same
+    kernel as :func:`transition_all` on one interval, ``(z_next (N, n), A (N, n, n))``."""
+    N, n = z.shape
+    z_out = np.empty((N, 1, n))
+    A = np.empty((N, 1, n, n))
+    c = np.ascontiguousarray
+    parallel_for(transitions, _trials(N, N * n * n), (c(z[:, None], dtype=float), c(dm.sub_dt[k : k + 1], dtype=float),
+                                                      c(dm.sub_u[:, k : k + 1], dtype=float), int(dm.nx),
+                                                      dm.model.registered_name == "binm", z_out, A))
+    return z_out[:, 0], A[:, 0]
+
+
 def transitions_supported(dm) -> bool:
     return (dm.model.registered_name in ("mnm", "binm") and len(dm.augment) == 1
             and dm.augment[0] == dm.model.curvature_param and dm.nx == 9)

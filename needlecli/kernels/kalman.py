@@ -27,12 +27,15 @@ LOG_2PI = float(np.log(2.0 * np.pi))
 # ---------------------------------------------------------------------------------------------- helpers
 @jit
 def _mm(A, B, out, n, k, m):
-    """``out[:n, :m] = A[:n, :k] @ B[:k, :m]``."""
+    """``out[:n, :m] = A[:n, :k] @ B[:k, :m]``; the zeros of ``A`` skipped (the Jacobians' structural zeros:
+    a term ``0 * B[q, j]`` adds nothing to a finite sum, which keeps its order)."""
     for i in range(n):
         for j in range(m):
             out[i, j] = 0.0
         for q in range(k):
             a = A[i, q]
+            if a == 0.0:
+                continue
             for j in range(m):
                 out[i, j] += a * B[q, j]
 

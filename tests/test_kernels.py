@@ -9,6 +9,7 @@ with itself when only its sin and cos change by an ulp.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
 import sys
@@ -428,6 +429,11 @@ def test_em_passes_equal_numpy(name, seed004_system, numpy_path):
     (la, ra, qa, Ra), (lb, rb, qb, Rb) = out["numpy"], out["compiled"]
     for x, y in [(la.A, lb.A), (la.b, lb.b), *zip(la.H, lb.H), *zip(la.y, lb.y)]:
         assert _rel(x, y) < 1e-10
+    for k in (0, K1 // 2, K1 - 2):  # one interval as the first EKF pass steps it (normalised)
+        with numpy_path:
+            za, Aa = dm.transition(k, zbar[:, k])
+        zb, Ab = dm.transition(k, zbar[:, k])
+        assert _rel(za, zb) < 1e-10 and _rel(Aa, Ab) < 1e-10
     for k in ("m_pred", "P_pred", "m_filt", "P_filt", "loglik"):
         assert _rel(getattr(ra.fwd, k), getattr(rb.fwd, k)) < 1e-10, k
     for k in ("m", "P", "C"):
@@ -439,6 +445,19 @@ def test_em_passes_equal_numpy(name, seed004_system, numpy_path):
     np.testing.assert_array_equal(ll, rb.fwd.loglik)
     with numpy_path:
         assert _rel(affine_loglik(la, dm, meas, S.m0, P0, Q, R), ll) < 1e-10
+    # many points on the trials' rows in place (identifiability): the rows copied out first, bit for bit
+    from needlecli.fitting.smoother import take_linearisation
+
+    rows = np.array([2, 0, 0, 5, 2, 3, 1, 5, 4])
+    Qs = Q[rows] * rng.uniform(0.5, 2.0, (len(rows), 1, 1))
+    Rs = [r[rows] * rng.uniform(0.5, 2.0, (len(rows), 1, 1)) for r in R]
+    m0s = S.m0[rows] + 1e-4 * rng.standard_normal((len(rows), dm.n))
+    for ctx in (numpy_path, contextlib.nullcontext()):
+        with ctx:
+            copied = affine_loglik(take_linearisation(lb, rows), dm.take(rows), [mm.take(rows) for mm in meas],
+                                   m0s, P0[rows], Qs, Rs)
+            in_place = affine_loglik(lb, dm, meas, m0s, P0[rows], Qs, Rs, rows=rows)
+        np.testing.assert_array_equal(in_place, copied)
 
 
 def test_fit_em_iterations_equal_numpy(numpy_path):

@@ -199,10 +199,21 @@ def fit_em(
     sd_prev = np.ones((N, K1, n))
     prev_delta = np.full(N, np.inf)
 
+    # the smoothed covariances, the largest output, are copied once at the end: until then each trial's
+    # are held by reference to the pass that computed them (a trial stored again points to its newer pass)
+    P_keep: dict[int, np.ndarray] = {}
+    P_of = np.full(N, -1, dtype=np.int64)
+    P_row = np.zeros(N, dtype=np.int64)
+
     def store(idx_local: np.ndarray, idx_global: np.ndarray, res: SmootherResult) -> None:
         out_m[idx_global] = res.sm.m[idx_local]
-        out_P[idx_global] = res.sm.P[idx_local]
         out_f[idx_global] = res.fwd.m_filt[idx_local]
+        key = id(res.sm.P)
+        P_keep[key] = res.sm.P
+        P_of[idx_global] = key
+        P_row[idx_global] = idx_local
+        for k in [k for k in P_keep if not (P_of == k).any()]:
+            del P_keep[k]
 
     def fail(idx_local, idx_global, res, z_prev, why_nonfinite: np.ndarray, msg: str) -> np.ndarray:
         """Mark trials singular / diverged; returns the local mask of failed ones."""
@@ -369,7 +380,7 @@ def fit_em(
         lin_prev, lin_idx = _take_lin(e.result.lin, np.nonzero(keep_rows)[0]) if not keep_rows.all() else e.result.lin, gk
         if e.lin_point is not None:
             lin_point[gk] = e.lin_point[keep_rows]
-        sd_prev[g] = np.sqrt(np.maximum(np.diagonal(res.sm.P[ok], axis1=-2, axis2=-1), 1e-300))
+        sd_prev[g] = np.sqrt(np.maximum(np.diagonal(res.sm.P, axis1=-2, axis2=-1)[ok], 1e-300))
         prev_delta[g] = delta[ok]
         done = ok & (delta < o.tol) & e.settled  # and the E-step at its fixed point (x0, linearisation)
         status[active[done]] = STATUS_OK
@@ -383,6 +394,9 @@ def fit_em(
             progress(it + 1, I)
     if progress is not None:
         progress(I, I)  # every trial has stopped
+    for key, P_src in P_keep.items():
+        sel = np.nonzero(P_of == key)[0]
+        out_P[sel] = P_src[P_row[sel]]
     for g in active:  # ran out of iterations
         last = hist["delta"][g][np.isfinite(hist["delta"][g])]
         reason[g] = (f"no convergence in {I} iterations (last change {last[-1] if last.size else np.nan:.3g} "

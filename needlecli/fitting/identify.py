@@ -132,8 +132,10 @@ def fit_quantities(dm: DiscreteModel, meas: Sequence[MeasurementModel], Q: np.nd
     return out
 
 
-def _loglik(lin, dm, meas, x0, P0, Q, R, qs: list[Quantity], theta: np.ndarray, trial: np.ndarray) -> np.ndarray:
-    """``l(theta)`` for evaluation points ``theta (M, d)`` of trials ``trial (M,)``, in one filter pass."""
+def _loglik(lin, dm, meas, x0, P0, Q, R, qs: list[Quantity], theta: np.ndarray, trial: np.ndarray,
+            rows: np.ndarray | None = None) -> np.ndarray:
+    """``l(theta)`` for evaluation points ``theta (M, d)`` of trials ``trial (M,)``, in one filter pass;
+    ``rows (M,)``: the rows of ``lin`` and ``meas`` that hold those trials (default ``trial``: all trials)."""
     M = len(trial)
     m0 = x0[trial].copy()
     Qe = Q[trial].copy()
@@ -153,8 +155,7 @@ def _loglik(lin, dm, meas, x0, P0, Q, R, qs: list[Quantity], theta: np.ndarray, 
         else:
             Re[q.index] = Re[q.index] * np.exp(theta[:, k])[:, None, None]
     with np.errstate(all="ignore"):
-        return affine_loglik(take_linearisation(lin, trial), dm.take(trial), [mm.take(trial) for mm in meas],
-                             m0, P0[trial], Qe, Re)
+        return affine_loglik(lin, dm, meas, m0, P0[trial], Qe, Re, rows=trial if rows is None else rows)
 
 
 def identify(
@@ -243,11 +244,15 @@ def identify(
             theta0[idx, None, :] + decade_offsets[None],
         ], axis=1)  # (Nok, E, d)
         E = E1 + E2
+        # the points share their trial's linearisation: the assessed trials' rows, read in place
+        lin_ok, meas_ok = take_linearisation(lin, idx), [mm.take(idx) for mm in meas]
         for a in range(0, E, o.chunk):
             sl = slice(a, min(a + o.chunk, E))
             te = theta[:, sl]
             trial = np.repeat(idx, te.shape[1])
-            ll[idx, sl] = _loglik(lin, dm, meas, x0, P0, Q, R, qs, te.reshape(-1, d), trial).reshape(len(idx), -1)
+            rows = np.repeat(np.arange(idx.size), te.shape[1])
+            ll[idx, sl] = _loglik(lin_ok, dm, meas_ok, x0, P0, Q, R, qs, te.reshape(-1, d), trial,
+                                  rows).reshape(len(idx), -1)
     l0 = ll[:, 0]
     lp, lm = ll[:, 1 : 1 + 2 * d : 2], ll[:, 2 : 2 + 2 * d : 2]
     H = np.full((N, d, d), np.nan)

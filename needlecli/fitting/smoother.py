@@ -155,11 +155,13 @@ def take_linearisation(lin: Linearisation, idx: np.ndarray) -> Linearisation:
 
 
 def affine_loglik(lin: Linearisation, dm: DiscreteModel, meas: Sequence[MeasurementModel], m0: np.ndarray,
-                  P0: np.ndarray, Qc: np.ndarray, R: Sequence[np.ndarray]) -> np.ndarray:
+                  P0: np.ndarray, Qc: np.ndarray, R: Sequence[np.ndarray], rows: np.ndarray | None = None) -> np.ndarray:
     """The log-likelihood ``(N,)`` of the measurements under a fixed affine model (the forward pass of
-    :func:`affine_pass` only: compiled where the kernels cover it)."""
+    :func:`affine_pass` only: compiled where the kernels cover it). ``rows (N,)``: point r on trial
+    ``rows[r]`` of ``lin`` and ``meas`` (``m0, P0, Qc, R``: one row per point), the same numbers as
+    :func:`take_linearisation` and ``take`` of those rows."""
     return kalman_loglik_affine(m0, P0, Qc, dm.dt, lin.A, lin.b, _channels(meas, R, lin.y), lin.H, lin.d,
-                                state_angles=dm.angles)
+                                state_angles=dm.angles, rows=rows)
 
 
 @dataclass

@@ -155,6 +155,11 @@ class DiscreteModel:
     # ------------------------------------------------------------------ transitions
     def transition(self, k: int, z: np.ndarray, with_jacobian: bool = True):
         """Interval ``k`` for states ``z (N, n)``: ``(z_next, A (N, n, n))``."""
+        if with_jacobian and self._compiled_transitions():
+            from needlecli.kernels import kalman as compiled
+
+            z, A = compiled.transition_one(self, k, z)
+            return self._normalize(z), A
         A = np.broadcast_to(np.eye(self.n), (self.N, self.n, self.n)) if with_jacobian else None
         for j in range(self.sub_dt.shape[1]):
             h = self.sub_dt[k, j]
@@ -168,15 +173,22 @@ class DiscreteModel:
                 z = _rk4(lambda zz, u=u: self.f(zz, u), z, h)
         return self._normalize(z), A
 
+    def _compiled_transitions(self) -> bool:
+        """Whether the compiled RK4 with its Jacobian covers this system (sensor states: numpy)."""
+        if (self.sensor_states or not kernels.compiled()
+                or self.model.registered_name not in kernels.COMPILED["linearised"]):
+            return False
+        from needlecli.kernels import kalman as compiled
+
+        return compiled.transitions_supported(self)
+
     def transition_all(self, zbar: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Every interval at once from ``zbar (N, K, n)`` (the states at ticks ``0..K-1``):
         ``(f_k(zbar_k) (N, K, n), A (N, K, n, n))``."""
-        if (not self.sensor_states and kernels.compiled()
-                and self.model.registered_name in kernels.COMPILED["linearised"]):  # sensor states: numpy
+        if self._compiled_transitions():
             from needlecli.kernels import kalman as compiled
 
-            if compiled.transitions_supported(self):
-                return compiled.transition_all(self, zbar)
+            return compiled.transition_all(self, zbar)
         z = zbar
         A = None
         for j in range(self.sub_dt.shape[1]):

@@ -27,12 +27,15 @@ LOG_2PI = float(np.log(2.0 * np.pi))
 # ---------------------------------------------------------------------------------------------- helpers
 @jit
 def _mm(A, B, out, n, k, m):
-    """``out[:n, :m] = A[:n, :k] @ B[:k, :m]``."""
+    """``out[:n, :m] = A[:n, :k] @ B[:k, :m]``; the zeros of ``A`` skipped (the Jacobians' structural zeros:
+    a term ``0 * B[q, j]`` adds nothing to a finite sum, which keeps its order)."""
     for i in range(n):
         for j in range(m):
             out[i, j] = 0.0
         for q in range(k):
             a = A[i, q]
+            if a == 0.0:
+                continue
             for j in range(m):
                 out[i, j] += a * B[q, j]
 
@@ -259,14 +262,16 @@ def _fix_lanes(M, L, n, ok, scratch, Ls, count):
 # ---------------------------------------------------------------------------------------------- the filter
 @jit
 def forward_affine(lo, hi, m0, P0, Qc, dt, A, b, acnt, aidx, slot, ch_m, Y, V, R, H, D, ang_c, hcnt, hidx,
-                   m_pred, P_pred, m_filt, P_filt, loglik, repairs, state_angles, store):
+                   m_pred, P_pred, m_filt, P_filt, loglik, repairs, state_angles, store, src):
     """:func:`needlecli.numerics.kalman.kalman_forward_affine` for trials ``lo..hi-1`` (lanes of LANES);
     with ``store`` False only the log-likelihood and the repairs (the means and covariances not written).
 
     acnt, aidx: the sparse rows of A. Channels concatenated along the sample axis: slot (J, K+1) the
     sample of channel j at tick k (-1: none); ch_m (J,) components; Y (N, M, mm), V (N, M), R (N, J, mm, mm),
     H (N, M, mm, n), D (N, M, mm); ang_c (J, mm); hcnt (J, mm), hidx (J, mm, n) the sparse rows of each
-    channel's H. Outputs (N, K+1, ...) written in place. The gain uses the Cholesky factor of the
+    channel's H; src (N,) the row of A, b, Y, V, H, D that trial r filters with (its own noise, prior and
+    outputs: identifiability's evaluation points share their trial's linearisation without copies). Outputs
+    (N, K+1, ...) written in place. The gain uses the Cholesky factor of the
     innovation covariance (numpy: LU; the same to rounding), which the log-likelihood needs anyway.
     """
     n = m0.shape[1]
@@ -318,11 +323,11 @@ def forward_affine(lo, hi, m0, P0, Qc, dt, A, b, acnt, aidx, slot, ch_m, Y, V, R
                     r = rl[l]
                     for a in range(n):
                         for c in range(n):
-                            Ak[a, c, l] = A[r, k - 1, a, c]
+                            Ak[a, c, l] = A[src[r], k - 1, a, c]
                 _sAx(Ak, m, m2[:, 0], acnt, aidx, n)
                 for l in range(LANES):
                     for a in range(n):
-                        m[a, l] = m2[a, 0, l] + b[rl[l], k - 1, a]
+                        m[a, l] = m2[a, 0, l] + b[src[rl[l]], k - 1, a]
                 _sAX(Ak, P, T1, acnt, aidx, n, n)
                 _sXAt(T1, Ak, P, acnt, aidx, n, n, True)
                 h = dt[k - 1]
@@ -355,7 +360,7 @@ def forward_affine(lo, hi, m0, P0, Qc, dt, A, b, acnt, aidx, slot, ch_m, Y, V, R
                 for q in range(mt):
                     j, i, qq = rowc[q], rowi[q], rowq[q]
                     for l in range(LANES):
-                        r = rl[l]
+                        r = src[rl[l]]
                         v = V[r, i]
                         yv[q, l] = (Y[r, i, qq] - D[r, i, qq]) if v else 0.0
                         if v:
@@ -394,7 +399,7 @@ def forward_affine(lo, hi, m0, P0, Qc, dt, A, b, acnt, aidx, slot, ch_m, Y, V, R
                                 S[q, q2, l] += Hl[q, c, l] * PHt[c, q2, l]
                         if rowc[q2] == j:
                             for l in range(LANES):
-                                if V[rl[l], i]:
+                                if V[src[rl[l]], i]:
                                     S[q, q2, l] += R[rl[l], j, qq, rowq[q2]]
                                 elif q == q2:
                                     S[q, q2, l] += 1.0
@@ -874,16 +879,18 @@ def _sparse_rows(M: np.ndarray):
     return cnt, idx
 
 
-def _channels_concat(channels, H, d, N, n):
-    """The channels' samples along one axis (each channel's samples after the previous one's)."""
+def _channels_concat(channels, H, d, N, n, Ns=None):
+    """The channels' samples along one axis (each channel's samples after the previous one's); ``N`` rows
+    of noise, ``Ns`` (default ``N``) of samples and their linearisation."""
+    Ns = N if Ns is None else Ns
     J = len(channels)
     mm = max([ch.m for ch in channels], default=1)
     M = sum(len(np.asarray(ch.tick)) for ch in channels)
-    Y = np.zeros((N, max(M, 1), mm))
-    V = np.zeros((N, max(M, 1)), dtype=np.bool_)
+    Y = np.zeros((Ns, max(M, 1), mm))
+    V = np.zeros((Ns, max(M, 1)), dtype=np.bool_)
     R = np.zeros((N, max(J, 1), mm, mm))
-    Hc = np.zeros((N, max(M, 1), mm, n))
-    Dc = np.zeros((N, max(M, 1), mm))
+    Hc = np.zeros((Ns, max(M, 1), mm, n))
+    Dc = np.zeros((Ns, max(M, 1), mm))
     ang = np.zeros((max(J, 1), mm), dtype=np.bool_)
     hcnt = np.zeros((max(J, 1), mm), dtype=np.int64)
     hidx = np.zeros((max(J, 1), mm, n), dtype=np.int64)
@@ -910,21 +917,27 @@ def _channels_concat(channels, H, d, N, n):
     return Y, V, R, Hc, Dc, ang, hcnt, hidx, ch_m, offsets
 
 
-def kalman_forward_affine(m0, P0, Qc, dt, A, b, channels, H, d, *, state_angles=None, store=True):
+def kalman_forward_affine(m0, P0, Qc, dt, A, b, channels, H, d, *, state_angles=None, store=True, rows=None):
     """:func:`needlecli.numerics.kalman.kalman_forward_affine`, compiled: the fields of its ``ForwardResult``
     (``m_pred, P_pred, m_filt, P_filt, A, loglik, repairs``; the caller builds the result: the kernels import
     nothing of the package above them). ``store=False``: the log-likelihood and repairs only (the four
     arrays of means and covariances are then empty: 2.4 GB a pass not written for the evaluation points
-    of :mod:`needlecli.fitting.identify`)."""
+    of :mod:`needlecli.fitting.identify`). ``rows (N,)``: trial r filters with row ``rows[r]`` of ``A, b,
+    H, d`` and of the channels' samples (their leading axis that long), with its own ``m0, P0, Qc`` and
+    noise (the channels' ``R``, N rows); the same numbers as those rows copied out first."""
     m0 = np.ascontiguousarray(m0, dtype=float)
     N, n = m0.shape
+    src = np.arange(N, dtype=np.int64) if rows is None else np.ascontiguousarray(rows, dtype=np.int64)
+    if len(src) != N:
+        raise ValueError(f"rows: {len(src)} rows for {N} trials")
+    Ns = np.shape(A)[0]
     K = len(dt)
     P0 = np.ascontiguousarray(np.broadcast_to(P0, (N, n, n)), dtype=float)
     Qc = np.ascontiguousarray(np.broadcast_to(Qc, (N, n, n)), dtype=float)
     A = np.ascontiguousarray(A, dtype=float)
     b = np.ascontiguousarray(b, dtype=float)
     acnt, aidx = sparse_rows(A)
-    Y, V, R, Hc, Dc, ang, hcnt, hidx, ch_m, offsets = _channels_concat(channels, H, d, N, n)
+    Y, V, R, Hc, Dc, ang, hcnt, hidx, ch_m, offsets = _channels_concat(channels, H, d, N, n, Ns)
     J = len(channels)
     slot = np.full((max(J, 1), K + 1), -1, dtype=np.int64)
     for j, ch in enumerate(channels):
@@ -941,7 +954,7 @@ def kalman_forward_affine(m0, P0, Qc, dt, A, b, channels, H, d, *, state_angles=
     repairs = np.zeros(N, dtype=np.int64)
     parallel_for(forward_affine, _trials(N), (m0, P0, Qc, np.ascontiguousarray(dt, dtype=float), A, b, acnt, aidx,
                                                slot, ch_m, Y, V, R, Hc, Dc, ang, hcnt, hidx, m_pred, P_pred, m_filt,
-                                               P_filt, loglik, repairs, sa, bool(store)))
+                                               P_filt, loglik, repairs, sa, bool(store), src))
     return m_pred, P_pred, m_filt, P_filt, A, loglik, repairs
 
 
@@ -1004,6 +1017,19 @@ def transition_all(dm, zbar):
     parallel_for(transitions, _trials(N), (c(zbar, dtype=float), c(dm.sub_dt, dtype=float), c(dm.sub_u, dtype=float),
                                            int(dm.nx), dm.model.registered_name == "binm", z, A))
     return z, A
+
+
+def transition_one(dm, k, z):
+    """:meth:`DiscreteModel.transition` of interval ``k`` (before the normalisation), compiled: the same
+    kernel as :func:`transition_all` on one interval, ``(z_next (N, n), A (N, n, n))``."""
+    N, n = z.shape
+    z_out = np.empty((N, 1, n))
+    A = np.empty((N, 1, n, n))
+    c = np.ascontiguousarray
+    parallel_for(transitions, _trials(N, N * n * n), (c(z[:, None], dtype=float), c(dm.sub_dt[k : k + 1], dtype=float),
+                                                      c(dm.sub_u[:, k : k + 1], dtype=float), int(dm.nx),
+                                                      dm.model.registered_name == "binm", z_out, A))
+    return z_out[:, 0], A[:, 0]
 
 
 def transitions_supported(dm) -> bool:

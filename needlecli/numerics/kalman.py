@@ -437,14 +437,21 @@ def kalman_forward_affine(
     return ForwardResult(m_pred, P_pred, m_filt, P_filt, np.asarray(A), loglik, repairs)
 
 
-def kalman_loglik_affine(*args: np.ndarray | Sequence, state_angles: np.ndarray | None = None) -> np.ndarray:
+def kalman_loglik_affine(*args: np.ndarray | Sequence, state_angles: np.ndarray | None = None,
+                         rows: np.ndarray | None = None) -> np.ndarray:
     """The log-likelihood ``(N,)`` of :func:`kalman_forward_affine` (the same arguments ``m0, P0, Qc, dt, A,
     b, channels, H, d``), the same numbers, without keeping its means and covariances (the compiled pass
-    does not write them: many evaluation points at a time)."""
+    does not write them: many evaluation points at a time). ``rows (N,)``: point r is filtered on row
+    ``rows[r]`` of ``A, b, H, d`` and of the channels' samples (with its own ``m0, P0, Qc`` and channel
+    noise ``R``): many points on one trial's linearisation, which the compiled pass reads without copies."""
     if kernels.compiled():
         from needlecli.kernels import kalman as compiled
 
-        return compiled.kalman_forward_affine(*args, state_angles=state_angles, store=False)[5]
+        return compiled.kalman_forward_affine(*args, state_angles=state_angles, store=False, rows=rows)[5]
+    if rows is not None:
+        m0, P0, Qc, dt, A, b, channels, H, d = args
+        channels = [Channel(ch.tick, ch.y[rows], ch.valid[rows], ch.R, ch.angle) for ch in channels]
+        args = (m0, P0, Qc, dt, A[rows], b[rows], channels, [h[rows] for h in H], [x[rows] for x in d])
     return kalman_forward_affine(*args, state_angles=state_angles).loglik
 
 

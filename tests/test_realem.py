@@ -7,7 +7,6 @@ one common start for several observers, and the along/across error table and plo
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 
 import h5py
 import numpy as np

@@ -28,6 +28,7 @@ import pandas as pd
 from needlecli.errors import DataError
 from needlecli.io.results import Group
 from needlecli.models import MODELS
+from needlecli.models.base import state_blocks
 from needlecli.reports import FIT_DEFAULT, FIT_TABLE_NAMES
 from needlecli.reports.identify import MARK, mark_label, weak_note, weak_quantities
 from needlecli.reports.plots import PLOTS, draw_plots, observer_colours, observer_style, save_figure, subplots
@@ -55,17 +56,6 @@ def kept_trials(res: Group) -> np.ndarray:
         ok = ~np.isin(np.asarray(g.data["status"]).astype(str), FAILED)
         keep = ok if keep is None else keep & ok
     return keep
-
-
-def state_blocks(names, skip=()) -> dict[str, list[int]]:
-    """States grouped by their stem (``px, py, pz -> p``), constants left out."""
-    out: dict[str, list[int]] = {}
-    for i, s in enumerate(names):
-        if s in skip:
-            continue
-        stem = s[:-1] if len(s) > 1 and s[-1] in "xyz" else s
-        out.setdefault(stem, []).append(i)
-    return out
 
 
 def _cases(res: Group):

@@ -10,6 +10,7 @@ with itself when only its sin and cos change by an ulp.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import os
 import subprocess
 import sys
@@ -434,10 +435,49 @@ def test_em_passes_equal_numpy(name, seed004_system, numpy_path):
             za, Aa = dm.transition(k, zbar[:, k])
         zb, Ab = dm.transition(k, zbar[:, k])
         assert _rel(za, zb) < 1e-10 and _rel(Aa, Ab) < 1e-10
-    for k in ("m_pred", "P_pred", "m_filt", "P_filt", "loglik"):
+    for k in ("m_pred", "m_filt", "loglik"):
         assert _rel(getattr(ra.fwd, k), getattr(rb.fwd, k)) < 1e-10, k
-    for k in ("m", "P", "C"):
+    for k in ("m", "P"):
         assert _rel(getattr(ra.sm, k), getattr(rb.sm, k)) < 1e-10, k
+    # EM's pass keeps the filter's covariances and the smoother's gains in the kernel: not written; nor the
+    # cross-covariances, whose M-step sums it makes in the same pass (q above: from those sums)
+    assert rb.fwd.P_pred.shape[1] == rb.fwd.P_filt.shape[1] == rb.sm.G.shape[1] == rb.sm.C.shape[1] == 0
+    assert rb.sm.q_sums is not None
+    # the standard deviations and the finiteness EM reads at every pass, made as the pass writes P: numpy's
+    np.testing.assert_array_equal(rb.sm.sd, np.sqrt(np.maximum(np.diagonal(rb.sm.P, axis1=-2, axis2=-1), 1e-300)))
+    np.testing.assert_array_equal(rb.sm.finite, np.isfinite(rb.sm.P).all((-1, -2, -3)))
+    from needlecli.numerics.kalman import kalman_filter_smoother
+
+    Qbad = Q.copy()
+    Qbad[1] = np.inf  # trial 1's covariances become infinite, then NaN
+    chans = [mm.channel(R[j], lb.y[j]) for j, mm in enumerate(meas)]
+    with np.errstate(all="ignore"):
+        _, smb = kalman_filter_smoother(S.m0, P0, Qbad, dm.dt, lb.A, lb.b, chans, lb.H, lb.d, state_angles=dm.angles)
+    assert smb.finite.tolist() == np.isfinite(smb.P).all((-1, -2, -3)).tolist() == [True, False] + [True] * (N - 2)
+    with np.errstate(invalid="ignore"):
+        np.testing.assert_array_equal(smb.sd, np.sqrt(np.maximum(np.diagonal(smb.P, axis1=-2, axis2=-1), 1e-300)))
+    assert dataclasses.replace(smb, sd=None, finite=None).all_finite().tolist() == smb.finite.tolist()
+    # the filter and the smoother on their own write them, and give the fused pass's numbers bit for bit
+    from needlecli.numerics.kalman import kalman_forward_affine, rts_smoother
+
+    fwd = kalman_forward_affine(S.m0, P0, Q, dm.dt, lb.A, lb.b, [mm.channel(R[j], lb.y[j]) for j, mm in enumerate(meas)],
+                                lb.H, lb.d, state_angles=dm.angles)
+    sm = rts_smoother(fwd, state_angles=dm.angles)
+    for k in ("P_pred", "P_filt"):
+        assert _rel(getattr(ra.fwd, k), getattr(fwd, k)) < 1e-10, k
+    # the gains solve G_k P_{k+1|k} = P_{k|k} A_k^T (against numpy's LU the ill-conditioned directions of
+    # P_{k+1|k} differ at 1e-6; the products the smoother makes of them agree above)
+    lhs = sm.G @ (0.5 * (fwd.P_pred[:, 1:] + np.swapaxes(fwd.P_pred[:, 1:], -1, -2)))
+    assert _rel(fwd.P_filt[:, :-1] @ np.swapaxes(lb.A, -1, -2), lhs) < 1e-10
+    for k in ("m_pred", "m_filt", "loglik", "repairs"):
+        np.testing.assert_array_equal(getattr(fwd, k), getattr(rb.fwd, k))
+    for k in ("m", "P", "repairs"):
+        np.testing.assert_array_equal(getattr(sm, k), getattr(rb.sm, k))
+    assert _rel(ra.sm.C, sm.C) < 1e-10
+    # the M-step's sums from the stored cross-covariances: those of the pass (summed in the other order)
+    assert _rel(em_process_noise(sm, lb.A, lb.b, dm.dt, index=S.q_index, state_angles=dm.angles), qb) < 1e-12
+    with pytest.raises(ValueError, match="no cross-covariances"):  # sums of another linearisation: refused
+        em_process_noise(rb.sm, lb.A * (1.0 + 1e-9), lb.b, dm.dt, index=S.q_index, state_angles=dm.angles)
     assert _rel(qa, qb) < 1e-10 and all(_rel(x, y) < 1e-10 for x, y in zip(Ra, Rb))
     np.testing.assert_array_equal(ra.fwd.repairs + ra.sm.repairs, rb.fwd.repairs + rb.sm.repairs)
     # the log-likelihood alone (identifiability's evaluation points): the full pass's, bit for bit

@@ -277,7 +277,7 @@ def fit_em(
         ll = res.fwd.loglik
         hist["loglik"][active, it] = ll
         extrapolated = phase[active] == 2
-        nonfinite = ~np.isfinite(ll) | ~np.isfinite(res.sm.m).all((-1, -2)) | ~np.isfinite(res.sm.P).all((-1, -2, -3))
+        nonfinite = ~np.isfinite(ll) | ~np.isfinite(res.sm.m).all((-1, -2)) | ~res.sm.all_finite()
         # ---- M-step
         with np.errstate(all="ignore"):
             Qn = em_process_noise(res.sm, res.lin.A, res.lin.b, dm.dt, index=qi, state_angles=dm.angles)
@@ -380,7 +380,7 @@ def fit_em(
         lin_prev, lin_idx = _take_lin(e.result.lin, np.nonzero(keep_rows)[0]) if not keep_rows.all() else e.result.lin, gk
         if e.lin_point is not None:
             lin_point[gk] = e.lin_point[keep_rows]
-        sd_prev[g] = np.sqrt(np.maximum(np.diagonal(res.sm.P, axis1=-2, axis2=-1)[ok], 1e-300))
+        sd_prev[g] = res.sm.std()[ok]
         prev_delta[g] = delta[ok]
         done = ok & (delta < o.tol) & e.settled  # and the E-step at its fixed point (x0, linearisation)
         status[active[done]] = STATUS_OK

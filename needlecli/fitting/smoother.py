@@ -21,8 +21,8 @@ from needlecli.fitting.statespace import DiscreteModel, MeasurementModel
 from needlecli.numerics.kalman import (
     ForwardResult,
     SmoothResult,
+    kalman_filter_smoother,
     kalman_forward,
-    kalman_forward_affine,
     kalman_loglik_affine,
     rts_smoother,
 )
@@ -129,10 +129,10 @@ def affine_pass(
 ) -> SmootherResult:
     """Kalman filter and RTS smoother on a fixed affine model."""
     A, b = lin.A, lin.b
-    if not joseph:
-        fwd = kalman_forward_affine(m0, P0, Qc, dm.dt, A, b, _channels(meas, R, lin.y), lin.H, lin.d,
-                                    state_angles=dm.angles)
-        return SmootherResult(fwd, rts_smoother(fwd, state_angles=dm.angles), lin)
+    if not joseph:  # compiled: without the filter's covariances and the smoother's gains (EM reads neither)
+        fwd, sm = kalman_filter_smoother(m0, P0, Qc, dm.dt, A, b, _channels(meas, R, lin.y), lin.H, lin.d,
+                                         state_angles=dm.angles)
+        return SmootherResult(fwd, sm, lin)
 
     def transition(k, m):
         Ak = A[:, k]
@@ -256,7 +256,7 @@ def ieks(
             lp[active] = zbar[active]
         res = affine_pass(lin_i, dmi, mi, m0[active], P0[active], Qc[active], Ri, joseph=joseph)
         passes[active] += 1
-        sdk = np.sqrt(np.maximum(np.diagonal(res.sm.P, axis1=-2, axis2=-1), 1e-300))
+        sdk = res.sm.std()
         moved = change(res.sm.m, lp[active], sdk)
         dx0 = change(res.sm.m[:, 0], m0[active], sd0[active]) if update_x0 else np.zeros(active.size)
         if update_x0:
@@ -286,6 +286,14 @@ def _scatter(full: SmootherResult | None, res: SmootherResult, idx: np.ndarray, 
         put(getattr(full.fwd, name), getattr(res.fwd, name))
     for name in ("m", "P", "C", "G", "repairs"):
         put(getattr(full.sm, name), getattr(res.sm, name))
+    for name in ("q_sums", "sd", "finite"):  # made in the passes (compiled): scattered, or dropped
+        a, b = getattr(full.sm, name), getattr(res.sm, name)
+        if a is not None and b is not None:
+            put(a, b)
+        elif a is not None:
+            setattr(full.sm, name, None)
+    if full.sm.q_sums is None:
+        full.sm.q_from = None
     put(full.lin.A, res.lin.A)
     put(full.lin.b, res.lin.b)
     for j in range(len(full.lin.H)):

@@ -12,11 +12,10 @@ repairs (a matrix is repaired when its own Cholesky fails) differ.
 from __future__ import annotations
 
 import math
-import weakref
 
 import numpy as np
 
-from needlecli.kernels._jit import jit
+from needlecli.kernels._jit import jit, lanes
 from needlecli.kernels._threads import blocks, parallel_for
 from needlecli.kernels.core import cholesky_into, wrap
 from needlecli.kernels.models import magnetic_field
@@ -75,17 +74,20 @@ def repair_pd_one(P, n, L):
 
 
 # ---------------------------------------------------------------------------------------------- lanes
-# The transition Jacobians and measurement matrices of the state-space models have fixed zeros (the
-# magnetic models': 45 of 100 entries of A, all but one to three entries of each row of H). The kernels
-# take the nonzero columns of each row (over every trial and tick: ``cnt[a]`` of them in ``idx[a]``) and
-# skip the rest; a skipped product is an exact zero, so the sums are those of the dense products.
+# The passes work on LANES trials at once, each quantity an array whose last axis is the lane (one
+# AVX-512 vector): every scalar operation of the filter is one vector operation. The helpers below are
+# compiled with their array arguments declared not to overlap (``lanes``), so that LLVM packs the loops
+# over lanes; each sum of a product runs in one accumulator of LANES values (kept in a register), the
+# terms in the order of the scalar product. The products are dense: a structural zero of a Jacobian adds
+# an exact zero to a finite sum (numpy's products add them too). The measurement matrices, whose rows
+# have one to three nonzero entries, are taken by their nonzero columns (``hcnt``, ``hidx``). A lane
+# whose matrix is not positive definite takes the scalar repair (rare).
 #
-# The passes work on LANES trials at once, each quantity an array whose last axis is the lane: every
-# scalar operation of the filter is then one vector operation, written as four explicit sums in registers
-# (LLVM cannot prove that arrays do not overlap, so a loop over lanes writing to memory stays scalar;
-# four independent sums become one vector sum with the SLP vectoriser, see _jit.py). A lane whose matrix
-# is not positive definite takes the scalar repair (rare).
-LANES = 4
+# A block's filtered and predicted means and covariances (and the transitions it used) are kept in the
+# lanes' layout between the filter and the smoother (``(K+1, n, n, LANES)``, one contiguous stream each),
+# so that the smoother does not gather each matrix back from eight trials' rows; EM's pass also makes the
+# M-step's process-noise sums there, instead of writing the cross-covariances and reading them back.
+LANES = 8
 
 
 @jit
@@ -97,147 +99,147 @@ def _lanes(lo, hi, r0):
     return out
 
 
-@jit
-def _sAx(A, x, out, cnt, idx, n):
+@lanes
+def _Ax(A, x, out, n, acc):
+    """``out = A x`` per lane; ``acc (LANES,)`` scratch (as for every helper here)."""
     for a in range(n):
-        s0 = s1 = s2 = s3 = 0.0
-        for t in range(cnt[a]):
-            q = idx[a, t]
-            s0 += A[a, q, 0] * x[q, 0]
-            s1 += A[a, q, 1] * x[q, 1]
-            s2 += A[a, q, 2] * x[q, 2]
-            s3 += A[a, q, 3] * x[q, 3]
-        out[a, 0], out[a, 1], out[a, 2], out[a, 3] = s0, s1, s2, s3
+        for l in range(LANES):
+            acc[l] = 0.0
+        for q in range(n):
+            for l in range(LANES):
+                acc[l] += A[a, q, l] * x[q, l]
+        for l in range(LANES):
+            out[a, l] = acc[l]
 
 
-@jit
-def _sAX(A, X, out, cnt, idx, n, m):
-    """``out = A @ X`` per lane, sparse rows of ``A``."""
-    for a in range(n):
-        for j in range(m):
-            s0 = s1 = s2 = s3 = 0.0
-            for t in range(cnt[a]):
-                q = idx[a, t]
-                s0 += A[a, q, 0] * X[q, j, 0]
-                s1 += A[a, q, 1] * X[q, j, 1]
-                s2 += A[a, q, 2] * X[q, j, 2]
-                s3 += A[a, q, 3] * X[q, j, 3]
-            out[a, j, 0], out[a, j, 1], out[a, j, 2], out[a, j, 3] = s0, s1, s2, s3
-
-
-@jit
-def _sXAt(X, A, out, cnt, idx, n, m, sym):
-    """``out = X @ A^T`` per lane, sparse rows of ``A``; ``sym``: the result is symmetric (lower triangle
-    computed and mirrored)."""
-    for a in range(m):
-        for c in range(a + 1 if sym else n):
-            s0 = s1 = s2 = s3 = 0.0
-            for t in range(cnt[c]):
-                q = idx[c, t]
-                s0 += X[a, q, 0] * A[c, q, 0]
-                s1 += X[a, q, 1] * A[c, q, 1]
-                s2 += X[a, q, 2] * A[c, q, 2]
-                s3 += X[a, q, 3] * A[c, q, 3]
-            out[a, c, 0], out[a, c, 1], out[a, c, 2], out[a, c, 3] = s0, s1, s2, s3
-            if sym:
-                out[c, a, 0], out[c, a, 1], out[c, a, 2], out[c, a, 3] = s0, s1, s2, s3
-
-
-@jit
-def _sXY(X, Y, out, n, k, m, tx, ty, sym, B, sub):
-    """``out[:n, :m] = B + sub * op(X) op(Y)`` per lane, dense, with ``op(X) = X`` or ``X^T`` (``tx``), the
-    same for ``Y``; ``sym``: symmetric result (lower computed, mirrored); ``B`` added first (``sub``: the
-    product subtracted, else added; ``B`` may be ``out``). One loop body per case (no branch inside the
-    sums: LLVM vectorises them)."""
+@lanes
+def _XYt(X, Y, out, n, k, m, sym, acc):
+    """``out[:n, :m] = X Y^T`` per lane, dense; ``sym``: the result is symmetric (lower triangle computed and
+    mirrored)."""
     for a in range(n):
         for c in range(a + 1 if sym else m):
-            s0 = s1 = s2 = s3 = 0.0
-            if tx and ty:
-                for q in range(k):
-                    s0 += X[q, a, 0] * Y[c, q, 0]
-                    s1 += X[q, a, 1] * Y[c, q, 1]
-                    s2 += X[q, a, 2] * Y[c, q, 2]
-                    s3 += X[q, a, 3] * Y[c, q, 3]
-            elif tx:
-                for q in range(k):
-                    s0 += X[q, a, 0] * Y[q, c, 0]
-                    s1 += X[q, a, 1] * Y[q, c, 1]
-                    s2 += X[q, a, 2] * Y[q, c, 2]
-                    s3 += X[q, a, 3] * Y[q, c, 3]
-            elif ty:
-                for q in range(k):
-                    s0 += X[a, q, 0] * Y[c, q, 0]
-                    s1 += X[a, q, 1] * Y[c, q, 1]
-                    s2 += X[a, q, 2] * Y[c, q, 2]
-                    s3 += X[a, q, 3] * Y[c, q, 3]
-            else:
-                for q in range(k):
-                    s0 += X[a, q, 0] * Y[q, c, 0]
-                    s1 += X[a, q, 1] * Y[q, c, 1]
-                    s2 += X[a, q, 2] * Y[q, c, 2]
-                    s3 += X[a, q, 3] * Y[q, c, 3]
-            if sub:
-                s0, s1, s2, s3 = B[a, c, 0] - s0, B[a, c, 1] - s1, B[a, c, 2] - s2, B[a, c, 3] - s3
-            else:
-                s0, s1, s2, s3 = B[a, c, 0] + s0, B[a, c, 1] + s1, B[a, c, 2] + s2, B[a, c, 3] + s3
-            out[a, c, 0], out[a, c, 1], out[a, c, 2], out[a, c, 3] = s0, s1, s2, s3
-            if sym:
-                out[c, a, 0], out[c, a, 1], out[c, a, 2], out[c, a, 3] = s0, s1, s2, s3
+            for l in range(LANES):
+                acc[l] = 0.0
+            for q in range(k):
+                for l in range(LANES):
+                    acc[l] += X[a, q, l] * Y[c, q, l]
+            for l in range(LANES):
+                out[a, c, l] = acc[l]
+        if sym:
+            for c in range(a):
+                for l in range(LANES):
+                    out[c, a, l] = out[a, c, l]
 
 
-@jit
-def _schol(A, L, n, ok):
-    """Lower Cholesky factors per lane (``ok[l]`` False where one fails: that lane's L is garbage)."""
-    ok[0] = ok[1] = ok[2] = ok[3] = True
+@lanes
+def _XY(X, Y, out, n, k, m, tx, acc):
+    """``out[:n, :m] = op(X) Y`` per lane, dense, ``op(X) = X`` or ``X^T`` (``tx``)."""
+    for a in range(n):
+        for c in range(m):
+            for l in range(LANES):
+                acc[l] = 0.0
+            if tx:
+                for q in range(k):
+                    for l in range(LANES):
+                        acc[l] += X[q, a, l] * Y[q, c, l]
+            else:
+                for q in range(k):
+                    for l in range(LANES):
+                        acc[l] += X[a, q, l] * Y[q, c, l]
+            for l in range(LANES):
+                out[a, c, l] = acc[l]
+
+
+@lanes
+def _XY_sym_plus(X, Y, B, out, n, k, acc):
+    """``out = B + X Y`` per lane for a symmetric result (lower triangle computed, mirrored; the product's
+    sum first, then ``B``)."""
+    for a in range(n):
+        for c in range(a + 1):
+            for l in range(LANES):
+                acc[l] = 0.0
+            for q in range(k):
+                for l in range(LANES):
+                    acc[l] += X[a, q, l] * Y[q, c, l]
+            for l in range(LANES):
+                v = B[a, c, l] + acc[l]
+                out[a, c, l] = v
+                out[c, a, l] = v
+
+
+@lanes
+def _sym_minus_XtYt(X, Y, P, n, k, acc):
+    """``P = P - X^T Y^T`` per lane for a symmetric result (lower triangle computed, mirrored), ``X (k, n)``,
+    ``Y (n, k)``."""
+    for a in range(n):
+        for c in range(a + 1):
+            for l in range(LANES):
+                acc[l] = 0.0
+            for q in range(k):
+                for l in range(LANES):
+                    acc[l] += X[q, a, l] * Y[c, q, l]
+            for l in range(LANES):
+                v = P[a, c, l] - acc[l]
+                P[a, c, l] = v
+                P[c, a, l] = v
+
+
+@lanes
+def _chol(A, Lf, n, ok, acc, inv):
+    """Lower Cholesky factors per lane (``ok[l]`` False where one fails: that lane's factor is garbage);
+    ``inv (LANES,)`` scratch."""
+    for l in range(LANES):
+        ok[l] = True
     for j in range(n):
-        s0, s1, s2, s3 = A[j, j, 0], A[j, j, 1], A[j, j, 2], A[j, j, 3]
-        for q in range(j):
-            s0 -= L[j, q, 0] * L[j, q, 0]
-            s1 -= L[j, q, 1] * L[j, q, 1]
-            s2 -= L[j, q, 2] * L[j, q, 2]
-            s3 -= L[j, q, 3] * L[j, q, 3]
-        d = (s0, s1, s2, s3)
         for l in range(LANES):
-            if not d[l] > 0.0:
-                ok[l] = False
-            L[j, j, l] = math.sqrt(d[l]) if d[l] > 0.0 else 1.0
-        i0, i1, i2, i3 = 1.0 / L[j, j, 0], 1.0 / L[j, j, 1], 1.0 / L[j, j, 2], 1.0 / L[j, j, 3]
+            acc[l] = A[j, j, l]
+        for q in range(j):
+            for l in range(LANES):
+                acc[l] -= Lf[j, q, l] * Lf[j, q, l]
+        for l in range(LANES):
+            d = acc[l]
+            good = d > 0.0
+            ok[l] = ok[l] and good
+            s = np.sqrt(d) if good else 1.0
+            Lf[j, j, l] = s
+            inv[l] = 1.0 / s
         for i in range(j + 1, n):
-            t0, t1, t2, t3 = A[i, j, 0], A[i, j, 1], A[i, j, 2], A[i, j, 3]
+            for l in range(LANES):
+                acc[l] = A[i, j, l]
             for q in range(j):
-                t0 -= L[i, q, 0] * L[j, q, 0]
-                t1 -= L[i, q, 1] * L[j, q, 1]
-                t2 -= L[i, q, 2] * L[j, q, 2]
-                t3 -= L[i, q, 3] * L[j, q, 3]
-            L[i, j, 0], L[i, j, 1], L[i, j, 2], L[i, j, 3] = t0 * i0, t1 * i1, t2 * i2, t3 * i3
+                for l in range(LANES):
+                    acc[l] -= Lf[i, q, l] * Lf[j, q, l]
+            for l in range(LANES):
+                Lf[i, j, l] = acc[l] * inv[l]
         for i in range(j):
-            L[i, j, 0] = L[i, j, 1] = L[i, j, 2] = L[i, j, 3] = 0.0
+            for l in range(LANES):
+                Lf[i, j, l] = 0.0
 
 
-@jit
-def _schol_solve(L, B, X, n, k):
-    """``X = (L L^T)^{-1} B`` per lane (divisions by the diagonal as multiplications by its inverse)."""
-    D = np.empty((n, LANES))
+@lanes
+def _chol_solve(Lf, B, X, n, k, D, acc):
+    """``X = (L L^T)^{-1} B`` per lane, ``B, X (n, k, LANES)`` (divisions by the diagonal as multiplications by
+    its inverse); ``D`` scratch, at least ``(n, LANES)``."""
     for i in range(n):
         for l in range(LANES):
-            D[i, l] = 1.0 / L[i, i, l]
+            D[i, l] = 1.0 / Lf[i, i, l]
     for j in range(k):
         for i in range(n):
-            s0, s1, s2, s3 = B[i, j, 0], B[i, j, 1], B[i, j, 2], B[i, j, 3]
+            for l in range(LANES):
+                acc[l] = B[i, j, l]
             for q in range(i):
-                s0 -= L[i, q, 0] * X[q, j, 0]
-                s1 -= L[i, q, 1] * X[q, j, 1]
-                s2 -= L[i, q, 2] * X[q, j, 2]
-                s3 -= L[i, q, 3] * X[q, j, 3]
-            X[i, j, 0], X[i, j, 1], X[i, j, 2], X[i, j, 3] = s0 * D[i, 0], s1 * D[i, 1], s2 * D[i, 2], s3 * D[i, 3]
+                for l in range(LANES):
+                    acc[l] -= Lf[i, q, l] * X[q, j, l]
+            for l in range(LANES):
+                X[i, j, l] = acc[l] * D[i, l]
         for i in range(n - 1, -1, -1):
-            s0, s1, s2, s3 = X[i, j, 0], X[i, j, 1], X[i, j, 2], X[i, j, 3]
+            for l in range(LANES):
+                acc[l] = X[i, j, l]
             for q in range(i + 1, n):
-                s0 -= L[q, i, 0] * X[q, j, 0]
-                s1 -= L[q, i, 1] * X[q, j, 1]
-                s2 -= L[q, i, 2] * X[q, j, 2]
-                s3 -= L[q, i, 3] * X[q, j, 3]
-            X[i, j, 0], X[i, j, 1], X[i, j, 2], X[i, j, 3] = s0 * D[i, 0], s1 * D[i, 1], s2 * D[i, 2], s3 * D[i, 3]
+                for l in range(LANES):
+                    acc[l] -= Lf[q, i, l] * X[q, j, l]
+            for l in range(LANES):
+                X[i, j, l] = acc[l] * D[i, l]
 
 
 @jit
@@ -259,21 +261,28 @@ def _fix_lanes(M, L, n, ok, scratch, Ls, count):
                 L[a, c, l] = Ls[a, c]
 
 
-# ---------------------------------------------------------------------------------------------- the filter
 @jit
-def forward_affine(lo, hi, m0, P0, Qc, dt, A, b, acnt, aidx, slot, ch_m, Y, V, R, H, D, ang_c, hcnt, hidx,
-                   m_pred, P_pred, m_filt, P_filt, loglik, repairs, state_angles, store, src):
-    """:func:`needlecli.numerics.kalman.kalman_forward_affine` for trials ``lo..hi-1`` (lanes of LANES);
-    with ``store`` False only the log-likelihood and the repairs (the means and covariances not written).
+def _all(ok):
+    for l in range(LANES):
+        if not ok[l]:
+            return False
+    return True
 
-    acnt, aidx: the sparse rows of A. Channels concatenated along the sample axis: slot (J, K+1) the
-    sample of channel j at tick k (-1: none); ch_m (J,) components; Y (N, M, mm), V (N, M), R (N, J, mm, mm),
-    H (N, M, mm, n), D (N, M, mm); ang_c (J, mm); hcnt (J, mm), hidx (J, mm, n) the sparse rows of each
-    channel's H; src (N,) the row of A, b, Y, V, H, D that trial r filters with (its own noise, prior and
-    outputs: identifiability's evaluation points share their trial's linearisation without copies). Outputs
-    (N, K+1, ...) written in place. The gain uses the Cholesky factor of the
-    innovation covariance (numpy: LU; the same to rounding), which the log-likelihood needs anyway.
-    """
+
+@jit
+def _scratch(K1, n):
+    """A block's means and covariances in the lanes' layout: predicted, filtered, and the transitions."""
+    return (np.empty((K1, n, LANES)), np.empty((K1, n, n, LANES)), np.empty((K1, n, LANES)),
+            np.empty((K1, n, n, LANES)), np.empty((max(K1 - 1, 2), n, n, LANES)))
+
+
+# ---------------------------------------------------------------------------------------------- the filter
+@lanes
+def _forward_block(rl, m0, P0, Qc, dt, A, b, slot, ch_m, Y, V, R, H, D, ang_c, hcnt, hidx, src,
+                   state_angles, mS, PpS, mfS, PfS, AS, ll, rep):
+    """The affine filter on the trials ``rl`` (one per lane) into the block's layout: ``mS, PpS`` predicted,
+    ``mfS, PfS`` filtered (``(K+1, n[, n], LANES)``), ``AS`` the transitions; ``ll, rep`` the log-likelihood
+    and the repairs per lane."""
     n = m0.shape[1]
     K1 = slot.shape[1]
     J = slot.shape[0]
@@ -281,12 +290,11 @@ def forward_affine(lo, hi, m0, P0, Qc, dt, A, b, acnt, aidx, slot, ch_m, Y, V, R
     for j in range(J):
         mt_max += ch_m[j]
     mt_max = max(mt_max, 1)
+    nm = max(n, mt_max)
     m = np.empty((n, LANES))
-    m2 = np.empty((n, 1, LANES))
-    P = np.empty((n, n, LANES))
-    Ak = np.empty((n, n, LANES))
+    m2 = np.empty((n, LANES))
     T1 = np.empty((n, n, LANES))
-    L = np.empty((n, n, LANES))
+    Lc = np.empty((n, n, LANES))
     Hl = np.zeros((mt_max, n, LANES))
     yv = np.empty((mt_max, LANES))
     nu = np.empty((mt_max, 1, LANES))
@@ -296,9 +304,10 @@ def forward_affine(lo, hi, m0, P0, Qc, dt, A, b, acnt, aidx, slot, ch_m, Y, V, R
     Ls = np.empty((mt_max, mt_max, LANES))
     X = np.empty((mt_max, n, LANES))
     g2 = np.empty((mt_max, 1, LANES))
+    dg = np.empty((nm, LANES))
+    acc = np.empty(LANES)
+    inv = np.empty(LANES)
     ok = np.empty(LANES, dtype=np.bool_)
-    rep = np.zeros(LANES, dtype=np.int64)
-    ll = np.zeros(LANES)
     nval = np.zeros(LANES)
     sc_n = np.empty((n, n))
     sc_nL = np.empty((n, n))
@@ -307,237 +316,395 @@ def forward_affine(lo, hi, m0, P0, Qc, dt, A, b, acnt, aidx, slot, ch_m, Y, V, R
     rowc = np.empty(mt_max, dtype=np.int64)
     rowi = np.empty(mt_max, dtype=np.int64)
     rowq = np.empty(mt_max, dtype=np.int64)
+    ring = mS.shape[0] < K1  # the log-likelihood only: two ticks of scratch, alternating
+    for l in range(LANES):
+        r = rl[l]
+        rep[l] = 0
+        ll[l] = 0.0
+        for a in range(n):
+            m[a, l] = m0[r, a]
+            for c in range(n):
+                PpS[0, a, c, l] = P0[r, a, c]
+    for k in range(K1):
+        s = k % 2 if ring else k  # this tick's slot of the scratch
+        s0 = (k - 1) % 2 if ring else k - 1
+        if k > 0:  # the prediction, into PpS[k]; the transition into AS[k - 1]
+            Ak = AS[s0]
+            for l in range(LANES):
+                r = src[rl[l]]
+                for a in range(n):
+                    for c in range(n):
+                        Ak[a, c, l] = A[r, k - 1, a, c]
+            _Ax(Ak, m, m2, n, acc)
+            for l in range(LANES):
+                r = src[rl[l]]
+                for a in range(n):
+                    m[a, l] = m2[a, l] + b[r, k - 1, a]
+            _XY(Ak, PfS[s0], T1, n, n, n, False, acc)
+            Pk = PpS[s]
+            _XYt(T1, Ak, Pk, n, n, n, True, acc)
+            h = dt[k - 1]
+            for l in range(LANES):
+                r = rl[l]
+                for a in range(n):
+                    for c in range(n):
+                        Pk[a, c, l] += Qc[r, a, c] * h
+        P = PfS[s]  # updated in place from the prediction
+        for a in range(n):
+            for l in range(LANES):
+                mS[s, a, l] = m[a, l]
+            for c in range(n):
+                for l in range(LANES):
+                    P[a, c, l] = PpS[s, a, c, l]
+        # ---- the joint update with every sample of this tick (invalid ones: zero rows, unit noise)
+        mt = 0
+        for j in range(J):
+            i = slot[j, k]
+            if i < 0:
+                continue
+            for q in range(ch_m[j]):
+                rowc[mt] = j
+                rowi[mt] = i
+                rowq[mt] = q
+                mt += 1
+        if mt > 0:
+            for l in range(LANES):
+                nval[l] = 0.0
+            for q in range(mt):
+                j, i, qq = rowc[q], rowi[q], rowq[q]
+                for l in range(LANES):
+                    r = src[rl[l]]
+                    v = V[r, i]
+                    yv[q, l] = (Y[r, i, qq] - D[r, i, qq]) if v else 0.0
+                    if v:
+                        nval[l] += 1.0
+                    for t in range(hcnt[j, qq]):
+                        c = hidx[j, qq, t]
+                        Hl[q, c, l] = H[r, i, qq, c] if v else 0.0
+            for q in range(mt):  # nu = y - H m; PHt = P H^T (sparse rows of H)
+                j, qq = rowc[q], rowq[q]
+                for l in range(LANES):
+                    nu[q, 0, l] = yv[q, l]
+                for t in range(hcnt[j, qq]):
+                    c = hidx[j, qq, t]
+                    for l in range(LANES):
+                        g2[q, 0, l] = Hl[q, c, l] * m[c, l] if t == 0 else g2[q, 0, l] + Hl[q, c, l] * m[c, l]
+                for l in range(LANES):
+                    d = nu[q, 0, l] - (g2[q, 0, l] if hcnt[j, qq] else 0.0)
+                    nu[q, 0, l] = wrap(d) if ang_c[j, qq] else d
+                for a in range(n):
+                    for l in range(LANES):
+                        PHt[a, q, l] = 0.0
+                    for t in range(hcnt[j, qq]):
+                        c = hidx[j, qq, t]
+                        for l in range(LANES):
+                            PHt[a, q, l] += P[a, c, l] * Hl[q, c, l]
+                    for l in range(LANES):
+                        HtT[q, a, l] = PHt[a, q, l]
+            for q in range(mt):  # S = H PHt + R, symmetric (lower mirrored); unit blocks for invalid samples
+                j, i, qq = rowc[q], rowi[q], rowq[q]
+                for q2 in range(q + 1):
+                    for l in range(LANES):
+                        S[q, q2, l] = 0.0
+                    for t in range(hcnt[j, qq]):
+                        c = hidx[j, qq, t]
+                        for l in range(LANES):
+                            S[q, q2, l] += Hl[q, c, l] * PHt[c, q2, l]
+                    if rowc[q2] == j:
+                        for l in range(LANES):
+                            if V[src[rl[l]], i]:
+                                S[q, q2, l] += R[rl[l], j, qq, rowq[q2]]
+                            elif q == q2:
+                                S[q, q2, l] += 1.0
+                    for l in range(LANES):
+                        S[q2, q, l] = S[q, q2, l]
+            _chol(S, Ls, mt, ok, acc, inv)
+            if not _all(ok):
+                _fix_lanes(S, Ls, mt, ok, sc_m, sc_mL, rep)
+            _chol_solve(Ls, HtT, X, mt, n, dg, acc)  # X = S^-1 (P H^T)^T: the gain transposed
+            for a in range(n):  # m + K nu
+                for l in range(LANES):
+                    acc[l] = 0.0
+                for q in range(mt):
+                    for l in range(LANES):
+                        acc[l] += X[q, a, l] * nu[q, 0, l]
+                for l in range(LANES):
+                    v = m[a, l] + acc[l]
+                    m[a, l] = wrap(v) if state_angles[a] else v
+            _sym_minus_XtYt(X, PHt, P, n, mt, acc)  # P - K PHt^T, symmetric
+            # ---- the log-likelihood of these innovations
+            _chol_solve(Ls, nu, g2, mt, 1, dg, acc)
+            for l in range(LANES):
+                logdet = 0.0
+                quad = 0.0
+                for q in range(mt):
+                    logdet += math.log(Ls[q, q, l])
+                    quad += nu[q, 0, l] * g2[q, 0, l]
+                ll[l] += -0.5 * (quad + 2.0 * logdet + nval[l] * LOG_2PI)
+            for q in range(mt):  # Hl back to zeros for the next tick's sparse rows
+                j, qq = rowc[q], rowq[q]
+                for t in range(hcnt[j, qq]):
+                    c = hidx[j, qq, t]
+                    for l in range(LANES):
+                        Hl[q, c, l] = 0.0
+        # ---- the filtered covariance checked for positive definiteness (numpy: after the pass)
+        _chol(P, Lc, n, ok, acc, inv)
+        if not _all(ok):
+            _fix_lanes(P, Lc, n, ok, sc_n, sc_nL, rep)
+        for a in range(n):
+            for l in range(LANES):
+                mfS[s, a, l] = m[a, l]
+
+
+@jit
+def forward_affine(lo, hi, m0, P0, Qc, dt, A, b, slot, ch_m, Y, V, R, H, D, ang_c, hcnt, hidx,
+                   m_pred, P_pred, m_filt, P_filt, loglik, repairs, state_angles, store, src):
+    """:func:`needlecli.numerics.kalman.kalman_forward_affine` for trials ``lo..hi-1`` (lanes of LANES);
+    with ``store`` False only the log-likelihood and the repairs (the means and covariances not written).
+
+    Channels concatenated along the sample axis: slot (J, K+1) the
+    sample of channel j at tick k (-1: none); ch_m (J,) components; Y (N, M, mm), V (N, M), R (N, J, mm, mm),
+    H (N, M, mm, n), D (N, M, mm); ang_c (J, mm); hcnt (J, mm), hidx (J, mm, n) the sparse rows of each
+    channel's H; src (N,) the row of A, b, Y, V, H, D that trial r filters with (its own noise, prior and
+    outputs: identifiability's evaluation points share their trial's linearisation without copies). Outputs
+    (N, K+1, ...) written in place. The gain uses the Cholesky factor of the
+    innovation covariance (numpy: LU; the same to rounding), which the log-likelihood needs anyway.
+    """
+    n = m0.shape[1]
+    K1 = slot.shape[1]
+    mS, PpS, mfS, PfS, AS = _scratch(K1 if store else 2, n)  # not stored: two ticks of scratch, alternating
+    ll = np.zeros(LANES)
+    rep = np.zeros(LANES, dtype=np.int64)
     for r0 in range(lo, hi, LANES):
         rl = _lanes(lo, hi, r0)
-        for l in range(LANES):
-            r = rl[l]
-            rep[l] = 0
-            ll[l] = 0.0
-            for a in range(n):
-                m[a, l] = m0[r, a]
-                for c in range(n):
-                    P[a, c, l] = P0[r, a, c]
-        for k in range(K1):
-            if k > 0:
-                for l in range(LANES):
+        _forward_block(rl, m0, P0, Qc, dt, A, b, slot, ch_m, Y, V, R, H, D, ang_c, hcnt, hidx, src,
+                       state_angles, mS, PpS, mfS, PfS, AS, ll, rep)
+        nl = min(LANES, hi - r0)
+        for l in range(nl):
+            loglik[rl[l]] = ll[l]
+            repairs[rl[l]] += rep[l]
+        if store:
+            for k in range(K1):
+                for l in range(nl):
                     r = rl[l]
                     for a in range(n):
+                        m_pred[r, k, a] = mS[k, a, l]
+                        m_filt[r, k, a] = mfS[k, a, l]
                         for c in range(n):
-                            Ak[a, c, l] = A[src[r], k - 1, a, c]
-                _sAx(Ak, m, m2[:, 0], acnt, aidx, n)
-                for l in range(LANES):
-                    for a in range(n):
-                        m[a, l] = m2[a, 0, l] + b[src[rl[l]], k - 1, a]
-                _sAX(Ak, P, T1, acnt, aidx, n, n)
-                _sXAt(T1, Ak, P, acnt, aidx, n, n, True)
-                h = dt[k - 1]
-                for l in range(LANES):
-                    r = rl[l]
-                    for a in range(n):
-                        for c in range(n):
-                            P[a, c, l] += Qc[r, a, c] * h
-            for l in range(LANES):
-                if store and r0 + l < hi:
-                    r = rl[l]
-                    for a in range(n):
-                        m_pred[r, k, a] = m[a, l]
-                        for c in range(n):
-                            P_pred[r, k, a, c] = P[a, c, l]
-            # ---- the joint update with every sample of this tick (invalid ones: zero rows, unit noise)
-            mt = 0
-            for j in range(J):
-                i = slot[j, k]
-                if i < 0:
-                    continue
-                for q in range(ch_m[j]):
-                    rowc[mt] = j
-                    rowi[mt] = i
-                    rowq[mt] = q
-                    mt += 1
-            if mt > 0:
-                for l in range(LANES):
-                    nval[l] = 0.0
-                for q in range(mt):
-                    j, i, qq = rowc[q], rowi[q], rowq[q]
-                    for l in range(LANES):
-                        r = src[rl[l]]
-                        v = V[r, i]
-                        yv[q, l] = (Y[r, i, qq] - D[r, i, qq]) if v else 0.0
-                        if v:
-                            nval[l] += 1.0
-                        for t in range(hcnt[j, qq]):
-                            c = hidx[j, qq, t]
-                            Hl[q, c, l] = H[r, i, qq, c] if v else 0.0
-                for q in range(mt):  # nu = y - H m; PHt = P H^T (sparse rows of H)
-                    j, qq = rowc[q], rowq[q]
-                    for l in range(LANES):
-                        nu[q, 0, l] = yv[q, l]
-                    for t in range(hcnt[j, qq]):
-                        c = hidx[j, qq, t]
-                        for l in range(LANES):
-                            g2[q, 0, l] = Hl[q, c, l] * m[c, l] if t == 0 else g2[q, 0, l] + Hl[q, c, l] * m[c, l]
-                    for l in range(LANES):
-                        d = nu[q, 0, l] - (g2[q, 0, l] if hcnt[j, qq] else 0.0)
-                        nu[q, 0, l] = wrap(d) if ang_c[j, qq] else d
-                    for a in range(n):
-                        for l in range(LANES):
-                            PHt[a, q, l] = 0.0
-                        for t in range(hcnt[j, qq]):
-                            c = hidx[j, qq, t]
-                            for l in range(LANES):
-                                PHt[a, q, l] += P[a, c, l] * Hl[q, c, l]
-                        for l in range(LANES):
-                            HtT[q, a, l] = PHt[a, q, l]
-                for q in range(mt):  # S = H PHt + R, symmetric (lower mirrored); unit blocks for invalid samples
-                    j, i, qq = rowc[q], rowi[q], rowq[q]
-                    for q2 in range(q + 1):
-                        for l in range(LANES):
-                            S[q, q2, l] = 0.0
-                        for t in range(hcnt[j, qq]):
-                            c = hidx[j, qq, t]
-                            for l in range(LANES):
-                                S[q, q2, l] += Hl[q, c, l] * PHt[c, q2, l]
-                        if rowc[q2] == j:
-                            for l in range(LANES):
-                                if V[src[rl[l]], i]:
-                                    S[q, q2, l] += R[rl[l], j, qq, rowq[q2]]
-                                elif q == q2:
-                                    S[q, q2, l] += 1.0
-                        for l in range(LANES):
-                            S[q2, q, l] = S[q, q2, l]
-                _schol(S, Ls, mt, ok)
-                _fix_lanes(S, Ls, mt, ok, sc_m, sc_mL, rep)
-                _schol_solve(Ls, HtT, X, mt, n)  # X = S^-1 (P H^T)^T: the gain transposed
-                _sXY(X, nu, m2, n, mt, 1, True, False, False, m[:, None, :], False)  # m + K nu
-                for a in range(n):
-                    for l in range(LANES):
-                        m[a, l] = m2[a, 0, l]
-                _sXY(X, PHt, P, n, mt, n, True, True, True, P, True)  # P - K PHt^T, symmetric
-                for a in range(n):
-                    if state_angles[a]:
-                        for l in range(LANES):
-                            m[a, l] = wrap(m[a, l])
-                # ---- the log-likelihood of these innovations
-                _schol_solve(Ls, nu, g2, mt, 1)
-                for l in range(LANES):
-                    logdet = 0.0
-                    quad = 0.0
-                    for q in range(mt):
-                        logdet += math.log(Ls[q, q, l])
-                        quad += nu[q, 0, l] * g2[q, 0, l]
-                    ll[l] += -0.5 * (quad + 2.0 * logdet + nval[l] * LOG_2PI)
-                for q in range(mt):  # Hl back to zeros for the next tick's sparse rows
-                    j, qq = rowc[q], rowq[q]
-                    for t in range(hcnt[j, qq]):
-                        c = hidx[j, qq, t]
-                        for l in range(LANES):
-                            Hl[q, c, l] = 0.0
-            # ---- store; the filtered covariance checked for positive definiteness (numpy: after the pass)
-            _schol(P, L, n, ok)
-            for l in range(LANES):
-                if not ok[l]:
-                    _fix_lanes(P, L, n, ok, sc_n, sc_nL, rep)
-                    break
-            for l in range(LANES):
-                if store and r0 + l < hi:
-                    r = rl[l]
-                    for a in range(n):
-                        m_filt[r, k, a] = m[a, l]
-                        for c in range(n):
-                            P_filt[r, k, a, c] = P[a, c, l]
-        for l in range(LANES):
-            if r0 + l < hi:
-                loglik[rl[l]] = ll[l]
-                repairs[rl[l]] += rep[l]
+                            P_pred[r, k, a, c] = PpS[k, a, c, l]
+                            P_filt[r, k, a, c] = PfS[k, a, c, l]
 
 
 # ---------------------------------------------------------------------------------------------- the smoother
-@jit
-def rts(lo, hi, A, acnt, aidx, m_pred, P_pred, m_filt, P_filt, state_angles, m_s, P_s, C, G, repairs):
-    """:func:`needlecli.numerics.kalman.rts_smoother` for trials ``lo..hi-1`` (lanes of LANES): the gains
-    from the Cholesky factor of the predicted covariance (its check of positive definiteness computes it
-    anyway), the backward recursion, the smoothed covariances, the lag-one cross-covariances."""
-    N, K1, n = m_filt.shape
+@lanes
+def _backward_block(rl, nl, mS, PpS, mfS, PfS, AS, state_angles, m_s, P_s, C, G, keep_C, keep_G, b, dt, q_sums,
+                    keep_Q, sd, finite, keep_sd, rep):
+    """The RTS smoother on a block in the lanes' layout (the filter's :func:`_forward_block`), lanes
+    ``0..nl-1`` written to the trials ``rl``: the gains from the Cholesky factor of the predicted
+    covariance (its check of positive definiteness computes it anyway), the backward recursion, the
+    smoothed means and covariances; the lag-one cross-covariances if ``keep_C``, the gains if ``keep_G``.
+    With ``keep_Q`` also the sums of :func:`process_noise_sums` (``b (N, K, n)``, ``dt (K,)``) into
+    ``q_sums (N, n, n)``, each interval's term as that kernel's (the sum over intervals in reverse). With
+    ``keep_sd`` the smoothed standard deviations ``sd (N, K+1, n)`` (``sqrt(max(diag P, 1e-300))``, NaN
+    kept, as numpy's) and whether every entry of each trial's covariances is finite (``finite (N,)``)."""
+    K1 = mS.shape[0]
+    n = mS.shape[1]
     K = K1 - 1
-    Pp = np.empty((n, n, LANES))
-    Pf = np.empty((n, n, LANES))
-    Ak = np.empty((n, n, LANES))
-    APf = np.empty((n, n, LANES))
+    # working matrices, each reused once its value is dead (8 of them fit the first-level cache better)
+    Pp = np.empty((n, n, LANES))  # P_{k+1|k} symmetrised; then C_k A_k^T
+    W1 = np.empty((n, n, LANES))  # A_k P_f; then G (Ps - Pp); then A_k P_k A_k^T
+    W2 = np.empty((n, n, LANES))  # the Cholesky factor of Pp; then Ps - Pp; then A_k P_k
     Gt = np.empty((n, n, LANES))
-    L = np.empty((n, n, LANES))
-    T1 = np.empty((n, n, LANES))
-    T2 = np.empty((n, n, LANES))
-    ms = np.empty((n, LANES))
-    Ps = np.empty((n, n, LANES))
-    d = np.empty((n, LANES))
     Cl = np.empty((n, n, LANES))
-    Z = np.zeros((n, n, LANES))
+    PP = np.empty((2, n, n, LANES))  # P_s[k + 1] and P_s[k], alternating
+    Qa = np.zeros((n, n, LANES))
+    ms = np.empty((n, LANES))
+    mn = np.empty((n, LANES))
+    d = np.empty((n, LANES))
+    e = np.empty((n, LANES))
+    acc = np.empty(LANES)
+    dg = np.empty((n, LANES))
+    inv = np.empty(LANES)
     ok = np.empty(LANES, dtype=np.bool_)
-    rep = np.zeros(LANES, dtype=np.int64)
     sc = np.empty((n, n))
     scL = np.empty((n, n))
+    fz = np.zeros(LANES)  # 0 while every covariance entry is finite (x * 0 is NaN for inf and NaN)
+    for a in range(n):
+        for l in range(LANES):
+            ms[a, l] = mfS[K, a, l]
+        for c in range(n):
+            for l in range(LANES):
+                PP[1, a, c, l] = PfS[K, a, c, l]
+                fz[l] += PfS[K, a, c, l] * 0.0
+    for l in range(nl):
+        r = rl[l]
+        for a in range(n):
+            m_s[r, K, a] = ms[a, l]
+            if keep_sd:
+                sd[r, K, a] = _sd(PP[1, a, a, l])
+            for c in range(n):
+                P_s[r, K, a, c] = PP[1, a, c, l]
+    for k in range(K - 1, -1, -1):
+        cur = (K - 1 - k) % 2
+        Ps = PP[1 - cur]  # P_s[k + 1]
+        Pn = PP[cur]  # P_s[k], computed here
+        Pf = PfS[k]
+        Ak = AS[k]
+        for a in range(n):
+            for c in range(n):
+                for l in range(LANES):
+                    Pp[a, c, l] = 0.5 * (PpS[k + 1, a, c, l] + PpS[k + 1, c, a, l])
+        _chol(Pp, W2, n, ok, acc, inv)
+        if not _all(ok):
+            _fix_lanes(Pp, W2, n, ok, sc, scL, rep)
+        _XY(Ak, Pf, W1, n, n, n, False, acc)
+        _chol_solve(W2, W1, Gt, n, n, dg, acc)  # G^T = Pp^-1 A P_f
+        for a in range(n):
+            for l in range(LANES):
+                dd = ms[a, l] - mS[k + 1, a, l]
+                d[a, l] = wrap(dd) if state_angles[a] else dd
+                mn[a, l] = ms[a, l]
+        for a in range(n):
+            for l in range(LANES):
+                acc[l] = 0.0
+            for c in range(n):
+                for l in range(LANES):
+                    acc[l] += Gt[c, a, l] * d[c, l]
+            for l in range(LANES):
+                v = mfS[k, a, l] + acc[l]
+                ms[a, l] = wrap(v) if state_angles[a] else v
+        _XY(Ps, Gt, Cl, n, n, n, False, acc)  # C_k = P_s[k + 1] G_k^T
+        for a in range(n):
+            for c in range(n):
+                for l in range(LANES):
+                    W2[a, c, l] = Ps[a, c, l] - Pp[a, c, l]
+        _XY(Gt, W2, W1, n, n, n, True, acc)  # G (Ps - Pp)
+        _XY_sym_plus(W1, Gt, Pf, Pn, n, n, acc)  # P_f + G (Ps - Pp) G^T, symmetric
+        if keep_Q:  # (e e^T + P_{k+1} - C A^T - A C^T + A P_k A^T) / dt_k, e = m_{k+1} - A m_k - b_k
+            _Ax(Ak, ms, d, n, acc)
+            for l in range(LANES):
+                r = rl[l]
+                for a in range(n):
+                    v = (mn[a, l] - d[a, l]) - b[r, k, a]
+                    e[a, l] = wrap(v) if state_angles[a] else v
+            _XYt(Cl, Ak, Pp, n, n, n, False, acc)  # C A^T
+            _XY(Ak, Pn, W2, n, n, n, False, acc)
+            _XYt(W2, Ak, W1, n, n, n, True, acc)  # A P_k A^T
+            h = dt[k]
+            for a in range(n):
+                for c in range(n):
+                    for l in range(LANES):
+                        Qa[a, c, l] += ((((e[a, l] * e[c, l] + Ps[a, c, l]) - Pp[c, a, l]) - Pp[a, c, l])
+                                        + W1[a, c, l]) / h
+        if keep_sd:
+            for a in range(n):
+                for c in range(n):
+                    for l in range(LANES):
+                        fz[l] += Pn[a, c, l] * 0.0
+        for l in range(nl):
+            r = rl[l]
+            for a in range(n):
+                m_s[r, k, a] = ms[a, l]
+                if keep_sd:
+                    sd[r, k, a] = _sd(Pn[a, a, l])
+                for c in range(n):
+                    P_s[r, k, a, c] = Pn[a, c, l]
+            if keep_C:
+                for a in range(n):
+                    for c in range(n):
+                        C[r, k, a, c] = Cl[a, c, l]
+            if keep_G:
+                for a in range(n):
+                    for c in range(n):
+                        G[r, k, a, c] = Gt[c, a, l]
+    if keep_Q:
+        for l in range(nl):
+            r = rl[l]
+            for a in range(n):
+                for c in range(n):
+                    q_sums[r, a, c] = 0.5 * (Qa[a, c, l] / K + Qa[c, a, l] / K)
+    if keep_sd:
+        for l in range(nl):
+            finite[rl[l]] = fz[l] == 0.0
+
+
+@jit
+def _sd(v):
+    """numpy's ``sqrt(maximum(v, 1e-300))`` (NaN stays NaN)."""
+    return math.sqrt(v) if (v > 1e-300 or v != v) else math.sqrt(1e-300)
+
+
+@jit
+def rts(lo, hi, A, m_pred, P_pred, m_filt, P_filt, state_angles, m_s, P_s, C, G, repairs):
+    """:func:`needlecli.numerics.kalman.rts_smoother` for trials ``lo..hi-1`` (lanes of LANES): a filter's
+    output gathered into the lanes' layout, then :func:`_backward_block`."""
+    N, K1, n = m_filt.shape
+    mS, PpS, mfS, PfS, AS = _scratch(K1, n)
+    rep = np.zeros(LANES, dtype=np.int64)
+    no_b, no_dt, no_q = np.empty((0, 0, n)), np.empty(0), np.empty((0, n, n))  # no M-step sums here
+    no_sd, no_f = np.empty((0, 0, n)), np.empty(0, dtype=np.bool_)
     for r0 in range(lo, hi, LANES):
         rl = _lanes(lo, hi, r0)
         for l in range(LANES):
             rep[l] = 0
-            r = rl[l]
-            for a in range(n):
-                ms[a, l] = m_filt[r, K, a]
-                for c in range(n):
-                    Ps[a, c, l] = P_filt[r, K, a, c]
-            if r0 + l < hi:
-                for a in range(n):
-                    m_s[r, K, a] = ms[a, l]
-                    for c in range(n):
-                        P_s[r, K, a, c] = Ps[a, c, l]
-        for k in range(K - 1, -1, -1):
+        for k in range(K1):
             for l in range(LANES):
                 r = rl[l]
                 for a in range(n):
+                    mS[k, a, l] = m_pred[r, k, a]
+                    mfS[k, a, l] = m_filt[r, k, a]
                     for c in range(n):
-                        Pp[a, c, l] = 0.5 * (P_pred[r, k + 1, a, c] + P_pred[r, k + 1, c, a])
-                        Pf[a, c, l] = P_filt[r, k, a, c]
-                        Ak[a, c, l] = A[r, k, a, c]
-            _schol(Pp, L, n, ok)
-            _fix_lanes(Pp, L, n, ok, sc, scL, rep)
-            _sAX(Ak, Pf, APf, acnt, aidx, n, n)
-            _schol_solve(L, APf, Gt, n, n)  # G^T = Pp^-1 A P_f
-            for l in range(LANES):
+                        PpS[k, a, c, l] = P_pred[r, k, a, c]
+                        PfS[k, a, c, l] = P_filt[r, k, a, c]
+                        if k < K1 - 1:
+                            AS[k, a, c, l] = A[r, k, a, c]
+        nl = min(LANES, hi - r0)
+        _backward_block(rl, nl, mS, PpS, mfS, PfS, AS, state_angles, m_s, P_s, C, G, True, True, no_b, no_dt, no_q,
+                        False, no_sd, no_f, False, rep)
+        for l in range(nl):
+            repairs[rl[l]] += rep[l]
+
+
+@jit
+def filter_smoother(lo, hi, m0, P0, Qc, dt, A, b, slot, ch_m, Y, V, R, H, D, ang_c, hcnt, hidx,
+                    state_angles, m_pred, m_filt, loglik, repairs_f, m_s, P_s, C, keep_C, q_sums, keep_Q, sd, finite,
+                    repairs_s):
+    """:func:`forward_affine` then :func:`rts` on each block without leaving the lanes' layout in between
+    (the filter's covariances are not written out; nor the smoother's gains); with ``keep_Q`` the M-step's
+    sums of :func:`process_noise_sums` too, in the same pass (then the cross-covariances need not be
+    written: ``keep_C``)."""
+    n = m0.shape[1]
+    K1 = slot.shape[1]
+    mS, PpS, mfS, PfS, AS = _scratch(K1, n)
+    ll = np.zeros(LANES)
+    rep = np.zeros(LANES, dtype=np.int64)
+    rep_s = np.zeros(LANES, dtype=np.int64)
+    src = np.arange(m0.shape[0])
+    no_G = np.empty((0, 0, n, n))  # not written (array arguments of the blocks must not overlap)
+    for r0 in range(lo, hi, LANES):
+        rl = _lanes(lo, hi, r0)
+        nl = min(LANES, hi - r0)
+        _forward_block(rl, m0, P0, Qc, dt, A, b, slot, ch_m, Y, V, R, H, D, ang_c, hcnt, hidx, src,
+                       state_angles, mS, PpS, mfS, PfS, AS, ll, rep)
+        for l in range(nl):
+            loglik[rl[l]] = ll[l]
+            repairs_f[rl[l]] += rep[l]
+            rep_s[l] = 0
+        for k in range(K1):
+            for l in range(nl):
                 r = rl[l]
                 for a in range(n):
-                    dd = ms[a, l] - m_pred[r, k + 1, a]
-                    d[a, l] = wrap(dd) if state_angles[a] else dd
-            for a in range(n):
-                for l in range(LANES):
-                    acc0 = 0.0
-                    for c in range(n):
-                        acc0 += Gt[c, a, l] * d[c, l]
-                    v = m_filt[rl[l], k, a] + acc0
-                    ms[a, l] = wrap(v) if state_angles[a] else v
-            _sXY(Ps, Gt, Cl, n, n, n, False, False, False, Z, False)  # C_k = P_s[k + 1] G_k^T
-            for a in range(n):
-                for c in range(n):
-                    for l in range(LANES):
-                        T1[a, c, l] = Ps[a, c, l] - Pp[a, c, l]
-            _sXY(Gt, T1, T2, n, n, n, True, False, False, Z, False)  # G (Ps - Pp)
-            _sXY(T2, Gt, Ps, n, n, n, False, False, True, Pf, False)  # P_f + G (Ps - Pp) G^T, symmetric
-            for l in range(LANES):
-                if r0 + l < hi:
-                    r = rl[l]
-                    for a in range(n):
-                        m_s[r, k, a] = ms[a, l]
-                        for c in range(n):
-                            P_s[r, k, a, c] = Ps[a, c, l]
-                            G[r, k, a, c] = Gt[c, a, l]
-                            C[r, k, a, c] = Cl[a, c, l]
-        for l in range(LANES):
-            if r0 + l < hi:
-                repairs[rl[l]] += rep[l]
+                    m_pred[r, k, a] = mS[k, a, l]
+                    m_filt[r, k, a] = mfS[k, a, l]
+        _backward_block(rl, nl, mS, PpS, mfS, PfS, AS, state_angles, m_s, P_s, C, no_G, keep_C, False, b, dt, q_sums,
+                        keep_Q, sd, finite, True, rep_s)
+        for l in range(nl):
+            repairs_s[rl[l]] += rep_s[l]
 
 
 # ---------------------------------------------------------------------------------------------- the M-step
 @jit
-def process_noise_sums(lo, hi, m, P, C, A, acnt, aidx, b, dt, keep, state_angles, Q):
+def process_noise_sums(lo, hi, m, P, C, A, b, dt, keep, state_angles, Q):
     """:func:`needlecli.numerics.kalman.em_process_noise` for trials ``lo..hi-1`` (lanes of LANES) into
     ``Q (N, n, n)``: ``mean_k (e e^T + P_{k+1} - A C^T - C A^T + A P_k A^T) / dt_k``, symmetrised."""
     N, K1, n = m.shape
@@ -552,6 +719,7 @@ def process_noise_sums(lo, hi, m, P, C, A, acnt, aidx, b, dt, keep, state_angles
     AP = np.empty((n, n, LANES))
     APA = np.empty((n, n, LANES))
     acc = np.empty((n, n, LANES))
+    acc1 = np.empty(LANES)
     for r0 in range(lo, hi, LANES):
         rl = _lanes(lo, hi, r0)
         for a in range(n):
@@ -567,15 +735,15 @@ def process_noise_sums(lo, hi, m, P, C, A, acnt, aidx, b, dt, keep, state_angles
                         Ak[a, c, l] = A[r, k, a, c]
                         Ck[a, c, l] = C[r, k, a, c]
                         Pk[a, c, l] = P[r, k, a, c]
-            _sAx(Ak, mk, Am, acnt, aidx, n)
+            _Ax(Ak, mk, Am, n, acc1)
             for l in range(LANES):
                 r = rl[l]
                 for a in range(n):
                     v = (m[r, k + 1, a] - Am[a, l]) - b[r, k, a]
                     e[a, l] = wrap(v) if state_angles[a] else v
-            _sXAt(Ck, Ak, CAt, acnt, aidx, n, n, False)  # C_k A_k^T = (A_k C_k^T)^T
-            _sAX(Ak, Pk, AP, acnt, aidx, n, n)
-            _sXAt(AP, Ak, APA, acnt, aidx, n, n, True)
+            _XYt(Ck, Ak, CAt, n, n, n, False, acc1)  # C_k A_k^T = (A_k C_k^T)^T
+            _XY(Ak, Pk, AP, n, n, n, False, acc1)
+            _XYt(AP, Ak, APA, n, n, n, True, acc1)
             h = dt[k]
             for l in range(LANES):
                 r = rl[l]
@@ -583,13 +751,12 @@ def process_noise_sums(lo, hi, m, P, C, A, acnt, aidx, b, dt, keep, state_angles
                     for c in range(n):
                         acc[a, c, l] += ((((e[a, l] * e[c, l] + P[r, k + 1, a, c]) - CAt[c, a, l]) - CAt[a, c, l])
                                          + APA[a, c, l]) / h
-        for l in range(LANES):
-            if r0 + l < hi:
-                r = rl[l]
-                for a in range(n):
-                    for c in range(n):
-                        v = 0.5 * (acc[a, c, l] / K + acc[c, a, l] / K)
-                        Q[r, a, c] = v * (1.0 if (keep[a] and keep[c]) else 0.0)  # as numpy: NaN stays NaN
+        for l in range(min(LANES, hi - r0)):
+            r = rl[l]
+            for a in range(n):
+                for c in range(n):
+                    v = 0.5 * (acc[a, c, l] / K + acc[c, a, l] / K)
+                    Q[r, a, c] = v * (1.0 if (keep[a] and keep[c]) else 0.0)  # as numpy: NaN stays NaN
 
 
 @jit
@@ -847,36 +1014,10 @@ def _trials(N: int, work: int = 1 << 20):
     return blocks(N, per_thread=4) if work >= 20000 else [(0, N)]
 
 
-_PATTERNS: dict = {}
-
-
-def sparse_rows(M: np.ndarray):
-    """``(cnt (n,), idx (n, n))``: the columns of each row where any matrix of the stack ``M (..., n, n)``
-    is nonzero (NaN counts as nonzero). Kept for the array it was computed from (a linearisation serves
-    several passes)."""
-    key = id(M)
-    hit = _PATTERNS.get(key)
-    if hit is not None and hit[0]() is M:
-        return hit[1]
-    out = _sparse_rows(M)
-    try:
-        _PATTERNS[key] = (weakref.ref(M), out)
-    except TypeError:  # not weak-referenceable (a view of a temporary): not kept
-        pass
-    if len(_PATTERNS) > 64:
-        for k in [k for k, (ref, _) in _PATTERNS.items() if ref() is None]:
-            del _PATTERNS[k]
-    return out
-
-
-def _sparse_rows(M: np.ndarray):
-    n = M.shape[-1]
-    nz = (M != 0).reshape(-1, n, n).any(axis=0) if M.size else np.ones((n, n), dtype=bool)
-    cnt = nz.sum(1).astype(np.int64)
-    idx = np.zeros((n, n), dtype=np.int64)
-    for a in range(n):
-        idx[a, : cnt[a]] = np.nonzero(nz[a])[0]
-    return cnt, idx
+def _lane_blocks(N: int):
+    """Blocks of trials for the kernels that work on LANES trials at once: whole lane blocks (a block of
+    fewer trials would compute the missing lanes for nothing)."""
+    return blocks(N, per_thread=4, minimum=LANES)
 
 
 def _channels_concat(channels, H, d, N, n, Ns=None):
@@ -930,13 +1071,28 @@ def kalman_forward_affine(m0, P0, Qc, dt, A, b, channels, H, d, *, state_angles=
     src = np.arange(N, dtype=np.int64) if rows is None else np.ascontiguousarray(rows, dtype=np.int64)
     if len(src) != N:
         raise ValueError(f"rows: {len(src)} rows for {N} trials")
-    Ns = np.shape(A)[0]
+    K = len(dt)
+    inputs, A, sa = _forward_inputs(m0, P0, Qc, dt, A, b, channels, H, d, state_angles, np.shape(A)[0])
+    Ks = K + 1 if store else 0
+    m_pred = np.empty((N, Ks, n))
+    P_pred = np.empty((N, Ks, n, n))
+    m_filt = np.empty((N, Ks, n))
+    P_filt = np.empty((N, Ks, n, n))
+    loglik = np.zeros(N)
+    repairs = np.zeros(N, dtype=np.int64)
+    parallel_for(forward_affine, _lane_blocks(N), inputs + (m_pred, P_pred, m_filt, P_filt, loglik, repairs, sa,
+                                                            bool(store), src))
+    return m_pred, P_pred, m_filt, P_filt, A, loglik, repairs
+
+
+def _forward_inputs(m0, P0, Qc, dt, A, b, channels, H, d, state_angles, Ns):
+    """The arguments of :func:`forward_affine` up to ``hidx``, contiguous; the transitions; the angles."""
+    N, n = m0.shape
     K = len(dt)
     P0 = np.ascontiguousarray(np.broadcast_to(P0, (N, n, n)), dtype=float)
     Qc = np.ascontiguousarray(np.broadcast_to(Qc, (N, n, n)), dtype=float)
     A = np.ascontiguousarray(A, dtype=float)
     b = np.ascontiguousarray(b, dtype=float)
-    acnt, aidx = sparse_rows(A)
     Y, V, R, Hc, Dc, ang, hcnt, hidx, ch_m, offsets = _channels_concat(channels, H, d, N, n, Ns)
     J = len(channels)
     slot = np.full((max(J, 1), K + 1), -1, dtype=np.int64)
@@ -945,17 +1101,38 @@ def kalman_forward_affine(m0, P0, Qc, dt, A, b, channels, H, d, *, state_angles=
         ok = (t >= 0) & (t < K + 1)
         slot[j, t[ok]] = offsets[j] + np.nonzero(ok)[0]
     sa = np.zeros(n, dtype=np.bool_) if state_angles is None else np.ascontiguousarray(state_angles, dtype=np.bool_)
-    Ks = K + 1 if store else 0
-    m_pred = np.empty((N, Ks, n))
-    P_pred = np.empty((N, Ks, n, n))
-    m_filt = np.empty((N, Ks, n))
-    P_filt = np.empty((N, Ks, n, n))
+    return ((m0, P0, Qc, np.ascontiguousarray(dt, dtype=float), A, b, slot, ch_m, Y, V, R, Hc, Dc, ang,
+             hcnt, hidx), A, sa)
+
+
+def kalman_filter_smoother(m0, P0, Qc, dt, A, b, channels, H, d, *, state_angles=None, q_sums=False):
+    """:func:`kalman_forward_affine` then :func:`rts_smoother` in one compiled pass over each block of trials:
+    the fields of the ``ForwardResult`` and of the ``SmoothResult``, without the filter's covariances and
+    the smoother's gains (those three arrays empty, ``(N, 0, n, n)``: what EM does not read is not written,
+    2 x 19 MB a pass for seed 004's 48 trials). ``q_sums``: also the sums of :func:`em_process_noise` (all
+    states kept: ``(N, n, n)``; else None), and not the cross-covariances (empty), which only those sums
+    read. Then the smoothed standard deviations ``(N, K+1, n)`` and whether each trial's covariances are all
+    finite ``(N,)``: what EM computes from the covariances at every pass, made as they are written."""
+    m0 = np.ascontiguousarray(m0, dtype=float)
+    N, n = m0.shape
+    K = len(dt)
+    inputs, A, sa = _forward_inputs(m0, P0, Qc, dt, A, b, channels, H, d, state_angles, N)
+    m_pred = np.empty((N, K + 1, n))
+    m_filt = np.empty((N, K + 1, n))
     loglik = np.zeros(N)
-    repairs = np.zeros(N, dtype=np.int64)
-    parallel_for(forward_affine, _trials(N), (m0, P0, Qc, np.ascontiguousarray(dt, dtype=float), A, b, acnt, aidx,
-                                               slot, ch_m, Y, V, R, Hc, Dc, ang, hcnt, hidx, m_pred, P_pred, m_filt,
-                                               P_filt, loglik, repairs, sa, bool(store), src))
-    return m_pred, P_pred, m_filt, P_filt, A, loglik, repairs
+    rep_f = np.zeros(N, dtype=np.int64)
+    m_s = np.empty((N, K + 1, n))
+    P_s = np.empty((N, K + 1, n, n))
+    C = np.empty((N, 0 if q_sums else K, n, n))
+    Q = np.empty((N if q_sums else 0, n, n))
+    sd = np.empty((N, K + 1, n))
+    finite = np.zeros(N, dtype=np.bool_)
+    rep_s = np.zeros(N, dtype=np.int64)
+    parallel_for(filter_smoother, _lane_blocks(N), inputs + (sa, m_pred, m_filt, loglik, rep_f, m_s, P_s, C, not q_sums,
+                                                            Q, bool(q_sums), sd, finite, rep_s))
+    none = np.empty((N, 0, n, n))
+    return ((m_pred, none, m_filt, none, A, loglik, rep_f), (m_s, P_s, C, none, rep_s), Q if q_sums else None,
+            sd, finite)
 
 
 def rts_smoother(fwd, *, state_angles=None):
@@ -965,13 +1142,12 @@ def rts_smoother(fwd, *, state_angles=None):
     c = np.ascontiguousarray
     sa = np.zeros(n, dtype=np.bool_) if state_angles is None else c(state_angles, dtype=np.bool_)
     A = c(fwd.A, dtype=float)
-    acnt, aidx = sparse_rows(A)
     m_s = np.empty((N, K1, n))
     P_s = np.empty((N, K1, n, n))
     C = np.empty((N, K1 - 1, n, n))
     G = np.empty((N, K1 - 1, n, n))
     repairs = np.zeros(N, dtype=np.int64)
-    parallel_for(rts, _trials(N), (A, acnt, aidx, c(fwd.m_pred, dtype=float), c(fwd.P_pred, dtype=float),
+    parallel_for(rts, _lane_blocks(N), (A, c(fwd.m_pred, dtype=float), c(fwd.P_pred, dtype=float),
                                    c(fwd.m_filt, dtype=float), c(fwd.P_filt, dtype=float), sa, m_s, P_s, C, G, repairs))
     return m_s, P_s, C, G, repairs
 
@@ -986,10 +1162,9 @@ def em_process_noise(sm, A, b, dt, *, index=None, state_angles=None):
         keep[np.asarray(index)] = True
     sa = np.zeros(n, dtype=np.bool_) if state_angles is None else c(state_angles, dtype=np.bool_)
     A = c(A, dtype=float)
-    acnt, aidx = sparse_rows(A)
     Q = np.empty((N, n, n))
-    parallel_for(process_noise_sums, _trials(N), (c(sm.m, dtype=float), c(sm.P, dtype=float), c(sm.C, dtype=float),
-                                                  A, acnt, aidx, c(b, dtype=float), c(dt, dtype=float), keep, sa, Q))
+    parallel_for(process_noise_sums, _lane_blocks(N), (c(sm.m, dtype=float), c(sm.P, dtype=float), c(sm.C, dtype=float),
+                                                  A, c(b, dtype=float), c(dt, dtype=float), keep, sa, Q))
     return Q
 
 

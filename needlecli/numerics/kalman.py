@@ -151,6 +151,22 @@ class SmoothResult:
     C: np.ndarray
     G: np.ndarray
     repairs: np.ndarray
+    q_sums: np.ndarray | None = None  # (N, n, n) em_process_noise's sums, made in the pass (compiled)
+    q_from: tuple | None = None  # the (A, b, dt, state_angles) they were made with
+    sd: np.ndarray | None = None  # (N, K+1, n) sqrt(maximum(diag P, 1e-300)), made in the pass (compiled)
+    finite: np.ndarray | None = None  # (N,) every entry of each run's P finite, made in the pass (compiled)
+
+    def std(self) -> np.ndarray:
+        """``sqrt(maximum(diag P, 1e-300))`` ``(N, K+1, n)`` (NaN stays NaN)."""
+        if self.sd is not None:
+            return self.sd
+        return np.sqrt(np.maximum(np.diagonal(self.P, axis1=-2, axis2=-1), 1e-300))
+
+    def all_finite(self) -> np.ndarray:
+        """``(N,)``: every entry of each run's smoothed covariances is finite."""
+        if self.finite is not None:
+            return self.finite
+        return np.isfinite(self.P).all((-1, -2, -3))
 
 
 Transition = Callable[[int, np.ndarray], tuple[np.ndarray, np.ndarray]]
@@ -455,6 +471,35 @@ def kalman_loglik_affine(*args: np.ndarray | Sequence, state_angles: np.ndarray 
     return kalman_forward_affine(*args, state_angles=state_angles).loglik
 
 
+def kalman_filter_smoother(
+    m0: np.ndarray,
+    P0: np.ndarray,
+    Qc: np.ndarray,
+    dt: np.ndarray,
+    A: np.ndarray,
+    b: np.ndarray,
+    channels: Sequence[Channel],
+    H: Sequence[np.ndarray],
+    d: Sequence[np.ndarray],
+    *,
+    state_angles: np.ndarray | None = None,
+) -> tuple[ForwardResult, SmoothResult]:
+    """:func:`kalman_forward_affine` then :func:`rts_smoother` (one pass of the iterated smoother). The
+    compiled path runs both on each block of trials in turn and writes neither the filter's covariances
+    nor the smoother's gains (``P_pred``, ``P_filt`` and ``G`` are then empty, ``(N, 0, n, n)``), and it
+    makes the sums of :func:`em_process_noise` in the same pass instead of writing the cross-covariances
+    (``C`` empty; ``q_sums``, read by :func:`em_process_noise` for this ``A, b, dt``); every other field is
+    the two functions' own."""
+    if kernels.compiled():
+        from needlecli.kernels import kalman as compiled
+
+        f, s, q, sd, finite = compiled.kalman_filter_smoother(m0, P0, Qc, dt, A, b, channels, H, d,
+                                                              state_angles=state_angles, q_sums=True)
+        return ForwardResult(*f), SmoothResult(*s, q_sums=q, q_from=(A, b, dt, state_angles), sd=sd, finite=finite)
+    fwd = kalman_forward_affine(m0, P0, Qc, dt, A, b, channels, H, d, state_angles=state_angles)
+    return fwd, rts_smoother(fwd, state_angles=state_angles)
+
+
 # ---------------------------------------------------------------------------------------------- smoother
 def rts_smoother(fwd: ForwardResult, *, state_angles: np.ndarray | None = None) -> SmoothResult:
     r"""Rauch-Tung-Striebel smoother on the filter's own linearisation.
@@ -531,10 +576,37 @@ def em_process_noise(
     -------
     Qc : (N, n, n)
     """
-    if kernels.compiled():
+    if sm.q_sums is not None and _same_inputs(sm.q_from, (A, b, dt, state_angles)):  # made in the pass
+        Qc = sm.q_sums
+    elif sm.C.shape[1] == 0 and sm.m.shape[1] > 1:
+        raise ValueError("em_process_noise: this pass kept no cross-covariances (its sums were made for "
+                         "another A, b, dt)")
+    elif kernels.compiled():
         from needlecli.kernels import kalman as compiled
 
         return compiled.em_process_noise(sm, A, b, dt, index=index, state_angles=state_angles)
+    else:
+        Qc = _process_noise_numpy(sm, A, b, dt, state_angles)
+    if index is not None:
+        keep = np.zeros(Qc.shape[-1], dtype=bool)
+        keep[np.asarray(index)] = True
+        Qc = Qc * (keep[:, None] & keep[None, :])
+    return Qc
+
+
+def _same_inputs(a: tuple | None, b: tuple) -> bool:
+    """The arrays of ``a`` are those of ``b`` (the same objects, or equal small ones: ``dt``, the angles)."""
+    if a is None or len(a) != len(b):
+        return False
+    for x, y in zip(a, b):
+        if x is y:
+            continue
+        if x is None or y is None or np.shape(x) != np.shape(y) or np.size(x) > 100_000 or not np.array_equal(x, y):
+            return False
+    return True
+
+
+def _process_noise_numpy(sm: SmoothResult, A, b, dt, state_angles) -> np.ndarray:
     m, P, C = sm.m, sm.P, sm.C
     e = m[:, 1:] - (A @ m[:, :-1, :, None])[..., 0] - b
     if state_angles is not None and state_angles.any():
@@ -542,12 +614,7 @@ def em_process_noise(
     AC = A @ np.swapaxes(C, -1, -2)  # A_k C_k^T
     S = e[..., :, None] * e[..., None, :] + P[:, 1:] - AC - np.swapaxes(AC, -1, -2)
     S = S + A @ P[:, :-1] @ np.swapaxes(A, -1, -2)
-    Qc = symmetrize((S / np.asarray(dt)[None, :, None, None]).mean(1))
-    if index is not None:
-        keep = np.zeros(Qc.shape[-1], dtype=bool)
-        keep[np.asarray(index)] = True
-        Qc = Qc * (keep[:, None] & keep[None, :])
-    return Qc
+    return symmetrize((S / np.asarray(dt)[None, :, None, None]).mean(1))
 
 
 def em_measurement_noise(

@@ -442,7 +442,7 @@ def test_em_passes_equal_numpy(name, seed004_system, numpy_path):
     # EM's pass keeps the filter's covariances and the smoother's gains in the kernel: not written; nor the
     # cross-covariances, whose M-step sums it makes in the same pass (q above: from those sums)
     assert rb.fwd.P_pred.shape[1] == rb.fwd.P_filt.shape[1] == rb.sm.G.shape[1] == rb.sm.C.shape[1] == 0
-    assert rb.sm.q_sums is not None
+    assert rb.sm.q_sums is not None and rb.sm.r_sums is not None  # (R above: from the pass's sums)
     # the standard deviations and the finiteness EM reads at every pass, made as the pass writes P: numpy's
     np.testing.assert_array_equal(rb.sm.sd, np.sqrt(np.maximum(np.diagonal(rb.sm.P, axis1=-2, axis2=-1), 1e-300)))
     np.testing.assert_array_equal(rb.sm.finite, np.isfinite(rb.sm.P).all((-1, -2, -3)))
@@ -476,6 +476,14 @@ def test_em_passes_equal_numpy(name, seed004_system, numpy_path):
     assert _rel(ra.sm.C, sm.C) < 1e-10
     # the M-step's sums from the stored cross-covariances: those of the pass (summed in the other order)
     assert _rel(em_process_noise(sm, lb.A, lb.b, dm.dt, index=S.q_index, state_angles=dm.angles), qb) < 1e-12
+    for j, mm in enumerate(meas):  # the measurement-noise sums of the stored smoother: the pass's
+        ch = mm.channel(R[j], lb.y[j])
+        got, cnt = em_measurement_noise(sm, ch, lb.H[j], lb.d[j])
+        want, cnt_b = em_measurement_noise(rb.sm, ch, lb.H[j], lb.d[j])
+        assert _rel(got, want) < 1e-12
+        np.testing.assert_array_equal(cnt, cnt_b)
+        other = em_measurement_noise(rb.sm, ch, lb.H[j] * (1.0 + 1e-9), lb.d[j])[0]  # another linearisation
+        assert _rel(other, want) > 0 and _rel(other, want) < 1e-6
     with pytest.raises(ValueError, match="no cross-covariances"):  # sums of another linearisation: refused
         em_process_noise(rb.sm, lb.A * (1.0 + 1e-9), lb.b, dm.dt, index=S.q_index, state_angles=dm.angles)
     assert _rel(qa, qb) < 1e-10 and all(_rel(x, y) < 1e-10 for x, y in zip(Ra, Rb))

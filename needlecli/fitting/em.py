@@ -194,7 +194,8 @@ def fit_em(
     ekf_m = np.full((N, K1, n), np.nan)
     zbar: np.ndarray | None = None
     active = np.arange(N)
-    lin_prev, lin_idx = None, active
+    # the last linearisation, its rows of the trials lin_idx (None: all, in order; taken out only when reused)
+    lin_prev, lin_rows, lin_idx = None, None, active
     lin_point = np.full((N, K1, n), np.nan)  # the trajectory each trial's last linearisation was made around
     sd_prev = np.ones((N, K1, n))
     prev_delta = np.full(N, np.inf)
@@ -260,7 +261,7 @@ def fit_em(
         if lin_prev is not None and lin_idx.size == active.size:
             stale = change(zbar[active], lin_point[active], sd_prev[active])
             if (stale < o.relin_tol).all() and (prev_delta[active] >= o.tol).all():
-                reuse = lin_prev
+                reuse = lin_prev if lin_rows is None else _take_lin(lin_prev, lin_rows)
         e = ieks(dm_a, meas_a, m0[active], P0[active], Q[active], R_a,
                  zbar=None if zbar is None else zbar[active], lin=reuse,
                  lin_point=None if reuse is None else lin_point[active], max_iter=o.estep_max, tol=o.estep_tol,
@@ -377,7 +378,7 @@ def fit_em(
         m0[g] = e.m0[ok]
         zbar[g] = res.sm.m[ok]
         store(np.nonzero(ok)[0], g, res)
-        lin_prev, lin_idx = _take_lin(e.result.lin, np.nonzero(keep_rows)[0]) if not keep_rows.all() else e.result.lin, gk
+        lin_prev, lin_rows, lin_idx = e.result.lin, None if keep_rows.all() else np.nonzero(keep_rows)[0], gk
         if e.lin_point is not None:
             lin_point[gk] = e.lin_point[keep_rows]
         sd_prev[g] = res.sm.std()[ok]
@@ -389,7 +390,7 @@ def fit_em(
         active = active[keep]
         if lin_idx.size != active.size:
             sel = np.isin(lin_idx, active)
-            lin_prev, lin_idx = _take_lin(lin_prev, np.nonzero(sel)[0]), lin_idx[sel]
+            lin_rows, lin_idx = (np.arange(lin_idx.size) if lin_rows is None else lin_rows)[sel], lin_idx[sel]
         if progress is not None:
             progress(it + 1, I)
     if progress is not None:

@@ -286,7 +286,7 @@ def _scatter(full: SmootherResult | None, res: SmootherResult, idx: np.ndarray, 
         put(getattr(full.fwd, name), getattr(res.fwd, name))
     for name in ("m", "P", "C", "G", "repairs"):
         put(getattr(full.sm, name), getattr(res.sm, name))
-    for name in ("q_sums", "sd", "finite"):  # made in the passes (compiled): scattered, or dropped
+    for name in ("q_sums", "r_sums", "r_count", "sd", "finite"):  # made in the passes (compiled): scattered, or dropped
         a, b = getattr(full.sm, name), getattr(res.sm, name)
         if a is not None and b is not None:
             put(a, b)
@@ -294,6 +294,8 @@ def _scatter(full: SmootherResult | None, res: SmootherResult, idx: np.ndarray, 
             setattr(full.sm, name, None)
     if full.sm.q_sums is None:
         full.sm.q_from = None
+    if full.sm.r_sums is None or full.sm.r_count is None:
+        full.sm.r_sums = full.sm.r_count = full.sm.r_from = None
     put(full.lin.A, res.lin.A)
     put(full.lin.b, res.lin.b)
     for j in range(len(full.lin.H)):

@@ -498,7 +498,8 @@ def forward_affine(lo, hi, m0, P0, Qc, dt, A, b, slot, ch_m, Y, V, R, H, D, ang_
 # ---------------------------------------------------------------------------------------------- the smoother
 @lanes
 def _backward_block(rl, nl, mS, PpS, mfS, PfS, AS, state_angles, m_s, P_s, C, G, keep_C, keep_G, b, dt, q_sums,
-                    keep_Q, sd, finite, keep_sd, rep):
+                    keep_Q, sd, finite, keep_sd, slot, ch_m, Y, V, H, D, ang_c, hcnt, hidx, r_sums, r_count, keep_R,
+                    rep):
     """The RTS smoother on a block in the lanes' layout (the filter's :func:`_forward_block`), lanes
     ``0..nl-1`` written to the trials ``rl``: the gains from the Cholesky factor of the predicted
     covariance (its check of positive definiteness computes it anyway), the backward recursion, the
@@ -506,7 +507,9 @@ def _backward_block(rl, nl, mS, PpS, mfS, PfS, AS, state_angles, m_s, P_s, C, G,
     With ``keep_Q`` also the sums of :func:`process_noise_sums` (``b (N, K, n)``, ``dt (K,)``) into
     ``q_sums (N, n, n)``, each interval's term as that kernel's (the sum over intervals in reverse). With
     ``keep_sd`` the smoothed standard deviations ``sd (N, K+1, n)`` (``sqrt(max(diag P, 1e-300))``, NaN
-    kept, as numpy's) and whether every entry of each trial's covariances is finite (``finite (N,)``)."""
+    kept, as numpy's) and whether every entry of each trial's covariances is finite (``finite (N,)``). With
+    ``keep_R`` the sums of :func:`measurement_noise_sums` of every channel (the forward pass's ``slot`` ...
+    ``hidx``) into ``r_sums (N, J, mm, mm)``, ``r_count (N, J)`` (the samples in reverse order)."""
     K1 = mS.shape[0]
     n = mS.shape[1]
     K = K1 - 1
@@ -529,6 +532,14 @@ def _backward_block(rl, nl, mS, PpS, mfS, PfS, AS, state_angles, m_s, P_s, C, G,
     sc = np.empty((n, n))
     scL = np.empty((n, n))
     fz = np.zeros(LANES)  # 0 while every covariance entry is finite (x * 0 is NaN for inf and NaN)
+    J = slot.shape[0]
+    mm = Y.shape[2]
+    Ra = np.zeros((J, mm, mm, LANES))
+    Rc = np.zeros((J, LANES), dtype=np.int64)
+    Hl = np.zeros((mm, n, LANES))
+    HP = np.empty((mm, n, LANES))
+    rv = np.empty((mm, LANES))
+    vm = np.empty(LANES, dtype=np.bool_)
     for a in range(n):
         for l in range(LANES):
             ms[a, l] = mfS[K, a, l]
@@ -536,6 +547,8 @@ def _backward_block(rl, nl, mS, PpS, mfS, PfS, AS, state_angles, m_s, P_s, C, G,
             for l in range(LANES):
                 PP[1, a, c, l] = PfS[K, a, c, l]
                 fz[l] += PfS[K, a, c, l] * 0.0
+    if keep_R:
+        _r_sums(K, rl, ms, PP[1], slot, ch_m, Y, V, H, D, ang_c, hcnt, hidx, Ra, Rc, Hl, HP, rv, vm, acc)
     for l in range(nl):
         r = rl[l]
         for a in range(n):
@@ -596,6 +609,8 @@ def _backward_block(rl, nl, mS, PpS, mfS, PfS, AS, state_angles, m_s, P_s, C, G,
                     for l in range(LANES):
                         Qa[a, c, l] += ((((e[a, l] * e[c, l] + Ps[a, c, l]) - Pp[c, a, l]) - Pp[a, c, l])
                                         + W1[a, c, l]) / h
+        if keep_R:
+            _r_sums(k, rl, ms, Pn, slot, ch_m, Y, V, H, D, ang_c, hcnt, hidx, Ra, Rc, Hl, HP, rv, vm, acc)
         if keep_sd:
             for a in range(n):
                 for c in range(n):
@@ -626,6 +641,73 @@ def _backward_block(rl, nl, mS, PpS, mfS, PfS, AS, state_angles, m_s, P_s, C, G,
     if keep_sd:
         for l in range(nl):
             finite[rl[l]] = fz[l] == 0.0
+    if keep_R:
+        for l in range(nl):
+            r = rl[l]
+            for j in range(J):
+                cnt = Rc[j, l]
+                r_count[r, j] = cnt
+                for a in range(ch_m[j]):
+                    for c in range(ch_m[j]):
+                        r_sums[r, j, a, c] = 0.5 * (Ra[j, a, c, l] / cnt + Ra[j, c, a, l] / cnt)
+
+
+@lanes
+def _r_sums(k, rl, m, P, slot, ch_m, Y, V, H, D, ang_c, hcnt, hidx, Ra, Rc, Hl, HP, rv, vm, acc):
+    """The terms of :func:`measurement_noise_sums` of the samples at tick ``k`` (smoothed ``m (n, LANES)``,
+    ``P (n, n, LANES)``), added to ``Ra (J, mm, mm, LANES)`` and counted in ``Rc (J, LANES)`` where valid:
+    ``r r^T + H P H^T``, ``r = y - H m - d`` (``H``'s structural zeros skipped, as that kernel's ``_mm``)."""
+    n = m.shape[0]
+    for j in range(slot.shape[0]):
+        i = slot[j, k]
+        if i < 0:
+            continue
+        mj = ch_m[j]
+        for l in range(LANES):
+            r = rl[l]
+            vm[l] = V[r, i]
+            for a in range(mj):
+                for t in range(hcnt[j, a]):
+                    c = hidx[j, a, t]
+                    Hl[a, c, l] = H[r, i, a, c]
+        for a in range(mj):
+            for l in range(LANES):
+                acc[l] = 0.0
+            for t in range(hcnt[j, a]):
+                c = hidx[j, a, t]
+                for l in range(LANES):
+                    acc[l] += Hl[a, c, l] * m[c, l]
+            for l in range(LANES):
+                r = rl[l]
+                v = (Y[r, i, a] - acc[l]) - D[r, i, a]
+                rv[a, l] = wrap(v) if ang_c[j, a] else v
+            for q in range(n):
+                for l in range(LANES):
+                    acc[l] = 0.0
+                for t in range(hcnt[j, a]):
+                    c = hidx[j, a, t]
+                    for l in range(LANES):
+                        acc[l] += Hl[a, c, l] * P[c, q, l]
+                for l in range(LANES):
+                    HP[a, q, l] = acc[l]
+        for a in range(mj):
+            for c in range(mj):
+                for l in range(LANES):
+                    acc[l] = 0.0
+                for t in range(hcnt[j, c]):
+                    q = hidx[j, c, t]
+                    for l in range(LANES):
+                        acc[l] += HP[a, q, l] * Hl[c, q, l]
+                for l in range(LANES):
+                    term = rv[a, l] * rv[c, l] + acc[l]
+                    Ra[j, a, c, l] += term if vm[l] else 0.0
+        for l in range(LANES):
+            Rc[j, l] += 1 if vm[l] else 0
+        for a in range(mj):  # back to zeros for the next sample's rows
+            for t in range(hcnt[j, a]):
+                c = hidx[j, a, t]
+                for l in range(LANES):
+                    Hl[a, c, l] = 0.0
 
 
 @jit
@@ -643,6 +725,10 @@ def rts(lo, hi, A, m_pred, P_pred, m_filt, P_filt, state_angles, m_s, P_s, C, G,
     rep = np.zeros(LANES, dtype=np.int64)
     no_b, no_dt, no_q = np.empty((0, 0, n)), np.empty(0), np.empty((0, n, n))  # no M-step sums here
     no_sd, no_f = np.empty((0, 0, n)), np.empty(0, dtype=np.bool_)
+    no_slot, no_m, no_m2 = np.empty((0, K1), dtype=np.int64), np.empty(0, dtype=np.int64), np.empty((0, 1), dtype=np.int64)
+    no_Y, no_V, no_H, no_D = np.empty((0, 0, 1)), np.empty((0, 0), dtype=np.bool_), np.empty((0, 0, 1, n)), np.empty((0, 0, 1))
+    no_ang, no_idx = np.empty((0, 1), dtype=np.bool_), np.empty((0, 1, n), dtype=np.int64)
+    no_rs, no_rc = np.empty((0, 0, 1, 1)), np.empty((0, 0), dtype=np.int64)
     for r0 in range(lo, hi, LANES):
         rl = _lanes(lo, hi, r0)
         for l in range(LANES):
@@ -660,7 +746,8 @@ def rts(lo, hi, A, m_pred, P_pred, m_filt, P_filt, state_angles, m_s, P_s, C, G,
                             AS[k, a, c, l] = A[r, k, a, c]
         nl = min(LANES, hi - r0)
         _backward_block(rl, nl, mS, PpS, mfS, PfS, AS, state_angles, m_s, P_s, C, G, True, True, no_b, no_dt, no_q,
-                        False, no_sd, no_f, False, rep)
+                        False, no_sd, no_f, False, no_slot, no_m, no_Y, no_V, no_H, no_D, no_ang, no_m2, no_idx, no_rs,
+                        no_rc, False, rep)
         for l in range(nl):
             repairs[rl[l]] += rep[l]
 
@@ -668,7 +755,7 @@ def rts(lo, hi, A, m_pred, P_pred, m_filt, P_filt, state_angles, m_s, P_s, C, G,
 @jit
 def filter_smoother(lo, hi, m0, P0, Qc, dt, A, b, slot, ch_m, Y, V, R, H, D, ang_c, hcnt, hidx,
                     state_angles, m_pred, m_filt, loglik, repairs_f, m_s, P_s, C, keep_C, q_sums, keep_Q, sd, finite,
-                    repairs_s):
+                    r_sums, r_count, keep_R, repairs_s):
     """:func:`forward_affine` then :func:`rts` on each block without leaving the lanes' layout in between
     (the filter's covariances are not written out; nor the smoother's gains); with ``keep_Q`` the M-step's
     sums of :func:`process_noise_sums` too, in the same pass (then the cross-covariances need not be
@@ -697,7 +784,8 @@ def filter_smoother(lo, hi, m0, P0, Qc, dt, A, b, slot, ch_m, Y, V, R, H, D, ang
                     m_pred[r, k, a] = mS[k, a, l]
                     m_filt[r, k, a] = mfS[k, a, l]
         _backward_block(rl, nl, mS, PpS, mfS, PfS, AS, state_angles, m_s, P_s, C, no_G, keep_C, False, b, dt, q_sums,
-                        keep_Q, sd, finite, True, rep_s)
+                        keep_Q, sd, finite, True, slot, ch_m, Y, V, H, D, ang_c, hcnt, hidx, r_sums, r_count, keep_R,
+                        rep_s)
         for l in range(nl):
             repairs_s[rl[l]] += rep_s[l]
 
@@ -1109,9 +1197,10 @@ def kalman_filter_smoother(m0, P0, Qc, dt, A, b, channels, H, d, *, state_angles
     """:func:`kalman_forward_affine` then :func:`rts_smoother` in one compiled pass over each block of trials:
     the fields of the ``ForwardResult`` and of the ``SmoothResult``, without the filter's covariances and
     the smoother's gains (those three arrays empty, ``(N, 0, n, n)``: what EM does not read is not written,
-    2 x 19 MB a pass for seed 004's 48 trials). ``q_sums``: also the sums of :func:`em_process_noise` (all
-    states kept: ``(N, n, n)``; else None), and not the cross-covariances (empty), which only those sums
-    read. Then the smoothed standard deviations ``(N, K+1, n)`` and whether each trial's covariances are all
+    2 x 19 MB a pass for seed 004's 48 trials). ``q_sums``: also the M-step's sums, ``(Q, R, count)`` (else
+    None): those of :func:`em_process_noise` (all states kept, ``(N, n, n)``) and of
+    :func:`em_measurement_noise` for every channel (``(N, J, mm, mm)``, ``(N, J)``), and not the
+    cross-covariances (empty), which only those sums read. Then the smoothed standard deviations ``(N, K+1, n)`` and whether each trial's covariances are all
     finite ``(N,)``: what EM computes from the covariances at every pass, made as they are written."""
     m0 = np.ascontiguousarray(m0, dtype=float)
     N, n = m0.shape
@@ -1127,12 +1216,16 @@ def kalman_filter_smoother(m0, P0, Qc, dt, A, b, channels, H, d, *, state_angles
     Q = np.empty((N if q_sums else 0, n, n))
     sd = np.empty((N, K + 1, n))
     finite = np.zeros(N, dtype=np.bool_)
+    _, J, mm, _ = inputs[10].shape  # the channels' noise, (N, J, mm, mm)
+    r_sums = np.zeros((N if q_sums else 0, J, mm, mm))
+    r_count = np.zeros((N if q_sums else 0, J), dtype=np.int64)
     rep_s = np.zeros(N, dtype=np.int64)
     parallel_for(filter_smoother, _lane_blocks(N), inputs + (sa, m_pred, m_filt, loglik, rep_f, m_s, P_s, C, not q_sums,
-                                                            Q, bool(q_sums), sd, finite, rep_s))
+                                                            Q, bool(q_sums), sd, finite, r_sums, r_count, bool(q_sums),
+                                                            rep_s))
     none = np.empty((N, 0, n, n))
-    return ((m_pred, none, m_filt, none, A, loglik, rep_f), (m_s, P_s, C, none, rep_s), Q if q_sums else None,
-            sd, finite)
+    m_step = (Q, r_sums, r_count) if q_sums else None
+    return ((m_pred, none, m_filt, none, A, loglik, rep_f), (m_s, P_s, C, none, rep_s), m_step, sd, finite)
 
 
 def rts_smoother(fwd, *, state_angles=None):

@@ -153,6 +153,9 @@ class SmoothResult:
     repairs: np.ndarray
     q_sums: np.ndarray | None = None  # (N, n, n) em_process_noise's sums, made in the pass (compiled)
     q_from: tuple | None = None  # the (A, b, dt, state_angles) they were made with
+    r_sums: np.ndarray | None = None  # (N, J, mm, mm) em_measurement_noise's R per channel, made in the pass
+    r_count: np.ndarray | None = None  # (N, J) its counts of samples
+    r_from: list | None = None  # per channel, the (tick, y, valid, H, d, angle) they were made with
     sd: np.ndarray | None = None  # (N, K+1, n) sqrt(maximum(diag P, 1e-300)), made in the pass (compiled)
     finite: np.ndarray | None = None  # (N,) every entry of each run's P finite, made in the pass (compiled)
 
@@ -488,14 +491,17 @@ def kalman_filter_smoother(
     compiled path runs both on each block of trials in turn and writes neither the filter's covariances
     nor the smoother's gains (``P_pred``, ``P_filt`` and ``G`` are then empty, ``(N, 0, n, n)``), and it
     makes the sums of :func:`em_process_noise` in the same pass instead of writing the cross-covariances
-    (``C`` empty; ``q_sums``, read by :func:`em_process_noise` for this ``A, b, dt``); every other field is
-    the two functions' own."""
+    (``C`` empty; ``q_sums``, read by :func:`em_process_noise` for this ``A, b, dt``), and those of
+    :func:`em_measurement_noise` for each channel (``r_sums``, read for the same channel, ``H`` and ``d``);
+    every other field is the two functions' own."""
     if kernels.compiled():
         from needlecli.kernels import kalman as compiled
 
-        f, s, q, sd, finite = compiled.kalman_filter_smoother(m0, P0, Qc, dt, A, b, channels, H, d,
-                                                              state_angles=state_angles, q_sums=True)
-        return ForwardResult(*f), SmoothResult(*s, q_sums=q, q_from=(A, b, dt, state_angles), sd=sd, finite=finite)
+        f, s, (q, r, count), sd, finite = compiled.kalman_filter_smoother(m0, P0, Qc, dt, A, b, channels, H, d,
+                                                                          state_angles=state_angles, q_sums=True)
+        r_from = [(ch.tick, ch.y, ch.valid, Hj, dj, ch.angle) for ch, Hj, dj in zip(channels, H, d)]
+        return ForwardResult(*f), SmoothResult(*s, q_sums=q, q_from=(A, b, dt, state_angles), r_sums=r, r_count=count,
+                                               r_from=r_from, sd=sd, finite=finite)
     fwd = kalman_forward_affine(m0, P0, Qc, dt, A, b, channels, H, d, state_angles=state_angles)
     return fwd, rts_smoother(fwd, state_angles=state_angles)
 
@@ -637,6 +643,12 @@ def em_measurement_noise(
     -------
     R : (N, m, m) (NaN for a run without valid samples) and the count of samples used (N,)
     """
+    if sm.r_sums is not None:  # made in the pass, for the same samples and linearisation
+        key = (channel.tick, channel.y, channel.valid, H, d, channel.angle)
+        for j, src in enumerate(sm.r_from):
+            if _same_inputs(src, key):
+                m = channel.y.shape[-1]
+                return sm.r_sums[:, j, :m, :m].copy(), sm.r_count[:, j].copy()
     if kernels.compiled():
         from needlecli.kernels import kalman as compiled
 

@@ -371,6 +371,33 @@ def test_compiled_code_is_cached_on_disk(where, tmp_path):
     assert runs[0] == ["0", "1"] and runs[1] == ["1", "0"]
 
 
+def test_first_run_compiles_the_observers_in_a_second_process(tmp_path):
+    """On an empty kernel cache, a run compiles the UKF in a second process while it compiles the truth
+    (kernels.warm_up): the run itself then loads the UKF from the cache (a cache hit, no compilation), and
+    its estimates are those of a run on a warm cache, bit for bit. Concurrent saves to the cache are locked:
+    a third run compiles nothing."""
+    code = textwrap.dedent("""
+        import sys, numpy as np
+        from needlecli.experiments.config import load_config
+        from needlecli.experiments.runner import run_experiment
+        cfg, text = load_config(sys.argv[1], overrides=["runs.count=3", "stop.depth=5"])
+        res = run_experiment(cfg, text, write=False)
+        np.save(sys.argv[2], res.estimates["ukf"].state)
+        from needlecli.kernels import ukf, truth
+        s = ukf.run.stats
+        print(sum(s.cache_hits.values()), sum(s.cache_misses.values()), sum(truth.advance.stats.cache_misses.values()))
+    """)
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "NEEDLECLI_KERNEL_CACHE": str(tmp_path / "cache")}
+    env.pop("NEEDLECLI_KERNELS", None)
+    out = [subprocess.run([sys.executable, "-c", code, str(ROOT / "configs/seed003/table1.yaml"),
+                           str(tmp_path / f"x{i}.npy")], capture_output=True, text=True, cwd=tmp_path, env=env,
+                          check=True).stdout.split() for i in range(3)]
+    assert out[0] == ["1", "0", "1"]  # the UKF from the cache the second process wrote; the truth compiled here
+    assert out[1] == out[2] == ["1", "0", "0"]
+    np.testing.assert_array_equal(np.load(tmp_path / "x0.npy"), np.load(tmp_path / "x1.npy"))
+    assert not list((tmp_path / "cache").rglob("*.tmp.*"))  # every save complete
+
+
 # ---------------------------------------------------------------------------------------------- EM passes
 @pytest.fixture(scope="module")
 def seed004_system():

@@ -10,7 +10,9 @@ from pathlib import Path
 
 import numpy as np
 
+from needlecli import kernels
 from needlecli.experiments.replay import replay_truth
+from needlecli.experiments.schema import Stop
 from needlecli.experiments.truth import Truth, simulate_truth, stream
 from needlecli.io.results import Group, root_attrs, write_atomic
 from needlecli.observers import OBSERVERS, Channel, EstimationProblem, Posterior
@@ -106,12 +108,17 @@ def run_experiment(
     ``source.logs``, relative to ``base_dir``), run every observer, write the results file."""
     seed = cfg.runs.seed
     control: dict[str, Group] = {}
-    if cfg.source is not None:  # recorded trials instead of a simulation
-        truth, sensors, streams = replay_truth(cfg, Path(base_dir or "."))
-    else:
-        truth, sensors, streams, control = simulate_and_measure(
-            cfg, progress=(lambda k, n: progress("truth", k, n)) if progress else None, measure_progress=progress)
-    problem = build_problem(cfg, truth, sensors, streams)
+    warm = warm_up_observers(cfg)
+    try:
+        if cfg.source is not None:  # recorded trials instead of a simulation
+            truth, sensors, streams = replay_truth(cfg, Path(base_dir or "."))
+        else:
+            truth, sensors, streams, control = simulate_and_measure(
+                cfg, progress=(lambda k, n: progress("truth", k, n)) if progress else None, measure_progress=progress)
+        problem = build_problem(cfg, truth, sensors, streams)
+        warm.wait()
+    finally:
+        warm.cancel()
     shared = common_start_problem(cfg, problem)
     estimates: dict[str, Posterior] = {}
     for o in cfg.observers:
@@ -127,6 +134,29 @@ def run_experiment(
                      progress=(lambda k, n: progress("results file", k, n)) if progress else None)
     return ExperimentResult(truth=truth, measurements=streams, estimates=estimates, path=path, control=control,
                             tree=tree if write else None)
+
+
+def warm_up_observers(cfg) -> kernels.WarmUp:
+    """On a kernel cache without the observers' compiled code (the first run after an install or a change
+    of the kernels), compile the observers' kernels in a second process while this one compiles and runs the
+    truth simulation: the child runs the observers on a short copy of the experiment (one run, 2 s, its
+    truth and sensors on the numpy path), which compiles them for the same argument types."""
+    if not cfg.observers or not kernels.compiled(cfg.simulation.kernels) or not kernels.cold(o.type for o in cfg.observers):
+        return kernels.WarmUp()
+    tiny = cfg.model_copy(update={"runs": cfg.runs.model_copy(update={"count": 1}), "stop": Stop(time=2.0)})
+    return kernels.warm_up(_observe_briefly, tiny)
+
+
+def _observe_briefly(cfg) -> None:
+    """The observers of ``cfg`` on its truth simulated on the numpy path (:func:`warm_up_observers`)."""
+    sim = cfg.model_copy(update={"simulation": cfg.simulation.model_copy(update={"kernels": "numpy"})})
+    truth, sensors, streams, _ = simulate_and_measure(sim)
+    problem = build_problem(cfg, truth, sensors, streams)
+    shared = common_start_problem(cfg, problem)
+    for o in cfg.observers:
+        obs = OBSERVERS.get(o.type)(o)
+        own = shared if shared is not None and obs.name in cfg.runs.common_start.observers else problem
+        obs.run(own, stream(cfg.runs.seed, f"observer/{obs.name}"))
 
 
 def common_start_problem(cfg, problem):

@@ -114,3 +114,67 @@ def describe() -> list[str]:
     lines.append(f"  compiled fitting: {COMPILED['fitting']}")
     lines.append(f"  compiled metrics: {COMPILED['metrics']}")
     return lines
+
+
+#: the kernel that compiles longest for each observer with a compiled path (module, function)
+_ENTRY = {"ukf": ("ukf", "run"), "eks": ("kalman", "filter_smoother")}
+
+
+def cold(observer_types) -> bool:
+    """Whether the on-disk kernel cache lacks the compiled code of any of these observers (for the kernel
+    sources of this install; imports numba). Observers without a compiled path do not count."""
+    from needlecli.kernels import _jit
+
+    entries = {_ENTRY[t] for t in observer_types if t in _ENTRY}
+    return any(not any(_jit.CACHE_DIR.rglob(f"{m}.{f}-*.nbi")) for m, f in entries)
+
+
+class WarmUp:
+    """A process compiling kernels into the on-disk cache while this one goes on (:func:`warm_up`)."""
+
+    def __init__(self, proc=None):
+        self._proc = proc
+
+    def wait(self) -> None:
+        """Until it has finished: then the kernels it compiled load from the cache here."""
+        if self._proc is not None:
+            self._proc.join()
+            self._proc = None
+
+    def cancel(self) -> None:
+        if self._proc is not None and self._proc.is_alive():
+            self._proc.terminate()
+        self.wait()
+
+
+def warm_up(fn, *args) -> WarmUp:
+    """Compile kernels in a second process while this one goes on: ``fn(*args)`` runs in a forked child
+    whose only output is the kernel cache on disk (its stdout and stderr go nowhere; numba saves each
+    kernel under a file lock, :mod:`needlecli.kernels._jit`, so the two processes' entries do not
+    collide). :meth:`WarmUp.wait` before the first call of a kernel it compiles: that call then loads the
+    kernel from the cache instead of compiling it again. A first run on an empty cache compiles on both
+    cores this way. A no-op where processes cannot be forked or one core is all there is."""
+    import multiprocessing as mp
+
+    from needlecli.kernels import _threads
+
+    if "fork" not in mp.get_all_start_methods() or _threads.n_threads() < 2:
+        return WarmUp()
+    p = mp.get_context("fork").Process(target=_warm_child, args=(fn, args), daemon=True)
+    p.start()
+    return WarmUp(p)
+
+
+def _warm_child(fn, args) -> None:
+    import signal
+
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 1)
+    os.dup2(devnull, 2)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent's Ctrl-C is the parent's (it terminates this one)
+    try:
+        fn(*args)
+    except BaseException:  # noqa: BLE001  (only a cache is lost: the parent compiles what is missing)
+        pass
+    finally:
+        os._exit(0)

@@ -172,6 +172,14 @@ def _warm_child(fn, args) -> None:
     os.dup2(devnull, 1)
     os.dup2(devnull, 2)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent's Ctrl-C is the parent's (it terminates this one)
+    try:  # and if the parent is killed outright, this one ends too (Linux); the cache's writes are atomic
+        import ctypes
+
+        ctypes.CDLL(None).prctl(1, int(signal.SIGTERM))  # PR_SET_PDEATHSIG
+        if os.getppid() == 1:
+            os._exit(0)
+    except (OSError, AttributeError):
+        pass
     try:
         fn(*args)
     except BaseException:  # noqa: BLE001  (only a cache is lost: the parent compiles what is missing)

@@ -158,10 +158,13 @@ def warm_up(fn, *args) -> WarmUp:
 
     from needlecli.kernels import _threads
 
-    if "fork" not in mp.get_all_start_methods() or _threads.n_threads() < 2:
-        return WarmUp()
+    if "fork" not in mp.get_all_start_methods() or _threads.n_threads() < 2 or mp.current_process().daemon:
+        return WarmUp()  # (a daemonic process, e.g. one of fit-em's, may not start processes of its own)
     p = mp.get_context("fork").Process(target=_warm_child, args=(fn, args), daemon=True)
-    p.start()
+    try:
+        p.start()
+    except OSError:  # no process to spare: this run compiles everything itself
+        return WarmUp()
     return WarmUp(p)
 
 

@@ -96,6 +96,29 @@ def test_signal_held_while_the_file_is_built_then_acted_on(tmp_path, monkeypatch
     assert [x.name for x in tmp_path.iterdir()] == ["r.h5"]
 
 
+def test_a_signal_inside_a_finalizer_is_not_lost():
+    """A signal that arrives while the garbage collector runs a finalizer raises Interrupted where Python
+    can only ignore it; it is sent again and interrupts the command at the next line (a sweep once
+    finished all its cells after a SIGTERM lost this way)."""
+    from needlecli.errors import Interrupted
+    from needlecli.io.atomic import handle_signals, start_signals
+
+    class Finalized:
+        def __del__(self):
+            os.kill(os.getpid(), signal.SIGTERM)
+            for _ in range(1000):  # the handler runs here, inside the finalizer
+                pass
+
+    reached = []
+    with handle_signals(), pytest.raises(Interrupted) as info:
+        start_signals()
+        x = Finalized()
+        del x
+        time.sleep(0.5)
+        reached.append(True)
+    assert info.value.exit_code == 143 and not reached
+
+
 def test_sweep_interrupted_says_how_to_resume(tmp_path):
     cfg, grid = tmp_path / "tiny.yaml", tmp_path / "grid.yaml"
     cfg.write_text(TINY.replace("RUNS", "300"))

@@ -31,6 +31,7 @@ import re
 import secrets
 import signal
 import socket
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -116,6 +117,22 @@ def _handler(signum, frame) -> None:  # noqa: ARG001
     raise Interrupted(signum)
 
 
+def _unraisable(u) -> None:
+    """``sys.unraisablehook`` while signals are handled: an :class:`Interrupted` raised where Python can only
+    ignore an exception (a weakref callback or a ``__del__`` the garbage collector ran when the signal came)
+    is not lost: the signal is sent again, from another thread 5 ms later (once this hook has returned), and acts at the
+    next line of ordinary code (should it land in a finalizer again, it comes back here)."""
+    if isinstance(u.exc_value, Interrupted) and _SIG.installed:
+        t = threading.Timer(0.005, os.kill, (os.getpid(), u.exc_value.signum))  # after this hook returned
+        t.daemon = True
+        t.start()
+        return
+    _HOOK["previous"](u)
+
+
+_HOOK: dict = {"previous": sys.unraisablehook}
+
+
 def raised_signal() -> Interrupted | None:
     """The signal raised as :class:`Interrupted` in this command, if any: a library may have turned that
     exception into one of its own (pydantic, a class being created) on its way out."""
@@ -137,6 +154,7 @@ def handle_signals() -> Iterator[None]:
     _SIG.deferring += 1  # released by start_signals
     for s in _SIGNALS:
         signal.signal(s, _handler)
+    _HOOK["previous"], sys.unraisablehook = sys.unraisablehook, _unraisable
     _SIG.installed = True
     finished = False
     try:
@@ -145,6 +163,7 @@ def handle_signals() -> Iterator[None]:
     finally:
         _SIG.deferring += 1
         _SIG.installed = False
+        sys.unraisablehook = _HOOK["previous"]
         for s, h in old.items():
             signal.signal(s, h)
         pending, _SIG.pending, _SIG.deferring = _SIG.pending, None, 0

@@ -19,7 +19,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_simulate import reference  # noqa: E402
 
-from needlecli.experiments.fit import fit_trials, load_trials  # noqa: E402
+from needlecli.experiments.studies.fit import fit_trials, load_trials  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 

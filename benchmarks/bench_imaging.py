@@ -24,9 +24,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_simulate import reference  # noqa: E402
 
-from needlecli.experiments.config import load_config  # noqa: E402
-from needlecli.experiments.runner import build_sensors  # noqa: E402
-from needlecli.experiments.truth import simulate_truth, stream  # noqa: E402
+from needlecli.experiments.config.load import load_config  # noqa: E402
+from needlecli.experiments.simulation.runner import build_sensors  # noqa: E402
+from needlecli.experiments.simulation.truth import simulate_truth, stream  # noqa: E402
 from needlecli.sensors.imaging import EndFireUltrasound, EndFireUltrasoundSettings  # noqa: E402
 from needlecli.sensors.imaging.render import NeedleGeometry  # noqa: E402
 

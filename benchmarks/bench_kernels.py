@@ -44,8 +44,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_ukf import AGREE_MM, agreement, filterpy_reference, kernels_mode  # noqa: E402
 
 from needlecli.cli.app import memory_policy  # noqa: E402
-from needlecli.experiments.config import load_config  # noqa: E402
-from needlecli.experiments.runner import run_experiment  # noqa: E402
+from needlecli.experiments.config.load import load_config  # noqa: E402
+from needlecli.experiments.simulation.runner import run_experiment  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 TABLE1 = "configs/seed003/table1.yaml"

@@ -14,9 +14,9 @@ import time
 
 import numpy as np
 
-from needlecli.experiments.config import load_config
-from needlecli.experiments.runner import build_sensors
-from needlecli.experiments.truth import simulate_truth, stream
+from needlecli.experiments.config.load import load_config
+from needlecli.experiments.simulation.runner import build_sensors
+from needlecli.experiments.simulation.truth import simulate_truth, stream
 
 CONFIG = """
 name: bench

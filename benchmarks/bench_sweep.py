@@ -19,8 +19,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from needlecli.experiments.sweep import Grid, plan_sweep, run_cell, run_sweep
-from needlecli.experiments.sweep.execution import _pin_worker_threads, _thread_env
+from needlecli.experiments.studies.sweep import Grid, plan_sweep, run_cell, run_sweep
+from needlecli.experiments.studies.sweep.execution import _pin_worker_threads, _thread_env
 
 SMALL = """
 name: bench_sweep_cell
@@ -66,7 +66,7 @@ def timed(cells, out: Path, **kw) -> float:
 
 
 def _warm() -> None:
-    import needlecli.experiments.runner  # noqa: F401  (what a cell imports first)
+    import needlecli.experiments.simulation.runner  # noqa: F401  (what a cell imports first)
 
 
 def warm_pool_time(cells, workers: int) -> float:

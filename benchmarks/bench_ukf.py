@@ -35,9 +35,9 @@ from pathlib import Path
 import numpy as np
 from bench_simulate import reference  # same folder: the script's directory is on sys.path
 
-from needlecli.experiments.config import load_config
-from needlecli.experiments.runner import build_problem, build_sensors, run_experiment
-from needlecli.experiments.truth import stream
+from needlecli.experiments.config.load import load_config
+from needlecli.experiments.simulation.runner import build_problem, build_sensors, run_experiment
+from needlecli.experiments.simulation.truth import stream
 from needlecli.observers import OBSERVERS
 
 ROOT = Path(__file__).resolve().parent.parent

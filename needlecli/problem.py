@@ -1,7 +1,7 @@
 """What an observer or a fit is given: the :class:`EstimationProblem` (time grid, known inputs, the
 experiment's model) and its measurement channels (:class:`Channel`), each with the sensor's ``h``.
 
-The runner builds it from a simulation or from recorded logs (:mod:`needlecli.experiments.runner`);
+The runner builds it from a simulation or from recorded logs (:mod:`needlecli.experiments.simulation.runner`);
 observers (:mod:`needlecli.observers`) and fits (:mod:`needlecli.fitting`) only read it, so that they
 know nothing about where measurements come from.
 """

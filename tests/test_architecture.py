@@ -28,10 +28,19 @@ LAYERS: dict[str, set[str]] = {
     "observers": {"fitting", "problem", "sensors", "models", "numerics", "foundation", "kernels"},
     "control": {"sensors", "io", "models", "numerics", "foundation", "kernels"},
     "reports": {"metrics", "io", "sensors", "models", "numerics", "foundation", "kernels"},
-    "experiments": {"observers", "fitting", "control", "reports", "metrics", "problem", "sensors", "io", "models",
-                    "numerics", "foundation", "kernels"},
-    "cli": {"experiments", "observers", "fitting", "control", "reports", "metrics", "problem", "sensors", "io",
-            "models", "numerics", "foundation", "kernels"},
+    # experiments, split by role: what an experiment is, its insertions, studies over many of them
+    "experiments.config": {"observers", "fitting", "control", "reports", "metrics", "problem", "sensors", "io",
+                           "models", "numerics", "foundation", "kernels", "experiments"},
+    "experiments.simulation": {"experiments.config", "observers", "fitting", "control", "reports", "metrics",
+                               "problem", "sensors", "io", "models", "numerics", "foundation", "kernels",
+                               "experiments"},
+    "experiments.studies": {"experiments.simulation", "experiments.config", "observers", "fitting", "control",
+                            "reports", "metrics", "problem", "sensors", "io", "models", "numerics", "foundation",
+                            "kernels", "experiments"},
+    "experiments": set(),  # the package's front door (a docstring)
+    "cli": {"experiments.studies", "experiments.simulation", "experiments.config", "experiments", "observers",
+            "fitting", "control", "reports", "metrics", "problem", "sensors", "io", "models", "numerics",
+            "foundation", "kernels"},
 }
 FOUNDATION = {"needlecli", "needlecli.errors", "needlecli.registry", "needlecli.schema", "needlecli.provenance"}
 
@@ -92,7 +101,10 @@ def layer(module: str) -> str:
         return "cli"
     if module == "needlecli.initial":  # where an estimate starts: part of what observers and fits are given
         return "problem"
-    return module.split(".")[1]
+    parts = module.split(".")
+    if parts[1] == "experiments" and len(parts) > 2:  # its rooms are layers of their own
+        return f"experiments.{parts[2]}"
+    return parts[1]
 
 
 def find_cycle(g: dict[str, set[str]]) -> list[str] | None:
@@ -184,3 +196,17 @@ def test_builtin_tables_name_what_the_modules_register():
         extra = set(reg._items) - set(reg.builtin_names()) - set(reg.plugins())
         extra = {n for n in extra if getattr(reg._items[n], "__module__", "").startswith("needlecli.")}  # not tests' own
         assert not extra, f"{reg.what}: registered by a module but not in the table of built-ins: {sorted(extra)}"
+
+
+def test_every_config_argument_is_typed():
+    """A function that takes the validated config says so (``cfg: ExperimentConfig``), so that an editor
+    follows ``cfg.runs.seed``; read from the source with ``ast``."""
+    untyped = []
+    for path in PKG.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                for a in node.args.posonlyargs + node.args.args + node.args.kwonlyargs:
+                    if a.arg in ("cfg", "config") and (a.annotation is None or (a.arg == "cfg" and "ExperimentConfig"
+                                                                                 not in ast.unparse(a.annotation))):
+                        untyped.append(f"{path.relative_to(PKG.parent)}:{node.lineno} {node.name}({a.arg})")
+    assert not untyped, "config arguments without their type:\n" + "\n".join(untyped)

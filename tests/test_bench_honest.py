@@ -16,7 +16,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import bench_ukf  # noqa: E402
 
-from needlecli.experiments.config import load_config  # noqa: E402
+from needlecli.experiments.config.load import load_config  # noqa: E402
 from needlecli.models.base import Model  # noqa: E402
 
 

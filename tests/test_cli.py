@@ -16,8 +16,8 @@ from typer.testing import CliRunner
 
 import needlecli
 from needlecli.cli.app import app
-from needlecli.experiments.config import load_config
-from needlecli.experiments.runner import run_experiment
+from needlecli.experiments.config.load import load_config
+from needlecli.experiments.simulation.runner import run_experiment
 from needlecli.models import MODELS
 
 TINY = """\

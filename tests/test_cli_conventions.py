@@ -87,8 +87,8 @@ def test_the_results_file_reports_its_progress(tmp_path):
 
 
 def test_rendered_frames_and_characterize_sensor_report_progress(tmp_path):
-    from needlecli.experiments.config import load_config
-    from needlecli.experiments.runner import run_experiment
+    from needlecli.experiments.config.load import load_config
+    from needlecli.experiments.simulation.runner import run_experiment
     from needlecli.sensors.imaging.characterize import characterize_sensors
 
     cfg, text = load_config("configs/examples/imaging_us2d.yaml", runs=1, overrides=["stop.depth=4"])

@@ -11,7 +11,9 @@ import pytest
 from typer.testing import CliRunner
 
 from needlecli.cli.app import app
-from needlecli.experiments.compare import (
+from needlecli.experiments.config.load import load_config
+from needlecli.experiments.simulation.runner import build_sensors
+from needlecli.experiments.studies.compare import (
     Context,
     candidates,
     compare_observers,
@@ -19,8 +21,6 @@ from needlecli.experiments.compare import (
     direct_components,
     ukf_defaults,
 )
-from needlecli.experiments.config import load_config
-from needlecli.experiments.runner import build_sensors
 from needlecli.models import MODELS
 from needlecli.observers import OBSERVERS
 
@@ -100,7 +100,7 @@ def test_same_insertions_for_every_observer_and_config_settings_kept(tiny, tmp_p
     assert set(f.data["estimates"].data) == {"my_ukf", "open_loop"}
     # the same truth as a plain simulation of the config: simulated once, shared by the observers
     plain, _ = load_config(cfg_path)
-    from needlecli.experiments.runner import run_experiment
+    from needlecli.experiments.simulation.runner import run_experiment
 
     ref = run_experiment(plain, text, write=False)
     np.testing.assert_array_equal(f.data["truth"].data["state"], ref.truth.states)
@@ -197,8 +197,8 @@ def test_the_common_start_is_what_each_observer_starts_from(tiny, tmp_path):
     covariance each observer builds are the start's, whatever its own init says."""
     import dataclasses
 
-    from needlecli.experiments.runner import build_problem, simulate_and_measure
-    from needlecli.experiments.truth import stream
+    from needlecli.experiments.simulation.runner import build_problem, simulate_and_measure
+    from needlecli.experiments.simulation.truth import stream
     from needlecli.initial import initial_covariance, initial_mean
 
     cfg_path = tmp_path / "fair.yaml"

@@ -11,8 +11,8 @@ from typer.testing import CliRunner
 
 from needlecli.cli.app import app
 from needlecli.errors import ConfigError
-from needlecli.experiments.config import load_config
-from needlecli.experiments.schema import experiment_schema
+from needlecli.experiments.config.load import load_config
+from needlecli.experiments.config.schema import experiment_schema
 
 ROOT = Path(__file__).resolve().parents[1]
 BAD = sorted((Path(__file__).parent / "bad_configs").glob("*.yaml"))

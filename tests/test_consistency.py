@@ -15,8 +15,8 @@ from scipy.stats import chi2
 from typer.testing import CliRunner
 
 from needlecli.cli.app import app
-from needlecli.experiments.config import load_config
-from needlecli.experiments.runner import run_experiment
+from needlecli.experiments.config.load import load_config
+from needlecli.experiments.simulation.runner import run_experiment
 from needlecli.io.results import Group, read_results
 from needlecli.reports.consistency import chi2_bounds, consistency_table, lasting_spans, nees, verdict
 from needlecli.reports.evaluate import evaluate_results

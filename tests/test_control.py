@@ -19,9 +19,9 @@ from typer.testing import CliRunner
 
 from needlecli.cli.app import app
 from needlecli.control import CONTROLLERS
-from needlecli.experiments.config import load_config
-from needlecli.experiments.runner import build_sensors, run_experiment
-from needlecli.experiments.truth import TruthSimulator, simulate_truth, stream
+from needlecli.experiments.config.load import load_config
+from needlecli.experiments.simulation.runner import build_sensors, run_experiment
+from needlecli.experiments.simulation.truth import TruthSimulator, simulate_truth, stream
 
 # A short insertion with a fast-turning needle (c = 100 1/m) started tilted out of plane (hz, 0.1 std) and
 # pushed by process noise on pz and hz; small frames (0.11 mm pixels over 45 x 37.5 mm); a latency that

@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 
 from needlecli.cli.app import app
 from needlecli.errors import ConfigError
-from needlecli.experiments.crossval import group_of, make_folds
+from needlecli.experiments.studies.crossval import group_of, make_folds
 
 ROOT = Path(__file__).resolve().parents[1]
 

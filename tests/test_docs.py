@@ -58,7 +58,7 @@ def test_the_generated_reference_is_complete(site):
 
     # what the code has, read in a fresh process (as the build did: no test's own registrations)
     code = ("import json, typer\nfrom needlecli.cli.app import app\n"
-            "from needlecli.experiments.explain import reference_pages\nfrom needlecli.reports import PLOTS, TABLES\n"
+            "from needlecli.experiments.config.explain import reference_pages\nfrom needlecli.reports import PLOTS, TABLES\n"
             "root = typer.main.get_command(app)\n"
             "cmds = [[n, list(getattr(c, 'commands', {}) or {})] for n, c in root.commands.items()]\n"
             "print(json.dumps({'cmds': cmds, 'pages': reference_pages(), 'names': TABLES.names() + PLOTS.names()}))")

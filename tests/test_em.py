@@ -15,8 +15,8 @@ from typer.testing import CliRunner
 
 from needlecli.cli.app import app
 from needlecli.errors import ConfigError
-from needlecli.experiments.config import load_config
-from needlecli.experiments.truth import simulate_truth
+from needlecli.experiments.config.load import load_config
+from needlecli.experiments.simulation.truth import simulate_truth
 from needlecli.fitting.em import EMOptions, fit_em, relative_change
 from needlecli.fitting.statespace import DiscreteModel, MeasurementModel
 from needlecli.models.base import Model
@@ -263,7 +263,7 @@ fit:
 
 
 def test_binm_fit_fails_at_its_singularity(tmp_path):
-    from needlecli.experiments.fit import fit_trials, load_trials
+    from needlecli.experiments.studies.fit import fit_trials, load_trials
 
     (tmp_path / "s.yaml").write_text(SINGULAR)
     trials = load_trials(tmp_path / "s.yaml")

@@ -8,7 +8,7 @@ from typer.testing import CliRunner
 
 from needlecli.cli.app import app
 from needlecli.errors import ConfigError
-from needlecli.experiments.explain import explain, reference_pages
+from needlecli.experiments.config.explain import explain, reference_pages
 
 
 def invoke(*args):
@@ -107,8 +107,8 @@ def _key_paths():
     """Every key of the whole schema as `needle explain` names it: walked here from the pydantic models
     and the registries themselves, not from explain's own walk."""
     from needlecli.control import CONTROLLERS
-    from needlecli.experiments import schedule
-    from needlecli.experiments.schema import _model_spec, experiment_schema
+    from needlecli.experiments.config import schedule
+    from needlecli.experiments.config.schema import _model_spec, experiment_schema
     from needlecli.models import MODELS
     from needlecli.observers import OBSERVERS
     from needlecli.sensors import SENSORS
@@ -142,7 +142,7 @@ def _key_paths():
 
 
 def test_no_key_of_the_schema_lacks_a_description():
-    from needlecli.experiments.explain import undocumented
+    from needlecli.experiments.config.explain import undocumented
 
     assert undocumented() == []
 

@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 
 from needlecli.cli.app import app
 from needlecli.errors import ConfigError
-from needlecli.experiments.config import load_config
+from needlecli.experiments.config.load import load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 

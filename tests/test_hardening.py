@@ -34,7 +34,7 @@ import yaml
 from typer.testing import CliRunner
 
 from needlecli.cli.app import app
-from needlecli.experiments.overrides import set_dotted
+from needlecli.experiments.config.overrides import set_dotted
 
 HERE = Path(__file__).parent / "hardening"
 BASE = yaml.safe_load((HERE / "base.yaml").read_text())

@@ -262,8 +262,8 @@ output: {store_every: 50}
 
 
 def test_ekf_and_eks_observers_end_to_end():
-    from needlecli.experiments.config import load_config
-    from needlecli.experiments.runner import run_experiment
+    from needlecli.experiments.config.load import load_config
+    from needlecli.experiments.simulation.runner import run_experiment
     from needlecli.metrics import compute_errors
 
     cfg, text = load_config(text=OBS)

@@ -23,9 +23,9 @@ import pytest
 pytest.importorskip("numba")
 
 from needlecli import kernels  # noqa: E402
-from needlecli.experiments.config import load_config  # noqa: E402
-from needlecli.experiments.runner import run_experiment  # noqa: E402
-from needlecli.experiments.truth import simulate_truth  # noqa: E402
+from needlecli.experiments.config.load import load_config  # noqa: E402
+from needlecli.experiments.simulation.runner import run_experiment  # noqa: E402
+from needlecli.experiments.simulation.truth import simulate_truth  # noqa: E402
 from needlecli.models import MODELS  # noqa: E402
 from needlecli.numerics import so3_exp  # noqa: E402
 
@@ -378,8 +378,8 @@ def test_first_run_compiles_the_observers_in_a_second_process(tmp_path):
     a third run compiles nothing."""
     code = textwrap.dedent("""
         import sys, numpy as np
-        from needlecli.experiments.config import load_config
-        from needlecli.experiments.runner import run_experiment
+        from needlecli.experiments.config.load import load_config
+        from needlecli.experiments.simulation.runner import run_experiment
         cfg, text = load_config(sys.argv[1], overrides=["runs.count=3", "stop.depth=5"])
         res = run_experiment(cfg, text, write=False)
         np.save(sys.argv[2], res.estimates["ukf"].state)
@@ -402,8 +402,8 @@ def test_first_run_compiles_the_observers_in_a_second_process(tmp_path):
 @pytest.fixture(scope="module")
 def seed004_system():
     """Seed 004's study, 6 trials over 4 s, both models: the systems fit-em builds."""
-    from needlecli.experiments.fit import load_trials
-    from needlecli.experiments.runner import build_problem
+    from needlecli.experiments.simulation.runner import build_problem
+    from needlecli.experiments.studies.fit import load_trials
     from needlecli.fitting.problem import build_system, fit_augment, own_model
 
     trials = load_trials(ROOT / "configs/seed004/study.yaml", overrides=["runs.count=6", "stop.time=4"])
@@ -537,7 +537,7 @@ def test_em_passes_equal_numpy(name, seed004_system, numpy_path):
 
 def test_fit_em_iterations_equal_numpy(numpy_path):
     """Three EM iterations (E-step, M-step, SQUAREM) of both models on 6 trials: the same fit."""
-    from needlecli.experiments.fit import fit_trials, load_trials
+    from needlecli.experiments.studies.fit import fit_trials, load_trials
 
     trials = load_trials(ROOT / "configs/seed004/study.yaml",
                          overrides=["runs.count=6", "stop.time=4", "fit.em.max_iter=3"])
@@ -600,7 +600,7 @@ def test_results_file_the_same_however_written(tmp_path, monkeypatch):
 
     cfg, text = load_config(ROOT / "configs/seed003/table1.yaml", runs=5, overrides=["stop.depth=10"])
     res = run_experiment(cfg, text, write=False)
-    from needlecli.experiments.runner import build_sensors, results_tree
+    from needlecli.experiments.simulation.runner import build_sensors, results_tree
 
     tree = results_tree(cfg, text, res.truth, res.measurements, res.estimates, build_sensors(cfg, res.truth.model))
     tree.data["extra"] = Group(data={"rows_alike": np.broadcast_to(np.arange(7000.0), (30, 7000)),
@@ -647,7 +647,7 @@ def test_errors_equal_numpy(path, overrides, numpy_path):
     """The errors of the summary tables straight from the state arrays: the position norm, the wrapped
     angle errors and the other states' errors equal the numpy path's bit for bit, E_R to 1e-10; runs
     excluded alike (a run made to diverge, one with a NaN estimate)."""
-    from needlecli.experiments.runner import build_sensors, results_tree
+    from needlecli.experiments.simulation.runner import build_sensors, results_tree
     from needlecli.metrics import compute_errors
 
     cfg, text = load_config(ROOT / path, runs=5, overrides=overrides)

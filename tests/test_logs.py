@@ -11,8 +11,8 @@ import yaml
 from typer.testing import CliRunner
 
 from needlecli.cli.app import app
-from needlecli.experiments.config import load_config
-from needlecli.experiments.runner import run_experiment
+from needlecli.experiments.config.load import load_config
+from needlecli.experiments.simulation.runner import run_experiment
 from needlecli.io.logs import log_from_results, read_log, write_log
 from needlecli.io.results import read_results
 

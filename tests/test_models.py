@@ -23,8 +23,8 @@ import pytest
 import scipy.linalg
 from scipy.integrate import solve_ivp
 
-from needlecli.experiments.config import load_config
-from needlecli.experiments.truth import simulate_truth
+from needlecli.experiments.config.load import load_config
+from needlecli.experiments.simulation.truth import simulate_truth
 from needlecli.models import MODELS
 from needlecli.numerics import (
     euler_xyz_to_matrix,

@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 
 from needlecli.cli.app import app
 from needlecli.errors import ConfigError
-from needlecli.experiments.config import load_config
+from needlecli.experiments.config.load import load_config
 from needlecli.fitting.em import EMOptions, fit_em, hold_rows
 from needlecli.fitting.robust import fit_em_robust, sample_weights
 from needlecli.fitting.statespace import DiscreteModel, MeasurementModel
@@ -437,7 +437,7 @@ def test_white_equivalent_of_an_offset_is_the_variance_of_its_long_averages():
     """Independent reference: the exact variance of the mean of n samples of the offset sampled every dt
     (AR(1), phi = exp(-dt / tau): sigma^2 / n^2 sum_ij phi^|i - j|) approaches r / n with r the white
     equivalent 2 sigma^2 tau / dt of from_fit's ``offset: white``, for n dt >> tau and dt << tau."""
-    from needlecli.experiments.from_fit import offset_variance
+    from needlecli.experiments.config.from_fit import offset_variance
 
     class _Meas:  # a channel of 4000 samples every 0.05 s, all valid
         data = {"t": np.arange(4000) * 0.05, "valid": np.ones((1, 4000), dtype=bool)}

@@ -16,8 +16,8 @@ from report_checks import capture_figures, compile_tables, figure_problems, need
 from typer.testing import CliRunner
 
 from needlecli.cli.app import app
-from needlecli.experiments.config import load_config
-from needlecli.experiments.runner import run_experiment
+from needlecli.experiments.config.load import load_config
+from needlecli.experiments.simulation.runner import run_experiment
 from needlecli.io.logs import log_from_results, write_log
 from needlecli.io.results import read_results
 from needlecli.metrics import compute_errors

@@ -13,8 +13,8 @@ from typer.testing import CliRunner
 
 from needlecli.cli.app import app
 from needlecli.errors import ConfigError
-from needlecli.experiments.config import load_config
-from needlecli.experiments.runner import run_experiment
+from needlecli.experiments.config.load import load_config
+from needlecli.experiments.simulation.runner import run_experiment
 from needlecli.io.results import Group
 from needlecli.metrics.errors import compute_errors
 from needlecli.numerics import euler_xyz_to_matrix, hat, rot_z, rotation_angle, so3_exp

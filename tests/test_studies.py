@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from needlecli.experiments.config import load_config
-from needlecli.experiments.runner import run_experiment
+from needlecli.experiments.config.load import load_config
+from needlecli.experiments.simulation.runner import run_experiment
 from needlecli.io.results import Group, read_results
 from needlecli.observers.high_gain import error_matrix
 from needlecli.reports.evaluate import evaluate_results

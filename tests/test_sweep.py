@@ -11,10 +11,10 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
-import needlecli.experiments.runner as runner
+import needlecli.experiments.simulation.runner as runner
 from needlecli.cli.app import app
 from needlecli.errors import ConfigError
-from needlecli.experiments.sweep import (
+from needlecli.experiments.studies.sweep import (
     SEED_KEY,
     Grid,
     SweepError,
@@ -167,7 +167,7 @@ def test_local_processes_and_dask_cluster_give_the_same_table(files, tmp_path):
 
 def test_dask_without_a_scheduler_reports_it(files, tmp_path, monkeypatch):
     pytest.importorskip("distributed", reason="needs dask[distributed]")
-    monkeypatch.setattr("needlecli.experiments.sweep.execution.CONNECT_TIMEOUT", "1s")
+    monkeypatch.setattr("needlecli.experiments.studies.sweep.execution.CONNECT_TIMEOUT", "1s")
     config, grid = files
     r = invoke("sweep", config, "--grid", grid, "--out", tmp_path / "o", "--executor", "dask",
                "--scheduler", "tcp://127.0.0.1:9", "--quiet")
@@ -362,8 +362,8 @@ PARAM_UNITS = {
 def test_swept_keys_are_named_with_their_units(files, tmp_path):
     """Units from the schema's descriptions or the model (states, parameters, inputs, the sensors'
     channels), checked against the models' own unit attributes."""
-    from needlecli.experiments.config import load_config
-    from needlecli.experiments.sweep.describe import describe_key
+    from needlecli.experiments.config.load import load_config
+    from needlecli.experiments.studies.sweep.describe import describe_key
     from needlecli.models import MODELS
 
     config, _ = files

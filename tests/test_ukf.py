@@ -22,9 +22,9 @@ import numpy as np
 import pytest
 from linear_model import linear_system, rk4_transition
 
-from needlecli.experiments.config import load_config
-from needlecli.experiments.runner import build_problem, build_sensors, results_tree, run_experiment
-from needlecli.experiments.truth import simulate_truth, stream
+from needlecli.experiments.config.load import load_config
+from needlecli.experiments.simulation.runner import build_problem, build_sensors, results_tree, run_experiment
+from needlecli.experiments.simulation.truth import simulate_truth, stream
 from needlecli.metrics import compute_errors
 from needlecli.models import MODELS, StateSelection
 from needlecli.numerics import angle_diff

@@ -2,7 +2,7 @@
 that they cannot go stale. Nothing here is written into ``docs/``; the pages exist only in the build.
 
 * ``reference/config/*.md``: every key of the config schema, from the schema itself
-  (:func:`needlecli.experiments.explain.reference_pages`, what ``needle explain --format md --out DIR``
+  (:func:`needlecli.experiments.config.explain.reference_pages`, what ``needle explain --format md --out DIR``
   writes);
 * ``reference/commands.md``: every command with its arguments and options, read from the typer app
   (click introspection of :data:`needlecli.cli.app.app`: what ``needle CMD --help`` prints);
@@ -24,7 +24,7 @@ from mkdocs.structure.files import File
 def on_files(files, config):
     """Add the generated pages to the build."""
     pages = {}
-    from needlecli.experiments.explain import reference_pages
+    from needlecli.experiments.config.explain import reference_pages
 
     for name, text in reference_pages().items():
         pages[f"reference/config/{name}.md"] = _config_intro(name) + text

@@ -30,7 +30,7 @@ def characterize_sensor(
     """
     import yaml
 
-    from needlecli.experiments.config import load_config
+    from needlecli.experiments.config.load import load_config
     from needlecli.reports.tables import to_markdown, write_table
     from needlecli.sensors.imaging.characterize import characterize_sensors
 

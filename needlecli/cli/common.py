@@ -7,10 +7,14 @@ import functools
 import logging
 import sys
 from collections.abc import Callable, Iterator
+from typing import TYPE_CHECKING
 
 import typer
 
 from needlecli.errors import Interrupted, NeedleError
+
+if TYPE_CHECKING:
+    from needlecli.experiments.config.types import ExperimentConfig
 
 log = logging.getLogger("needlecli")
 
@@ -86,10 +90,10 @@ def _interrupted(sig: Interrupted) -> None:
     fail(f"interrupted by {sig.name}: {JOURNAL.summary()}{hint}", sig.exit_code)
 
 
-def check_results_target(cfg, target, base_dir, what: str = "the results file"):
+def check_results_target(cfg: ExperimentConfig, target, base_dir, what: str = "the results file"):
     """Before the work: ``target`` can be written and its file system has room for the results file (the
-    estimate of :mod:`needlecli.experiments.budget`). Returns the estimate."""
-    from needlecli.experiments.budget import estimate
+    estimate of :mod:`needlecli.experiments.config.budget`). Returns the estimate."""
+    from needlecli.experiments.config.budget import estimate
     from needlecli.io.atomic import check_output_file
 
     est = estimate(cfg, base_dir)

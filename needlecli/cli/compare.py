@@ -28,7 +28,7 @@ def compare(
     """
     import textwrap
 
-    from needlecli.experiments.compare import FOOTNOTE, appendix_form, compare_observers, compare_table, terminal_form
+    from needlecli.experiments.studies.compare import FOOTNOTE, appendix_form, compare_observers, compare_table, terminal_form
     from needlecli.reports.tables import _atomic_text, to_markdown, write_table
 
     setup_logging(quiet)

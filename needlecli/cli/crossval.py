@@ -28,8 +28,8 @@ def crossval(
 
     Example: needle crossval configs/real/em_tracker.yaml --observer open_loop --leave-one-out --group-by 'id~^[^-]+' --within
     """
-    from needlecli.experiments.crossval import check_args, crossval_plot, crossval_tables
-    from needlecli.experiments.crossval import crossval as run_crossval
+    from needlecli.experiments.studies.crossval import check_args, crossval_plot, crossval_tables
+    from needlecli.experiments.studies.crossval import crossval as run_crossval
     from needlecli.reports.tables import to_markdown, write_table
 
     setup_logging(quiet)

@@ -21,7 +21,7 @@ def explain(
     Example: needle explain observers.ukf
     """
     from needlecli.errors import ConfigError
-    from needlecli.experiments.explain import as_markdown, as_text, explain, reference_pages
+    from needlecli.experiments.config.explain import as_markdown, as_text, explain, reference_pages
 
     if format_ not in ("text", "md"):
         raise ConfigError("--format", (), f"unknown format {format_!r}; use text or md")

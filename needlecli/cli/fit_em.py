@@ -26,7 +26,7 @@ def fit_em_cmd(
     """
     import numpy as np
 
-    from needlecli.experiments.fit import default_fit_output, fit_tree, fit_trials, load_fit_config, load_trials
+    from needlecli.experiments.studies.fit import default_fit_output, fit_tree, fit_trials, load_fit_config, load_trials
     from needlecli.io.results import write_atomic
 
     setup_logging(quiet)

@@ -24,8 +24,8 @@ def simulate(
 
     Example: needle simulate configs/default.yaml --runs 10 --set sensors.0.rate=2
     """
-    from needlecli.experiments.config import load_config
-    from needlecli.experiments.runner import default_output, run_experiment
+    from needlecli.experiments.config.load import load_config
+    from needlecli.experiments.simulation.runner import default_output, run_experiment
     from needlecli.reports.evaluate import results_tables
     from needlecli.reports.tables import to_markdown
 

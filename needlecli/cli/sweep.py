@@ -31,7 +31,7 @@ def sweep(
 
     Example: needle sweep configs/seed003/table1.yaml --grid configs/sweeps/seed003_q_kappa.yaml --workers 2
     """
-    from needlecli.experiments.sweep import (
+    from needlecli.experiments.studies.sweep import (
         default_plot_choice,
         load_grid,
         plan_sweep,

@@ -20,7 +20,7 @@ def validate(
     import logging
 
     from needlecli.cli.common import setup_logging
-    from needlecli.experiments.config import config_problems
+    from needlecli.experiments.config.load import config_problems
 
     setup_logging(quiet, level=logging.WARNING)  # warnings (from_fit takes what a fit did not identify)
     bad = 0

@@ -1,8 +1,8 @@
 """The controller contract: a controller reads one sensor's samples as they are measured and acts on the
 truth's state between grid steps.
 
-A closed-loop experiment (:func:`needlecli.experiments.closed_loop.simulate_closed_loop`) runs the truth as a
-stepper (:class:`~needlecli.experiments.truth.TruthSimulator`); the controller's sensor measures while it
+A closed-loop experiment (:func:`needlecli.experiments.simulation.closed_loop.simulate_closed_loop`) runs the truth as a
+stepper (:class:`~needlecli.experiments.simulation.truth.TruthSimulator`); the controller's sensor measures while it
 runs, one sample at a time, and hands each sample's outputs to :meth:`Controller.on_sample` before the
 simulation passes the sample's time. A command becomes effective at the first grid time at or after the
 sample's availability (``t + latency``, as observers use samples), where :meth:`Controller.before_step`

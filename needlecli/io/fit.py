@@ -1,5 +1,5 @@
 """The fit file of ``needle fit-em`` (docs/reference/fit-file.md): root attribute ``format = "needlecli-fit"``,
-``version``. Written by :func:`needlecli.experiments.fit.fit_tree` through
+``version``. Written by :func:`needlecli.experiments.studies.fit.fit_tree` through
 :func:`~needlecli.io.results.write_atomic`; read here."""
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """The truth simulation, compiled: every run's RK4 steps, process noise, parameter sync and domain checks
-(:class:`needlecli.experiments.truth.TruthSimulator` without a ``before_step``, step for step).
+(:class:`needlecli.experiments.simulation.truth.TruthSimulator` without a ``before_step``, step for step).
 
 Runs are the lanes (blocks of :data:`BLOCK` runs, spread over worker threads); the process noise is
 drawn by the caller from the same generator in the same order as the numpy path (one
@@ -110,7 +110,7 @@ _CHUNK_ELEMENTS = 4_000_000  # noise drawn per chunk: at most this many numbers 
 
 
 class TruthKernel:
-    """Advances a :class:`~needlecli.experiments.truth.TruthSimulator` (no ``before_step``) with
+    """Advances a :class:`~needlecli.experiments.simulation.truth.TruthSimulator` (no ``before_step``) with
     :func:`advance`, writing into its arrays exactly what its numpy loop writes."""
 
     def __init__(self, sim) -> None:

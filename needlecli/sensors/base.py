@@ -25,7 +25,7 @@ from needlecli.schema import Name, NonNeg, Positive, Probability, Strict
 from needlecli.sensors import PIPELINES, SENSORS  # noqa: F401  (the registries, at the package's front door)
 
 if TYPE_CHECKING:
-    from needlecli.experiments.truth import Truth
+    from needlecli.experiments.simulation.truth import Truth
     from needlecli.models import Model
 
 
@@ -175,7 +175,7 @@ class Sensor:
         return self._stream(truth, idx, pipeline, value, valid, sigma, rng)
 
     def measure_live(self, sim, rng: np.random.Generator, on_frame) -> Callable[[Truth], MeasurementStream]:
-        """Measure while the truth is simulated (``sim``: a :class:`~needlecli.experiments.truth.
+        """Measure while the truth is simulated (``sim``: a :class:`~needlecli.experiments.simulation.truth.
         TruthSimulator`), in one pass, handing each sample's outputs to ``on_frame(j, outputs)`` before
         the simulation passes the sample's time (a controller in the loop). Returns ``finish(truth)``,
         which makes the stream of that pass once the truth is complete (noise ``sigma``, dropouts and the

@@ -11,6 +11,7 @@ The result sets the Gaussian sensors' ``sigma`` from the image pipeline: :func:`
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
@@ -18,6 +19,9 @@ import pandas as pd
 from needlecli.errors import ConfigError, did_you_mean
 from needlecli.sensors.imaging.base import DEVICES, Device, Pose
 from needlecli.sensors.imaging.render import NeedleGeometry
+
+if TYPE_CHECKING:  # the config is the experiments layer's; only its type is named here
+    from needlecli.experiments.config.types import ExperimentConfig
 
 _AXES = ("x", "y", "z")
 
@@ -125,7 +129,7 @@ def fit_growth(table: pd.DataFrame, d_max: float) -> tuple[float, float]:
 
 
 def characterize_sensors(
-    cfg, *, sensor: str | None = None, repeats: int = 20, seed: int = 0, outlier: float | None = None,
+    cfg: ExperimentConfig, *, sensor: str | None = None, repeats: int = 20, seed: int = 0, outlier: float | None = None,
     mode: str = "tracking", source: str = "<config>", progress=None,
 ) -> list[Characterization]:
     """Characterise every sensor of an experiment config that uses ``pipeline: image`` (or the one named);

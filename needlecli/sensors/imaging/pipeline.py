@@ -44,7 +44,7 @@ class ImagePipeline(Pipeline):
         return value, valid, self.sigma_of(sensor, truth, idx, value)
 
     def measure_live(self, sensor, sim, idx, rng, on_frame):
-        """Measure while ``sim`` (a :class:`~needlecli.experiments.truth.TruthSimulator`) runs: each
+        """Measure while ``sim`` (a :class:`~needlecli.experiments.simulation.truth.TruthSimulator`) runs: each
         frame's geometry advances the simulation to the frame's grid index, and ``on_frame(j, outputs)``
         gets the frame's outputs before the simulation goes past it. Returns ``value``, ``valid``."""
         cfg = sensor.settings.image

@@ -20,11 +20,14 @@ A key whose unit none of these tell (a count, a probability, a dimensionless gai
 from __future__ import annotations
 
 import re
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from pydantic import BaseModel
 
 from needlecli.models import MODELS
+
+if TYPE_CHECKING:
+    from needlecli.experiments.config.types import ExperimentConfig
 
 _UNIT_WORDS = {"mm", "cm", "m", "s", "rad", "deg", "Hz", "mT", "T", "dB", "px", "grey", "level", "levels", "1", "unit"}
 _PAREN = re.compile(r"\s+\(([^()]*)\)")  # a remark in brackets after a space (not the 1/(...) of a unit)
@@ -80,7 +83,7 @@ def _field(obj: BaseModel, part: str) -> str | None:
     return next((n for n, f in fields.items() if f.alias == part), None)
 
 
-def _sensor_units(cfg, settings, model_cls) -> set[str]:
+def _sensor_units(cfg: ExperimentConfig, settings, model_cls) -> set[str]:
     from needlecli.sensors import SENSORS
 
     try:
@@ -89,7 +92,7 @@ def _sensor_units(cfg, settings, model_cls) -> set[str]:
         return set()
 
 
-def describe_key(cfg, key: str) -> dict[str, str]:
+def describe_key(cfg: ExperimentConfig, key: str) -> dict[str, str]:
     """``{"name", "description", "unit"}`` of a dotted config key in a validated config ``cfg``.
 
     ``name`` is the key with a list entry replaced by its component's name (``observers.0.q.kappa`` ->

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import copy
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import yaml
@@ -17,11 +18,11 @@ from pydantic import ValidationError
 
 from needlecli.control import CONTROLLERS
 from needlecli.errors import ConfigError, NeedleError, did_you_mean
-from needlecli.experiments.budget import check_memory
-from needlecli.experiments.from_fit import expand_from_fit
-from needlecli.experiments.overrides import apply_overrides
-from needlecli.experiments.schedule import signal_size
-from needlecli.experiments.schema import all_tags, experiment_schema, used_types
+from needlecli.experiments.config.budget import check_memory
+from needlecli.experiments.config.from_fit import expand_from_fit
+from needlecli.experiments.config.overrides import apply_overrides
+from needlecli.experiments.config.schedule import signal_size
+from needlecli.experiments.config.schema import all_tags, experiment_schema, used_types
 from needlecli.io.yamlfile import parse_yaml, read_text
 from needlecli.models import MODELS, Model
 from needlecli.observers import OBSERVERS
@@ -29,6 +30,9 @@ from needlecli.observers.base import Observer
 from needlecli.registry import PluginError
 from needlecli.schema import validation_error, validation_errors
 from needlecli.sensors import PIPELINES, SENSORS
+
+if TYPE_CHECKING:
+    from needlecli.experiments.config.types import ExperimentConfig
 
 
 def load_config(
@@ -39,10 +43,10 @@ def load_config(
     runs: int | None = None,
     seed: int | None = None,
     memory: bool = True,
-):
+) -> tuple[ExperimentConfig, str]:
     """Read, override and validate a config. Returns ``(config, raw_text)``. With ``memory`` (the
     default), an experiment that needs more memory than is available is refused too
-    (:mod:`needlecli.experiments.budget`).
+    (:mod:`needlecli.experiments.config.budget`).
 
     Raises
     ------
@@ -121,7 +125,7 @@ def _depth_reachable(sig, depth: float) -> bool:
     return True
 
 
-def check_consistency(cfg, source: str, problems: list | None = None) -> None:
+def check_consistency(cfg: ExperimentConfig, source: str, problems: list | None = None) -> None:
     """Checks across sections: inputs against the model, sensors and observers against the model. The
     first problem is raised; with a ``problems`` list every problem is appended to it instead (a check
     that needs an earlier section to be right is skipped when that section is not)."""
@@ -193,7 +197,7 @@ def check_consistency(cfg, source: str, problems: list | None = None) -> None:
     names = {}
     sensors_ok = True
     if cfg.source is not None:  # the logs' sensors; reading them checks the logs before any work
-        from needlecli.experiments.replay import replay_sensors
+        from needlecli.experiments.config.logs import replay_sensors
 
         base = Path(source).parent if source != "<string>" else Path(".")
         names.update({sn.name: sn for sn in replay_sensors(cfg, base)})
@@ -285,7 +289,7 @@ def _hint(msg: str, sensors: dict) -> str:
     return ""
 
 
-def check_control(cfg, model: Model, sensors: dict, source: str, report=None) -> None:
+def check_control(cfg: ExperimentConfig, model: Model, sensors: dict, source: str, report=None) -> None:
     """The ``control:`` entries: unique names, an existing sensor that can be measured in the loop, what
     the controller type needs (its ``check``), one controller per thing it sets, one sensor in the loop.
     ``report(loc, message)`` takes each problem (default: raise the first)."""

@@ -10,55 +10,23 @@ sample hold NaN, so errors are computed only where the truth was recorded.
 
 from __future__ import annotations
 
-import functools
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-from pydantic import ValidationError
 
 from needlecli.errors import DataError
-from needlecli.experiments.truth import STATUS_OK, Truth
-from needlecli.io.logs import Trial, design_factors, read_log
+from needlecli.experiments.config.logs import load_trials, log_sensors, trial_metadata, trial_where
+from needlecli.experiments.simulation.truth import STATUS_OK, Truth
+from needlecli.io.logs import Trial
 from needlecli.models import MODELS
-from needlecli.sensors import SENSORS, MeasurementStream
+from needlecli.sensors import MeasurementStream
+
+if TYPE_CHECKING:
+    from needlecli.experiments.config.types import ExperimentConfig
 
 
-@functools.lru_cache(maxsize=8)
-def _read_log_once(path: str, mtime_ns: int, size: int):
-    """A log read and checked once per version of the file (a config's checks and its run share it)."""
-    return read_log(path)
-
-
-def _read_log(path: Path):
-    try:
-        st = path.stat()
-    except OSError:
-        return read_log(path)  # says what is wrong with it
-    return _read_log_once(str(path), st.st_mtime_ns, st.st_size)
-
-
-def load_trials(cfg, base_dir: Path) -> list[Trial]:
-    trials: list[Trial] = []
-    for p in cfg.source.logs:
-        path = Path(p) if Path(p).is_absolute() else base_dir / p
-        log = _read_log(path)
-        for tr in log.trials:
-            tr.meta.setdefault("log", str(path))
-        trials.extend(log.trials)
-    if cfg.source.trials is not None:
-        by_id = {t.id: t for t in trials}
-        missing = [t for t in cfg.source.trials if t not in by_id]
-        if missing:
-            raise DataError(f"{', '.join(cfg.source.logs)}: no trial {missing[0]!r}; trials: {', '.join(by_id)}")
-        trials = [by_id[t] for t in cfg.source.trials]
-    return trials
-
-
-def _where(tr: Trial, what: str) -> str:
-    return f"{tr.meta.get('log', '<log>')}: [trial {tr.id} -> {what}]"
-
-
-def replay_truth(cfg, base_dir: Path):
+def replay_truth(cfg: ExperimentConfig, base_dir: Path):
     """Build the truth (what the logs know of it), the sensors and their streams from the logs."""
     model_cls = MODELS.get(cfg.model.type)
     model = model_cls(cfg.model.params)
@@ -77,14 +45,14 @@ def replay_truth(cfg, base_dir: Path):
             sl = model.input_slice(name)
             if name not in tr.inputs:
                 if name == model.insertion_input:
-                    raise DataError(f"{_where(tr, 'inputs')} missing input {name!r} (the insertion speed)")
+                    raise DataError(f"{trial_where(tr, 'inputs')} missing input {name!r} (the insertion speed)")
                 continue
             s = tr.inputs[name]
             want = model.input_units[name]
             if s.unit and s.unit != want:
-                raise DataError(f"{_where(tr, f'input {name}')} unit {s.unit!r} does not match the model's {want!r}")
+                raise DataError(f"{trial_where(tr, f'input {name}')} unit {s.unit!r} does not match the model's {want!r}")
             if s.value.shape[1] != sl.stop - sl.start:
-                raise DataError(f"{_where(tr, f'input {name}')} has {s.value.shape[1]} columns, model needs {sl.stop - sl.start}")
+                raise DataError(f"{trial_where(tr, f'input {name}')} has {s.value.shape[1]} columns, model needs {sl.stop - sl.start}")
             k = np.clip(np.searchsorted(s.t, time + 1e-9, side="right") - 1, 0, None)
             inputs[i, :, sl] = np.where(alive[:, None], s.value[k], 0.0)
     v = inputs[..., model.input_slice(model.insertion_input).start]
@@ -92,7 +60,7 @@ def replay_truth(cfg, base_dir: Path):
 
     # ---- sensors: the same set in every trial, settings from the log
     sensors, streams = [], {}
-    for sensor in _sensors(trials, model):
+    for sensor in log_sensors(trials, model):
         name = sensor.name
         stype = sensor.registered_name
         m = len(sensor.channel_names)
@@ -140,11 +108,11 @@ def replay_truth(cfg, base_dir: Path):
             continue
         cols = [(j, model.state_names.index(nm)) for j, nm in enumerate(tr.truth.names) if nm in model.state_names]
         if not cols:
-            raise DataError(f"{_where(tr, 'truth')} none of its names {list(tr.truth.names)} is a state of model {model.registered_name!r}")
+            raise DataError(f"{trial_where(tr, 'truth')} none of its names {list(tr.truth.names)} is a state of model {model.registered_name!r}")
         for j, c in cols:
             unit = tr.truth.units[j] if j < len(tr.truth.units) else ""
             if unit and unit != model.state_units[c]:
-                raise DataError(f"{_where(tr, 'truth')} unit {unit!r} of {tr.truth.names[j]!r} does not match the model's {model.state_units[c]!r}")
+                raise DataError(f"{trial_where(tr, 'truth')} unit {unit!r} of {tr.truth.names[j]!r} does not match the model's {model.state_units[c]!r}")
         g = np.rint(tr.truth.t / dt).astype(np.int64)
         keep = (g >= 0) & (g < T)
         for j, c in cols:
@@ -162,82 +130,6 @@ def replay_truth(cfg, base_dir: Path):
         trial_ids=[tr.id for tr in trials], truth_kind=truth_kind, trial_meta=trial_metadata(trials),
     )
     return truth, sensors, streams
-
-
-#: metadata that describes how a trial was stored or imported rather than the experiment
-_NOT_DESIGN = {"import_report", "config", "log", "source", "folder", "alignment", "design_factors"}
-
-
-def trial_metadata(trials: list[Trial]) -> dict:
-    """The trials' scalar metadata as columns ``name -> (N,)`` (numbers as floats, NaN where a trial lacks
-    the key; otherwise strings, empty where missing), for grouping fits by them. Keys that say how the
-    data were stored (the import report, JSON, long text) are left out. ``"design_factors"``: the keys
-    any trial lists as its design factors."""
-    keys: dict[str, None] = {}
-    factors: dict[str, None] = {}
-    for tr in trials:
-        for k, v in tr.meta.items():
-            if k in _NOT_DESIGN or isinstance(v, (list, dict, tuple)):
-                continue
-            if isinstance(v, str) and (len(v) > 120 or v[:1] in "[{"):
-                continue
-            keys[k] = None
-        for k in design_factors(tr):
-            factors[k] = None
-    cols = {}
-    for k in keys:
-        vals = [tr.meta.get(k) for tr in trials]
-        present = [v for v in vals if v is not None]
-        if all(isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
-               for v in present):
-            cols[k] = np.array([np.nan if v is None else float(v) for v in vals])
-        else:
-            cols[k] = np.array(["" if v is None else str(v) for v in vals])
-    return {"columns": cols, "design_factors": [k for k in factors if k in cols]}
-
-
-def _sensors(trials: list[Trial], model) -> list:
-    """The sensors of the logs, from the first trial's settings; every trial must have the same ones."""
-    names = list(trials[0].sensors)
-    for tr in trials[1:]:
-        for n in names:
-            if n not in tr.sensors:
-                raise DataError(f"{_where(tr, 'sensors')} missing channel {n!r} (trial {trials[0].id} has it)")
-        for n in tr.sensors:
-            if n not in names:
-                raise DataError(f"{_where(tr, 'sensors')} channel {n!r} is in no other trial ({trials[0].id} lacks it)")
-    out = []
-    for name in names:
-        settings = dict(trials[0].sensors[name].settings)
-        settings["name"] = name
-        stype = settings.get("type")
-        if stype not in SENSORS:
-            raise DataError(f"{_where(trials[0], f'sensor {name}')} unknown sensor type {stype!r}; known: {', '.join(SENSORS.names())}")
-        cls = SENSORS.get(stype)
-        try:
-            sensor = cls(cls.Settings.model_validate(settings), model)
-        except ValidationError as e:
-            err = e.errors()[0]
-            raise DataError(f"{_where(trials[0], f'sensor {name}')} settings: {'.'.join(map(str, err['loc']))}: {err['msg']}") from None
-        except ValueError as e:
-            raise DataError(f"{_where(trials[0], f'sensor {name}')} settings: {e}") from None
-        problem = sensor.check_model()
-        if problem:
-            raise DataError(f"{_where(trials[0], f'sensor {name}')} {problem}")
-        for tr in trials:
-            st = tr.sensors[name]
-            if tuple(st.names) != tuple(sensor.channel_names):
-                raise DataError(f"{_where(tr, f'sensor {name}')} columns {list(st.names)}, expected {list(sensor.channel_names)}")
-            if tuple(st.units) != tuple(sensor.channel_units):
-                raise DataError(f"{_where(tr, f'sensor {name}')} units {list(st.units)} do not match {list(sensor.channel_units)}")
-        out.append(sensor)
-    return out
-
-
-def replay_sensors(cfg, base_dir: Path) -> list:
-    """The sensors a replay config will have (reads and checks the logs)."""
-    model = MODELS.get(cfg.model.type)(cfg.model.params)
-    return _sensors(load_trials(cfg, base_dir), model)
 
 
 def polynomial_reference(ref, model, streams, depth: np.ndarray, time: np.ndarray) -> np.ndarray:

@@ -29,7 +29,7 @@ import pandas as pd
 import yaml
 
 from needlecli.errors import SweepError
-from needlecli.experiments.sweep.plan import Cell, config_hash
+from needlecli.experiments.studies.sweep.plan import Cell, config_hash
 from needlecli.io.atomic import install_worker_signals, worker_task, write_text_atomic
 from needlecli.reports.sweep import cell_metrics, param_info, sweep_table, write_sweep_table
 
@@ -113,8 +113,8 @@ def run_cell(cell: Cell) -> CellOutcome:
 
 
 def _run_cell(cell: Cell, path: Path, t0: float) -> CellOutcome:
-    from needlecli.experiments.config import load_config
-    from needlecli.experiments.runner import run_experiment
+    from needlecli.experiments.config.load import load_config
+    from needlecli.experiments.simulation.runner import run_experiment
 
     try:
         path.parent.mkdir(parents=True, exist_ok=True)

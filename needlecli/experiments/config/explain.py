@@ -192,7 +192,7 @@ def describe_model(m: type[BaseModel], path: str) -> SectionDoc:
 def _component_schemas(section: str) -> dict[str, type[BaseModel]]:
     """type -> settings schema of every registered component of a section (model: its ``model:`` spec)."""
     from needlecli.control import CONTROLLERS
-    from needlecli.experiments.schema import _model_spec
+    from needlecli.experiments.config.schema import _model_spec
     from needlecli.models import MODELS
     from needlecli.observers import OBSERVERS
     from needlecli.sensors import SENSORS
@@ -215,7 +215,7 @@ def _choices(section: str) -> dict[str, str]:
 
 
 def _signal_kinds() -> dict[str, type[BaseModel]]:
-    from needlecli.experiments import schedule
+    from needlecli.experiments.config import schedule
 
     out = {}
     for m in _models_in(schedule.Signal):
@@ -227,7 +227,7 @@ def _signal_kinds() -> dict[str, type[BaseModel]]:
 def explain(path: str | None = None) -> SectionDoc:
     """The reference of the config at ``path`` (module docstring). Raises ConfigError for a path that
     names nothing (with what is there)."""
-    from needlecli.experiments.schema import experiment_schema
+    from needlecli.experiments.config.schema import experiment_schema
 
     root = experiment_schema()
     if not path:
@@ -444,7 +444,7 @@ def undocumented() -> list[str]:
             for sub in _models_in(info.annotation):
                 check(sub, key)
 
-    from needlecli.experiments.schema import experiment_schema
+    from needlecli.experiments.config.schema import experiment_schema
 
     root = experiment_schema()
     for name, info in root.model_fields.items():

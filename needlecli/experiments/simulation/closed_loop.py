@@ -10,12 +10,17 @@ sensors measure the finished truth as in open loop, each from its own stream.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from needlecli.control.base import CONTROLLERS
-from needlecli.experiments.truth import TruthSimulator, stream
+from needlecli.experiments.simulation.truth import TruthSimulator, stream
 from needlecli.sensors import SENSORS
 
+if TYPE_CHECKING:
+    from needlecli.experiments.config.types import ExperimentConfig
 
-def simulate_closed_loop(cfg, *, progress=None):
+
+def simulate_closed_loop(cfg: ExperimentConfig, *, progress=None):
     """Simulate, measure and control every run of a config with a ``control:`` section.
 
     Returns ``(truth, sensors, streams, control)``: ``control`` maps each controller's name to the

@@ -14,8 +14,8 @@ own results file ``DIR/cells/<cell-id>.h5``. One module per job:
 """
 
 from needlecli.errors import SweepError
-from needlecli.experiments.sweep.describe import describe_key
-from needlecli.experiments.sweep.execution import (
+from needlecli.experiments.studies.sweep.describe import describe_key
+from needlecli.experiments.studies.sweep.execution import (
     CellOutcome,
     SweepResult,
     execute,
@@ -23,8 +23,16 @@ from needlecli.experiments.sweep.execution import (
     run_cell,
     run_sweep,
 )
-from needlecli.experiments.sweep.grid import MAX_CELLS, Distribution, Grid, RandomSamples, expand_axis, grid_overrides, load_grid
-from needlecli.experiments.sweep.plan import Cell, config_hash, derived_seed, plan_sweep
+from needlecli.experiments.studies.sweep.grid import (
+    MAX_CELLS,
+    Distribution,
+    Grid,
+    RandomSamples,
+    expand_axis,
+    grid_overrides,
+    load_grid,
+)
+from needlecli.experiments.studies.sweep.plan import Cell, config_hash, derived_seed, plan_sweep
 from needlecli.reports.sweep import (
     SEED_KEY,
     cell_metrics,

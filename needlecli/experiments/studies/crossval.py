@@ -6,7 +6,7 @@ each fold takes its training trials' fits, with their identifiability pooled ane
 ``DIR/folds/fold<k>_fit.h5``, and the held-out trials are replayed through
 every observer of the config as it is (hand-tuned) and through a copy of each observer named with
 ``--observer`` that takes its process noise, measurement noise and constants from that fit
-(``<name>_em``, :mod:`needlecli.experiments.from_fit`, ``pick: median``); every observer of a fold starts
+(``<name>_em``, :mod:`needlecli.experiments.config.from_fit`, ``pick: median``); every observer of a fold starts
 from the same initial estimate (the first hand-tuned observer's, as in ``needle compare``), so the
 tuned and the hand-tuned one differ only in their parameters. Each fold's results are
 ``DIR/folds/fold<k>.h5``; the tables pool the held-out errors of all folds.
@@ -27,12 +27,16 @@ import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
 import yaml
 
 from needlecli.errors import ConfigError, DataError
+
+if TYPE_CHECKING:
+    from needlecli.experiments.config.types import ExperimentConfig
 
 #: keys of a simulated config that a replay of its runs does not have
 _SIMULATION_ONLY = ("inputs", "sensors", "tissue", "stop", "process_noise", "control")
@@ -115,8 +119,8 @@ def _replay_base(cfg_path: Path, data: dict, out_dir: Path, progress) -> tuple[d
         base["source"] = {**base["source"], "logs": logs}
         return base, trials, base_dir
     # a simulated config: simulate once, its runs become the trials of a log
-    from needlecli.experiments.config import load_config
-    from needlecli.experiments.runner import run_experiment
+    from needlecli.experiments.config.load import load_config
+    from needlecli.experiments.simulation.runner import run_experiment
     from needlecli.io.logs import log_from_results, write_log
     from needlecli.io.results import read_results
 
@@ -163,9 +167,9 @@ def crossval(
 ) -> CrossvalResult:
     """Cross-validate EM-tuned copies of ``observers`` against the config's hand-tuned observers (module
     docstring). Every setting is checked before the first fit."""
-    from needlecli.experiments.config import load_config
-    from needlecli.experiments.fit import fit_tree, fit_trials, load_trials, take_fit
-    from needlecli.experiments.overrides import apply_overrides
+    from needlecli.experiments.config.load import load_config
+    from needlecli.experiments.config.overrides import apply_overrides
+    from needlecli.experiments.studies.fit import fit_tree, fit_trials, load_trials, take_fit
     from needlecli.io.results import write_atomic
     from needlecli.io.yamlfile import parse_yaml
 
@@ -238,11 +242,11 @@ def crossval(
                           constants=pd.DataFrame(rows), groups=dict(zip(ids, groups)) if group_by else {})
 
 
-def _run_common_start(cfg, text, path: Path, base_dir: Path, progress, fd: Fold) -> Path:
+def _run_common_start(cfg: ExperimentConfig, text, path: Path, base_dir: Path, progress, fd: Fold) -> Path:
     """Replay a fold's held-out trials through every observer from one common start; write its results."""
-    from needlecli.experiments.replay import replay_truth
-    from needlecli.experiments.runner import build_problem, results_tree
-    from needlecli.experiments.truth import stream
+    from needlecli.experiments.simulation.replay import replay_truth
+    from needlecli.experiments.simulation.runner import build_problem, results_tree
+    from needlecli.experiments.simulation.truth import stream
     from needlecli.io.results import write_atomic
     from needlecli.observers import OBSERVERS
 

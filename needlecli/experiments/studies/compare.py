@@ -33,7 +33,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
@@ -42,6 +42,9 @@ from pydantic import ValidationError
 
 from needlecli.errors import ConfigError, DataError
 from needlecli.models import NotMeasurable
+
+if TYPE_CHECKING:
+    from needlecli.experiments.config.types import ExperimentConfig
 
 PREDICTION_FRACTION = 0.25
 INIT_ANGLE_STD = 0.0873  # 5 deg: seed 003's initial error on the angles no sensor measures directly
@@ -57,7 +60,7 @@ class Context:
     """What a defaults function may use: the validated config, the experiment's model, its sensors
     (name -> Sensor), whether the insertions are replayed logs, the mean final depth and the grid step."""
 
-    cfg: Any
+    cfg: ExperimentConfig
     model: Any
     sensors: dict
     replay: bool
@@ -253,7 +256,7 @@ def load_compare_config(
     ``(config, text, source)``."""
     import h5py
 
-    from needlecli.experiments.config import load_config
+    from needlecli.experiments.config.load import load_config
     from needlecli.models import MODELS
 
     path = Path(path)
@@ -303,7 +306,7 @@ class ObserverRun:
 
 @dataclass
 class CompareResult:
-    cfg: Any
+    cfg: ExperimentConfig
     source: str
     path: Path | None
     runs: list[ObserverRun]
@@ -400,10 +403,10 @@ def compare_observers(
 ) -> CompareResult:
     """Simulate (or replay) once, run every applicable observer on the same problem, write the results
     file ``<out_dir>/<name>_compare.h5`` and return what is needed for :func:`compare_table`."""
-    from needlecli.experiments.config import load_config
-    from needlecli.experiments.replay import replay_truth
-    from needlecli.experiments.runner import build_problem, results_tree, simulate_and_measure
-    from needlecli.experiments.truth import stream
+    from needlecli.experiments.config.load import load_config
+    from needlecli.experiments.simulation.replay import replay_truth
+    from needlecli.experiments.simulation.runner import build_problem, results_tree, simulate_and_measure
+    from needlecli.experiments.simulation.truth import stream
     from needlecli.io.atomic import check_output_dir
     from needlecli.io.results import read_results, write_atomic
     from needlecli.io.yamlfile import parse_yaml
@@ -473,12 +476,12 @@ def compare_observers(
     )
 
 
-def common_start(ctx: Context, chosen: list[Candidate], cfg, problem, seed: int):
+def common_start(ctx: Context, chosen: list[Candidate], cfg: ExperimentConfig, problem, seed: int):
     """The initial estimate every observer of the comparison starts from: that of the config's first
     observer that can give one, else of the UKF with derived settings (:func:`ukf_defaults`), drawn from
     the reference's own random stream. Marks each candidate's ``start``; returns ``(start, recipe)``
     (``(None, why)`` when no observer can give one)."""
-    from needlecli.experiments.truth import stream
+    from needlecli.experiments.simulation.truth import stream
     from needlecli.observers import OBSERVERS
 
     by_name = {o.name or o.type: o for o in cfg.observers}

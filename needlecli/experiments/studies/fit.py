@@ -14,15 +14,16 @@ import multiprocessing as mp
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import h5py
 import numpy as np
 
 from needlecli import kernels
 from needlecli.errors import DataError
-from needlecli.experiments.config import load_config
-from needlecli.experiments.runner import build_problem, simulate_and_measure
-from needlecli.experiments.truth import Truth
+from needlecli.experiments.config.load import load_config
+from needlecli.experiments.simulation.runner import build_problem, simulate_and_measure
+from needlecli.experiments.simulation.truth import Truth
 from needlecli.fitting.canonical import flip_negative_curvature
 from needlecli.fitting.em import EMOptions, EMResult, fit_em
 from needlecli.fitting.identify import Identifiability, IdentifyOptions, identify, take_trials
@@ -34,6 +35,9 @@ from needlecli.io.fit import FIT_FORMAT, FIT_VERSION
 from needlecli.io.results import Group, root_attrs
 from needlecli.models import MODELS
 from needlecli.numerics.needle_frame import AXES
+
+if TYPE_CHECKING:
+    from needlecli.experiments.config.types import ExperimentConfig
 
 CONFIG_SUFFIXES = (".yaml", ".yml")
 
@@ -70,7 +74,7 @@ def load_trials(path: str | Path, *, overrides: list[str] | None = None) -> Tria
     path = Path(path)
     cfg, text = load_fit_config(path, overrides=overrides)
     if cfg.source is not None:  # recorded trials through the replay machinery
-        from needlecli.experiments.replay import replay_truth
+        from needlecli.experiments.simulation.replay import replay_truth
 
         truth, sensors, streams = replay_truth(cfg, path.parent)
         return Trials(cfg, text, path, truth, sensors, streams, simulated=False)
@@ -530,7 +534,7 @@ def identifiability_group(idf: Identifiability, fit: FitSettings) -> Group:
     )
 
 
-def design_columns(truth: Truth, cfg) -> dict | None:
+def design_columns(truth: Truth, cfg: ExperimentConfig) -> dict | None:
     """The trials' metadata for the fit file's ``/truth/meta``: from the logs (replay), or for simulated
     trials from parameter-case labels written ``name=value, ...`` (``duty_cycle=0.25``); None without."""
     if truth.trial_meta is not None and truth.trial_meta.get("columns"):
@@ -552,5 +556,5 @@ def design_columns(truth: Truth, cfg) -> dict | None:
     return {"columns": cols, "design_factors": keys}
 
 
-def default_fit_output(cfg) -> Path:
+def default_fit_output(cfg: ExperimentConfig) -> Path:
     return Path("results") / f"{cfg.name}_fit.h5"

@@ -5,11 +5,15 @@ from __future__ import annotations
 import zlib
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from needlecli.experiments.schedule import evaluate_signal
+from needlecli.experiments.config.schedule import evaluate_signal
 from needlecli.models import MODELS, Model
+
+if TYPE_CHECKING:
+    from needlecli.experiments.config.types import ExperimentConfig
 
 STATUS_OK = "ok"
 STATUS_SINGULAR = "singular"
@@ -72,7 +76,7 @@ class Truth:
         return {k: self.inputs[..., self.model.input_slice(k)] for k in self.model.input_names}
 
 
-def time_grid(cfg, model: Model) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
+def time_grid(cfg: ExperimentConfig, model: Model) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
     """Time grid, depth and input samples ``(T, size)`` from the config's stop rule and schedules."""
     dt = cfg.simulation.dt
     name_v = model.insertion_input
@@ -106,7 +110,7 @@ def time_grid(cfg, model: Model) -> tuple[np.ndarray, np.ndarray, dict[str, np.n
     return time, depth, inputs
 
 
-def curvature_schedule(cfg, depth: np.ndarray) -> np.ndarray | None:
+def curvature_schedule(cfg: ExperimentConfig, depth: np.ndarray) -> np.ndarray | None:
     """Curvature ``(T,)`` from the tissue layers at each step's depth, or None without layers."""
     if cfg.tissue is None:
         return None
@@ -115,7 +119,7 @@ def curvature_schedule(cfg, depth: np.ndarray) -> np.ndarray | None:
     return values[np.searchsorted(starts, depth, side="right") - 1]
 
 
-def simulate_truth(cfg, *, runs: int | None = None, progress: Callable[[int, int], None] | None = None) -> Truth:
+def simulate_truth(cfg: ExperimentConfig, *, runs: int | None = None, progress: Callable[[int, int], None] | None = None) -> Truth:
     """Simulate every run of the experiment at once. Deterministic for a given config and seed."""
     return TruthSimulator(cfg, runs=runs, progress=progress).finish()
 
@@ -139,7 +143,7 @@ class TruthSimulator:
     step); a change that leaves the model's domain stops the run there (status ``singular``).
     """
 
-    def __init__(self, cfg, *, runs: int | None = None, progress: Callable[[int, int], None] | None = None,
+    def __init__(self, cfg: ExperimentConfig, *, runs: int | None = None, progress: Callable[[int, int], None] | None = None,
                  before_step: BeforeStep | None = None) -> None:
         model_cls = MODELS.get(cfg.model.type)
         model = model_cls(cfg.model.params)

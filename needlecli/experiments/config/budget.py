@@ -21,10 +21,14 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from needlecli.errors import ConfigError
 from needlecli.io.atomic import human_bytes
 from needlecli.models import MODELS
+
+if TYPE_CHECKING:
+    from needlecli.experiments.config.types import ExperimentConfig
 
 PEAK_FACTOR = 3.5
 BASE_BYTES = 300 * 2**20  # the Python process with numpy, scipy, h5py, pydantic loaded
@@ -117,7 +121,7 @@ def _time_to_depth(sig, depth: float) -> float:
     return math.inf
 
 
-def _steps(cfg, base_dir: Path, trials) -> tuple[int, tuple, str]:
+def _steps(cfg: ExperimentConfig, base_dir: Path, trials) -> tuple[int, tuple, str]:
     """Grid steps ``T``, the key that sets them and why."""
     dt = float(cfg.simulation.dt)
     if cfg.source is not None:
@@ -143,11 +147,11 @@ def _steps(cfg, base_dir: Path, trials) -> tuple[int, tuple, str]:
 
 
 # ---------------------------------------------------------------------------------------------- the estimate
-def estimate(cfg, base_dir: str | Path = ".", trials=None) -> Estimate:
+def estimate(cfg: ExperimentConfig, base_dir: str | Path = ".", trials=None) -> Estimate:
     """The memory an experiment needs (see the module docstring). ``trials`` (replay): the log trials."""
     base_dir = Path(base_dir)
     if cfg.source is not None and trials is None:
-        from needlecli.experiments.replay import load_trials
+        from needlecli.experiments.config.logs import load_trials
 
         trials = load_trials(cfg, base_dir)
     model_cls = MODELS.get(cfg.model.type)
@@ -224,7 +228,7 @@ def _channels(s, model_cls) -> int:
     return 3
 
 
-def check_memory(cfg, source: str, base_dir: str | Path = ".", trials=None) -> Estimate:
+def check_memory(cfg: ExperimentConfig, source: str, base_dir: str | Path = ".", trials=None) -> Estimate:
     """Refuse (:class:`ConfigError` naming the key that drives it) an experiment that needs more memory
     than is available; return the estimate."""
     est = estimate(cfg, base_dir, trials)

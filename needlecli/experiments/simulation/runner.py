@@ -7,18 +7,22 @@ import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from needlecli import kernels
-from needlecli.experiments.replay import replay_truth
-from needlecli.experiments.schema import Stop
-from needlecli.experiments.truth import Truth, simulate_truth, stream
+from needlecli.experiments.config.types import Stop
+from needlecli.experiments.simulation.replay import replay_truth
+from needlecli.experiments.simulation.truth import Truth, simulate_truth, stream
 from needlecli.io.results import Group, root_attrs, write_atomic
 from needlecli.observers import OBSERVERS, Channel, EstimationProblem, Posterior
 from needlecli.observers.base import cov_steps
 from needlecli.sensors import SENSORS, MeasurementStream
 from needlecli.sensors.base import inequality_function, measurement_function
+
+if TYPE_CHECKING:
+    from needlecli.experiments.config.types import ExperimentConfig
 
 Progress = Callable[[str, int, int], None]
 
@@ -33,23 +37,23 @@ class ExperimentResult:
     tree: Group | None = None  # the results file's content, as written (tables need not read it back)
 
 
-def default_output(cfg) -> Path:
+def default_output(cfg: ExperimentConfig) -> Path:
     return Path(cfg.output.path) if cfg.output.path else Path("results") / f"{cfg.name}.h5"
 
 
-def build_sensors(cfg, model):
+def build_sensors(cfg: ExperimentConfig, model):
     return [SENSORS.get(s.type)(s, model) for s in cfg.sensors]
 
 
-def simulate_and_measure(cfg, *, progress: Callable[[int, int], None] | None = None,
+def simulate_and_measure(cfg: ExperimentConfig, *, progress: Callable[[int, int], None] | None = None,
                          measure_progress: Progress | None = None):
     """Simulate the truth of a config and measure it with every sensor: in open loop (the truth first,
     then each sensor from its own random stream) or, with a ``control:`` section, in closed loop
-    (:func:`needlecli.experiments.closed_loop.simulate_closed_loop`). Returns ``(truth, sensors, streams, control)``,
+    (:func:`needlecli.experiments.simulation.closed_loop.simulate_closed_loop`). Returns ``(truth, sensors, streams, control)``,
     ``control`` the results group of each controller (empty in open loop). ``measure_progress(phase, done,
     total)`` hears from sensors whose pipeline takes long (rendered frames)."""
     if cfg.control:
-        from needlecli.experiments.closed_loop import simulate_closed_loop
+        from needlecli.experiments.simulation.closed_loop import simulate_closed_loop
 
         return simulate_closed_loop(cfg, progress=progress)
     truth = simulate_truth(cfg, progress=progress)
@@ -61,7 +65,7 @@ def simulate_and_measure(cfg, *, progress: Callable[[int, int], None] | None = N
     return truth, sensors, streams, {}
 
 
-def build_problem(cfg, truth: Truth, sensors, streams: dict[str, MeasurementStream]) -> EstimationProblem:
+def build_problem(cfg: ExperimentConfig, truth: Truth, sensors, streams: dict[str, MeasurementStream]) -> EstimationProblem:
     channels = {}
     for sensor in sensors:
         st = streams[sensor.name]
@@ -96,7 +100,7 @@ def build_problem(cfg, truth: Truth, sensors, streams: dict[str, MeasurementStre
 
 
 def run_experiment(
-    cfg,
+    cfg: ExperimentConfig,
     config_text: str,
     *,
     out: str | Path | None = None,
@@ -136,7 +140,7 @@ def run_experiment(
                             tree=tree if write else None)
 
 
-def warm_up_observers(cfg) -> kernels.WarmUp:
+def warm_up_observers(cfg: ExperimentConfig) -> kernels.WarmUp:
     """On a kernel cache without the observers' compiled code (the first run after an install or a change
     of the kernels), compile the observers' kernels in a second process while this one compiles and runs the
     truth simulation: the child runs the observers on a short copy of the experiment (one run, 2 s, its
@@ -148,7 +152,7 @@ def warm_up_observers(cfg) -> kernels.WarmUp:
     return kernels.warm_up(_observe_briefly, tiny)
 
 
-def _observe_briefly(cfg) -> None:
+def _observe_briefly(cfg: ExperimentConfig) -> None:
     """The observers of ``cfg`` on its truth simulated on the numpy path (:func:`warm_up_observers`)."""
     sim = cfg.model_copy(update={"simulation": cfg.simulation.model_copy(update={"kernels": "numpy"})})
     truth, sensors, streams, _ = simulate_and_measure(sim)
@@ -160,7 +164,7 @@ def _observe_briefly(cfg) -> None:
         obs.run(own, stream(cfg.runs.seed, f"observer/{obs.name}"))
 
 
-def common_start_problem(cfg, problem):
+def common_start_problem(cfg: ExperimentConfig, problem):
     """The problem with ``runs.common_start``'s shared initial estimate (the named observer's own draw from
     its own stream, so that its results do not change), or None without one."""
     cs = cfg.runs.common_start
@@ -171,7 +175,7 @@ def common_start_problem(cfg, problem):
     return dataclasses.replace(problem, start=start)
 
 
-def results_tree(cfg, config_text, truth: Truth, streams, estimates, sensors, control=None) -> Group:
+def results_tree(cfg: ExperimentConfig, config_text, truth: Truth, streams, estimates, sensors, control=None) -> Group:
     model = truth.model
     n_runs, T = truth.states.shape[:2]
     root = Group(

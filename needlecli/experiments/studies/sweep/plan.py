@@ -26,14 +26,17 @@ import hashlib
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import yaml
 
 from needlecli.errors import ConfigError, NeedleError, SweepError
-from needlecli.experiments.sweep.describe import describe_key
-from needlecli.experiments.sweep.grid import Grid, grid_overrides
+from needlecli.experiments.studies.sweep.describe import describe_key
+from needlecli.experiments.studies.sweep.grid import Grid, grid_overrides
 from needlecli.reports.sweep import SEED_KEY, format_value
+
+if TYPE_CHECKING:
+    from needlecli.experiments.config.types import ExperimentConfig
 
 
 def _canonical(obj: Any) -> str:
@@ -75,20 +78,20 @@ class Cell:
     base_dir: str
     #: what each override key is: {key: {name, description, unit}} (:func:`.describe.describe_key`)
     param_info: dict = field(default_factory=dict)
-    file_bytes: int = 0  # at most what its results file takes on disk (:mod:`needlecli.experiments.budget`)
+    file_bytes: int = 0  # at most what its results file takes on disk (:mod:`needlecli.experiments.config.budget`)
 
     def label(self) -> str:
         return ", ".join(f"{k} = {format_value(v)}" for k, v in self.overrides.items()) or "(no overrides)"
 
 
-def _describe(cfg, key: str) -> dict[str, str]:
+def _describe(cfg: ExperimentConfig, key: str) -> dict[str, str]:
     try:
         return describe_key(cfg, key)
     except Exception:  # noqa: BLE001 (a label must not stop a sweep: the key as it was given, no unit)
         return {"name": key, "description": "", "unit": ""}
 
 
-def _n_runs(cfg) -> int:
+def _n_runs(cfg: ExperimentConfig) -> int:
     """Runs of a cell's experiment as far as the config tells (replayed logs: the trials named, else 0)."""
     if cfg.source is None:
         return int(cfg.runs.count)
@@ -109,9 +112,9 @@ def plan_sweep(
     ``overrides`` (``key=value`` strings, as ``--set``) join ``grid.fixed``. Raises :class:`SweepError`
     naming the cell, its overrides and the config key at fault.
     """
-    from needlecli.experiments.budget import estimate
-    from needlecli.experiments.config import load_config
-    from needlecli.experiments.overrides import parse_override, set_dotted
+    from needlecli.experiments.config.budget import estimate
+    from needlecli.experiments.config.load import load_config
+    from needlecli.experiments.config.overrides import parse_override, set_dotted
     from needlecli.io.yamlfile import read_yaml
 
     config = Path(config)

@@ -5,6 +5,7 @@ package under examples/ installs with pip and runs (its own tests included)."""
 from __future__ import annotations
 
 import os
+import site
 import subprocess
 import sys
 import textwrap
@@ -114,9 +115,18 @@ def test_example_package_installs_and_runs(tmp_path):
     """pip install -e the example plug-in into a fresh environment that sees this needlecli, then run a
     config that names its observer, and the package's own tests."""
     env_dir = tmp_path / "venv"
-    venv.EnvBuilder(system_site_packages=True, with_pip=False).create(env_dir)
+    venv.EnvBuilder(with_pip=False).create(env_dir)
     py = env_dir / ("Scripts" if os.name == "nt" else "bin") / "python"
-    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    # The new environment sees this interpreter's packages (needlecli, pip, setuptools, wheel): made from
+    # inside a venv, ``system_site_packages`` would give the *base* interpreter's site-packages instead
+    # (no wheel there, an old setuptools), so the outer ones are added as site directories (their .pth
+    # files, the editable install's among them, are processed).
+    inner = subprocess.run([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+                           capture_output=True, text=True, check=True).stdout.strip()
+    outer = [p for p in [*site.getsitepackages(), site.getusersitepackages()] if Path(p).is_dir()]
+    Path(inner).mkdir(parents=True, exist_ok=True)
+    (Path(inner) / "outer_site.pth").write_text("".join(f"import site; site.addsitedir({p!r})\n" for p in outer))
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
     if os.environ.get("PYTHONPATH"):  # a worktree that shadows the installed needlecli
         env["PYTHONPATH"] = os.environ["PYTHONPATH"]
     pip = subprocess.run([str(py), "-m", "pip", "install", "--no-deps", "--no-build-isolation", "--no-index", "-q",

@@ -29,10 +29,16 @@ VOLATILE = {"created", "version", "git_hash", "git_dirty", "needlecli_version"}
 RUNS = 2
 
 
+def _text(x) -> str:
+    """A string value with the checkout's own path replaced (a config's from_fit notes name the fit file by
+    its absolute path): two checkouts at different paths give the same digests."""
+    return (x.decode() if isinstance(x, bytes) else str(x)).replace(str(ROOT), "<checkout>")
+
+
 def _hash_value(v) -> str:
     a = np.asarray(v)
-    if a.dtype.kind == "O":
-        a = np.asarray([x.decode() if isinstance(x, bytes) else str(x) for x in a.ravel()]).reshape(a.shape)
+    if a.dtype.kind in "OSU":
+        a = np.asarray([_text(x) for x in a.ravel()]).reshape(a.shape)
     h = hashlib.sha256(f"{a.dtype.str}{a.shape}".encode())
     h.update(np.ascontiguousarray(a).tobytes() if a.dtype.kind != "U" else "\x00".join(a.ravel()).encode())
     return h.hexdigest()[:16]
@@ -71,7 +77,7 @@ def digest_config(cfg: Path, tmp: Path) -> tuple[str, dict | str]:
     p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
     key = cfg.relative_to(ROOT).as_posix()
     if p.returncode != 0:
-        return key, "skipped: " + (p.stderr.strip().splitlines() or [f"exit {p.returncode}"])[-1]
+        return key, "skipped: " + _text((p.stderr.strip().splitlines() or [f"exit {p.returncode}"])[-1])
     return key, file_digest(out)
 
 

@@ -242,6 +242,60 @@ def test_progress_about_every_percent_of_the_grid(every):
 
 
 # ---------------------------------------------------------------------------------------------- every observer
+ALL_OBSERVERS = """\
+name: every
+model: {type: unicycle, params: {kappa: 0.004}, initial_std: {beta: 0.01, gamma: 0.05}}
+inputs: {v: 2.0, u: 0.3}
+process_noise: {std: {x: 0.01, y: 0.01, z: 0.01, alpha: 1.0e-4, beta: 1.0e-4, gamma: 1.0e-3}}
+sensors:
+  - {name: us, type: position, rate: 10.0, sigma: 0.2}
+  - {name: tan, type: tangent, rate: 10.0, sigma: 0.01}
+observers:
+  - {name: ol, type: open_loop}
+  - name: ukf
+    type: ukf
+    rate: 10.0
+    q: {x: 0.01, y: 0.01, z: 0.01, alpha: 1.0e-3, beta: 1.0e-3, gamma: 1.0e-2}
+    p0: {x: 1.0, y: 1.0, z: 1.0, alpha: 1.0e-3, beta: 1.0e-3, gamma: 1.0e-2}
+    measurements: {us: {sigma: 0.2}}
+  - {name: ekf, type: ekf, measurements: {us: {sigma: 0.2}}, q: {x: 0.01, y: 0.01, z: 0.01}, p0: {x: 1.0, y: 1.0, z: 1.0}}
+  - {name: eks, type: eks, measurements: {us: {sigma: 0.2}}, q: {x: 0.01, y: 0.01, z: 0.01}, p0: {x: 1.0, y: 1.0, z: 1.0}}
+  - {name: hg, type: high_gain, measurement: us, theta: 5.0}
+  - {name: so3, type: so3_invariant, measurements: {tan: {}}, min_excitation: 0.001}
+runs: {count: 2, seed: 4}
+stop: {time: 1.0}
+output: {store_every: 2, covariance: diag}
+"""
+
+
+@pytest.mark.parametrize("path", ["numpy", "compiled"])
+def test_every_builtin_observer_builds_its_posterior_through_the_recorder(path, monkeypatch):
+    from needlecli import kernels
+    from needlecli.experiments.config.load import load_config
+    from needlecli.experiments.simulation.runner import run_experiment
+
+    if path == "numpy":
+        monkeypatch.setenv(kernels.ENV, "numpy")
+    else:
+        monkeypatch.delenv(kernels.ENV, raising=False)
+    built = []
+    real = RunRecorder.posterior
+
+    def spy(self, *a, **k):
+        post = real(self, *a, **k)
+        built.append(post)
+        return post
+
+    monkeypatch.setattr(RunRecorder, "posterior", spy)
+    cfg, text = load_config(text=ALL_OBSERVERS)
+    res = run_experiment(cfg, text, write=False)
+    assert set(res.estimates) == {"ol", "ukf", "ekf", "eks", "hg", "so3"}
+    for name, post in res.estimates.items():
+        assert any(post is b for b in built), name
+        assert (post.status == "ok").all(), (name, post.reason)
+    assert res.estimates["ukf"].cov.shape == (2, len(range(0, res.estimates["ukf"].state.shape[1], 2)), 6)
+
+
 PLUGIN = '''\
 from typing import Literal
 

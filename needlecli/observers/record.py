@@ -8,9 +8,9 @@ a plug-in observer uses it the same way and writes only its maths::
     rec = RunRecorder(problem, n, progress=progress)
     rec.record(0, x, P)                                   # the initial estimate, grid step 0
     for k in range(1, T):                                 # or any increasing filter ticks
-        x, P = my_step(x, P, ...)
-        rec.check(k, x, P, max_trace=1e8)                 # non-finite or exploding: the run stops
-        x, P = rec.hold(x, x_prev), rec.hold(P, P_prev)   # a stopped run keeps its last good estimate
+        xn, Pn = my_step(x, P, ...)
+        rec.check(k, xn, Pn, max_trace=1e8)               # non-finite or exploding: the run stops
+        x, P = rec.hold(xn, x), rec.hold(Pn, P)           # a stopped run keeps its last good estimate
         rec.record(k, x, P)                               # grid steps since the last tick hold it
     return rec.posterior(names, units)
 

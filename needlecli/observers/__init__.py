@@ -24,9 +24,10 @@ _LAZY = {  # the contract, imported on first use (this package's import is light
     "Observer": "needlecli.observers.base",
     "ObserverSettings": "needlecli.observers.base",
     "Posterior": "needlecli.observers.base",
+    "RunRecorder": "needlecli.observers.record",
 }
 
 __getattr__ = lazy_attributes(__name__, _LAZY)
 
 
-__all__ = ["OBSERVERS", "Channel", "EstimationProblem", "Observer", "ObserverSettings", "Posterior"]
+__all__ = ["OBSERVERS", "Channel", "EstimationProblem", "Observer", "ObserverSettings", "Posterior", "RunRecorder"]

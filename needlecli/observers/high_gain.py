@@ -49,12 +49,12 @@ from needlecli.numerics import wrap_angle
 from needlecli.observers.base import (
     OBSERVERS,
     STATUS_DIVERGED,
-    STATUS_OK,
     EstimationProblem,
     Observer,
     ObserverSettings,
     Posterior,
 )
+from needlecli.observers.record import RunRecorder
 from needlecli.schema import NonNeg, Positive, Strict
 
 ESTIMATED = ("x", "beta", "gamma")
@@ -324,11 +324,7 @@ class HighGainObserver(Observer):
         q[:, 1:3] = s0[:, 1:3]
         q[:, 3] = s0[:, 0]
         p_hist = np.zeros((N, T))  # p at each grid step (latency bridging)
-        out_q = np.empty((N, T, 3))  # (x_hat, s2, s3)
-        zetas = np.empty((N, T), dtype=np.int8)
-        status = np.full(N, STATUS_OK, dtype=object)
-        reason = np.full(N, "", dtype=object)
-        alive = np.ones(N, dtype=bool)
+        rec = RunRecorder(problem, 3, covariance=False, series={"zeta": np.int8}, progress=progress)
 
         def reset(k: int) -> None:
             """Samples that became available at grid step k: the compared output w jumps to them."""
@@ -359,41 +355,34 @@ class HighGainObserver(Observer):
             fl = [one(float(x)) for x in vals]
             return np.stack([f[0] for f in fl])[inv], np.stack([f[1] for f in fl])[inv]
 
-        def emit(k: int) -> None:
-            out_q[:, k, 0] = q[:, 0] + q[:, 3]
-            out_q[:, k, 1:] = q[:, 1:3]
-            zetas[:, k] = zeta
+        def record(k: int) -> None:  # the transformed state (x_hat, s2, s3) and zeta
+            rec.record(k, np.stack([q[:, 0] + q[:, 3], q[:, 1], q[:, 2]], -1), zeta=zeta)
 
         reset(0)
-        emit(0)
-        every = max(1, (T - 1) // 100)
+        record(0)
         with np.errstate(all="ignore"):
             for k in range(T - 1):
                 dt = float(times[k + 1] - times[k])
                 eht, et = flows(v_all[:, k], dt)
                 qn = observer_step(q, eht, et, zeta * u_all[:, k], dt)
                 finite = np.isfinite(qn).all(-1)
-                if not finite.all():
-                    bad = alive & ~finite
-                    status[bad] = STATUS_DIVERGED
-                    reason[bad] = f"non-finite estimate at t = {times[k + 1]:.3f} s"
-                    alive &= ~bad
-                    qn = np.where(alive[:, None], qn, q)
+                if not finite.all():  # a run stops; the stopped runs keep this step's start
+                    rec.stop(k + 1, ~finite, STATUS_DIVERGED, "non-finite estimate at t = {t:.3f} s")
+                    qn = rec.hold(qn, q)
                 q = qn
                 # zeta: flip where the estimate passes gamma = pi/2 + n pi while the shaft rotates
                 root = np.sqrt(np.maximum(1.0 - q[:, 1] ** 2 - q[:, 2] ** 2, 0.0))
                 inband = root < s.zeta_eps
                 low = np.where(inband & armed, np.minimum(low, root), np.inf)
-                flip = armed & inband & (root > low + rise) & (np.abs(u_all[:, k]) > s.zeta_u_min) & alive
+                flip = armed & inband & (root > low + rise) & (np.abs(u_all[:, k]) > s.zeta_u_min) & rec.alive
                 if flip.any():
                     zeta = np.where(flip, -zeta, zeta)
                     flips += flip
                 armed = (armed & ~flip) | ~inband
                 p_hist[:, k + 1] = q[:, 4]
                 reset(k + 1)
-                emit(k + 1)
-                if progress is not None and (k % every == 0 or k == T - 2):
-                    progress(k + 1, T - 1)
+                record(k + 1)
+        out_q, zetas = rec.states, rec.series["zeta"]
         clipped = (np.abs(out_q[..., 1]) > 1.0).sum(-1)
         with np.errstate(all="ignore"):
             xh, bh, gh = from_transformed(out_q, zetas)
@@ -402,16 +391,10 @@ class HighGainObserver(Observer):
             why = (f"sampled loop unstable: theta = {theta:g} with samples every {period:g} s "
                    f"(spectral radius {radius:.3g} >= 1); stable up to theta ~ "
                    f"{largest_stable_theta(vmax, kappa, gain, period):.3g}, or use hold: zoh")
-            reason[:] = [why + (f"; {r}" if r else "") for r in reason]
-            status[:] = STATUS_DIVERGED
-        return Posterior(
-            state=states,
-            cov=None,
-            status=status.astype(str),
-            reason=reason.astype(str),
-            names=ESTIMATED,
-            units=(model.length_unit, "rad", "rad"),
-            angle_states=("beta", "gamma"),
+            rec.reason[:] = [why + (f"; {r}" if r else "") for r in rec.reason]
+            rec.status[:] = STATUS_DIVERGED
+        return rec.posterior(
+            ESTIMATED, (model.length_unit, "rad", "rad"), angle_states=("beta", "gamma"), state=states,
             extras={"s": out_q, "zeta": zetas, "zeta_flips": flips, "s2_clipped_steps": clipped},
             attrs={
                 "not_estimated": "alpha, y, z: not observable from x",

@@ -30,15 +30,13 @@ from needlecli.models import MODELS
 from needlecli.observers.base import (
     OBSERVERS,
     STATUS_DIVERGED,
-    STATUS_OK,
     STATUS_SINGULAR,
     EstimationProblem,
     Observer,
     ObserverSettings,
     Posterior,
-    cov_steps,
-    shrink_cov,
 )
+from needlecli.observers.record import RunRecorder
 from needlecli.problem import CommonStart
 from needlecli.schema import Positive
 
@@ -103,26 +101,21 @@ class _Kalman(Observer):
                 extras["iterations"] = e.iterations
                 extras["settled"] = e.settled
                 extras["x0"] = e.m0
-        z, P, status, reason = _stop_runs(dm, z, P, problem.time, s.max_cov_trace)
-        states = dm.propagate_mean(z)
-        T = len(problem.time)
-        cov = None
-        if problem.cov_layout != "none":
-            keep = cov_steps(T, problem.cov_stride)
-            at = np.clip(np.searchsorted(dm.ticks, keep, side="right") - 1, 0, len(dm.ticks) - 1)
-            cov = shrink_cov(P[:, at], problem.cov_layout)
+        rec = RunRecorder(problem, n)
+        first = rec.stop_first(dm.ticks, _events(dm, z, P, s.max_cov_trace))
+        z, P = rec.hold_from(z, first), rec.hold_from(P, first)  # a stopped run holds its last good estimate
+        rec.record_all(dm.ticks, P=P, state=dm.propagate_mean(z))  # the model carries the mean between ticks
         extras.update({"loglik": ll, "cholesky_repairs": rep, "ticks": dm.ticks})
-        return Posterior(
-            state=states, cov=cov, status=status, reason=reason, names=dm.names, units=dm.units,
-            angle_states=tuple(a for a in model.angle_states), extras=extras,
+        return rec.posterior(
+            dm.names, dm.units, angle_states=tuple(a for a in model.angle_states), extras=extras,
             attrs={"model": model.registered_name, "ticks": str(s.ticks), "augment": list(s.augment),
                    "smoother": self.smoother},
         )
 
 
-def _stop_runs(dm, z, P, time, max_trace):
-    """Where an estimate leaves the model's domain, stops being finite or its covariance explodes, the run
-    stops there (status, reason with the time) and holds its last good estimate."""
+def _events(dm, z, P, max_trace) -> list[tuple[np.ndarray, str, str]]:
+    """What stops a run at a tick, ``(N, K)`` masks in order of precedence: the estimate left the model's
+    domain (singular), or it stopped being finite or its covariance exploded (diverged)."""
     N, K1, n = z.shape
     with np.errstate(all="ignore"):
         p = dm._p(z[:, 1:], 2)
@@ -132,20 +125,8 @@ def _stop_runs(dm, z, P, time, max_trace):
         sing[:, 0] = dm.model.singular(x[:, 0], dm._p(z[:, 0], 1))
         tr = np.trace(P, axis1=-2, axis2=-1)
         bad_num = ~np.isfinite(z).all(-1) | ~np.isfinite(tr) | (tr > max_trace)
-    bad = sing | bad_num
-    status = np.full(N, STATUS_OK, dtype=object)
-    reason = np.full(N, "", dtype=object)
-    for i in np.nonzero(bad.any(1))[0]:  # a loop over the runs that stopped only
-        k = int(np.argmax(bad[i]))
-        t = float(time[dm.ticks[k]])
-        if sing[i, k]:
-            status[i], reason[i] = STATUS_SINGULAR, f"{dm.model.singular_reason} (t = {t:.2f} s)"
-        else:
-            status[i], reason[i] = STATUS_DIVERGED, f"non-finite or exploding estimate at t = {t:.2f} s"
-        j = max(k - 1, 0)
-        z[i, k:] = z[i, j]
-        P[i, k:] = P[i, j]
-    return z, P, status.astype(str), reason.astype(str)
+    return [(sing, STATUS_SINGULAR, f"{dm.model.singular_reason} (t = {{t:.2f}} s)"),
+            (bad_num, STATUS_DIVERGED, "non-finite or exploding estimate at t = {t:.2f} s")]
 
 
 @OBSERVERS.register("ekf")

@@ -17,15 +17,13 @@ from needlecli.numerics import complex_step_jacobian
 from needlecli.observers.base import (
     OBSERVERS,
     STATUS_DIVERGED,
-    STATUS_OK,
     STATUS_SINGULAR,
     EstimationProblem,
     Observer,
     ObserverSettings,
     Posterior,
-    cov_steps,
-    shrink_cov,
 )
+from needlecli.observers.record import RunRecorder
 from needlecli.schema import NonNeg
 
 
@@ -85,17 +83,8 @@ class OpenLoop(Observer):
         P = np.broadcast_to(self._p0(s, model, problem.start), (n_runs, n, n)).copy()
         dt_all = np.diff(problem.time)
         qd = np.array([s.q.get(k, 0.0) for k in model.state_names]) ** 2
-
-        keep = cov_steps(T, problem.cov_stride)
-        states = np.empty((n_runs, T, n))
-        covs = [] if problem.cov_layout != "none" else None
-        states[:, 0] = x
-        status = np.full(n_runs, STATUS_OK, dtype=object)
-        reason = np.full(n_runs, "", dtype=object)
-        alive = np.ones(n_runs, dtype=bool)
-        if covs is not None and 0 in keep:
-            covs.append(shrink_cov(P, problem.cov_layout))
-        every = max(1, (T - 1) // 100)
+        rec = RunRecorder(problem, n, progress=progress)
+        rec.record(0, x, P)
         with np.errstate(all="ignore"):
             for k in range(T - 1):
                 u = problem.inputs[:, k]
@@ -105,28 +94,11 @@ class OpenLoop(Observer):
                 xn = model.step(x, u, params, dt)
                 P = F @ P @ np.swapaxes(F, -1, -2) + np.diag(qd * dt)
                 P = 0.5 * (P + np.swapaxes(P, -1, -2))
-                sing = model.left_domain(x, xn, params)
-                bad = alive & (sing | ~np.isfinite(xn).all(-1))
-                if bad.any():
-                    status[bad & sing] = STATUS_SINGULAR
-                    reason[bad & sing] = model.singular_reason
-                    status[bad & ~sing] = STATUS_DIVERGED
-                    reason[bad & ~sing] = f"non-finite estimate at t = {problem.time[k + 1]:.3f} s"
-                    alive &= ~bad
-                    xn = np.where(alive[:, None], xn, x)
+                # the model's domain first (a non-finite state counts as outside it)
+                new = rec.stop(k + 1, model.left_domain(x, xn, params), STATUS_SINGULAR, model.singular_reason)
+                new |= rec.stop(k + 1, ~np.isfinite(xn).all(-1), STATUS_DIVERGED, "non-finite estimate at t = {t:.3f} s")
+                if new.any():  # the stopped runs keep this step's start (P goes on)
+                    xn = rec.hold(xn, x)
                 x = xn
-                states[:, k + 1] = x
-                if covs is not None and (k + 1) in keep:
-                    covs.append(shrink_cov(P, problem.cov_layout))
-                if progress is not None and (k % every == 0 or k == T - 2):
-                    progress(k + 1, T - 1)
-        cov = np.stack(covs, 1) if covs is not None else None
-        return Posterior(
-            state=states,
-            cov=cov,
-            status=status.astype(str),
-            reason=reason.astype(str),
-            names=model.state_names,
-            units=model.state_units,
-            angle_states=model.angle_states,
-        )
+                rec.record(k + 1, x, P)
+        return rec.posterior(model.state_names, model.state_units, angle_states=model.angle_states)

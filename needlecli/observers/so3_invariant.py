@@ -36,13 +36,13 @@ from needlecli.numerics import matrix_to_euler_xyz, so3_exp
 from needlecli.observers.base import (
     OBSERVERS,
     STATUS_DIVERGED,
-    STATUS_OK,
     STATUS_UNOBSERVABLE,
     EstimationProblem,
     Observer,
     ObserverSettings,
     Posterior,
 )
+from needlecli.observers.record import RunRecorder
 from needlecli.schema import NonNeg, Positive, Strict
 
 R_NAMES = tuple(f"R{i}{j}" for i in range(1, 4) for j in range(1, 4))
@@ -265,17 +265,9 @@ class SO3InvariantObserver(Observer):
         w_perp = kappa * np.abs(v_all[:, :-1])  # |w x e3| for w = (kappa v, 0, u)
         excitation = (w_perp * np.diff(time)[None, :]).sum(-1) if T > 1 else np.zeros(N)
 
-        states = np.empty((N, T, 12))
-        status = np.full(N, STATUS_OK, dtype=object)
-        reason = np.full(N, "", dtype=object)
-        alive = np.ones(N, dtype=bool)
-
-        def emit(k: int) -> None:
-            states[:, k, :9] = r.reshape(9, N).T
-
+        rec = RunRecorder(problem, 9, covariance=False, progress=progress)  # the entries of R_hat, by rows
         refresh(0)
-        emit(0)
-        every = max(1, (T - 1) // 100)
+        rec.record(0, r.reshape(9, N).T)
         with np.errstate(all="ignore"):
             for k in range(T - 1):
                 dt = float(time[k + 1] - time[k])
@@ -285,41 +277,26 @@ class SO3InvariantObserver(Observer):
                 b_end = rotate_vectors(b, -dt * w)
                 rn = rk4_so3_step(r, w, y, (b, b_half, b_end), k_gain, dt)
                 b = b_end
-                bad = alive & ~np.isfinite(rn).all(axis=(0, 1))
-                if bad.any():
-                    status[bad] = STATUS_DIVERGED
-                    reason[bad] = f"non-finite estimate at t = {time[k + 1]:.3f} s"
-                    alive &= ~bad
-                    rn = np.where(alive, rn, r)
+                new = rec.stop(k + 1, ~np.isfinite(rn).all(axis=(0, 1)), STATUS_DIVERGED,
+                               "non-finite estimate at t = {t:.3f} s")
+                if new.any():  # the stopped runs keep this step's start
+                    rn = rec.hold(rn, r, axis=-1)
                 r = rn
                 refresh(k + 1)
-                emit(k + 1)
-                if progress is not None and (k % every == 0 or k == T - 2):
-                    progress(k + 1, T - 1)
-        mats = states[..., :9].reshape(N, T, 3, 3)
-        states[..., 9:] = matrix_to_euler_xyz(mats)
+                rec.record(k + 1, r.reshape(9, N).T)
+        mats = rec.states.reshape(N, T, 3, 3)
+        states = np.concatenate([rec.states, matrix_to_euler_xyz(mats)], -1)
         ortho = np.zeros(N)
         for k0 in range(0, T, 512):  # max over the run of |R^T R - I|, in chunks
             np.maximum(ortho, orthonormality_error(mats[:, k0 : k0 + 512]).max(-1), out=ortho)
 
-        weak = alive & (excitation < s.min_excitation)
-        status[weak] = STATUS_UNOBSERVABLE
-        reason[weak] = [
+        rec.stop(None, excitation < s.min_excitation, STATUS_UNOBSERVABLE, [
             f"not observable: angular velocity parallel to the measured vector (rotation about other axes "
-            f"over the run {np.rad2deg(e):.3g} deg < {np.rad2deg(s.min_excitation):.3g} deg)"
-            for e in excitation[weak]
-        ]
-        none = alive & ~seen & ~weak
-        status[none] = STATUS_UNOBSERVABLE
-        reason[none] = "not observable: no valid tangent measurement"
-        return Posterior(
-            state=states,
-            cov=None,
-            status=status.astype(str),
-            reason=reason.astype(str),
-            names=R_NAMES + ("alpha", "beta", "gamma"),
-            units=("1",) * 9 + ("rad", "rad", "rad"),
-            angle_states=("alpha", "beta", "gamma"),
+            f"over the run {np.rad2deg(e):.3g} deg < {np.rad2deg(s.min_excitation):.3g} deg)" for e in excitation])
+        rec.stop(None, ~seen, STATUS_UNOBSERVABLE, "not observable: no valid tangent measurement")
+        return rec.posterior(
+            R_NAMES + ("alpha", "beta", "gamma"), ("1",) * 9 + ("rad", "rad", "rad"),
+            angle_states=("alpha", "beta", "gamma"), state=states,
             extras={"orthonormality_error": ortho, "excitation": excitation, "initial_error": angle},
             attrs={"gain": k_gain, "kappa": kappa, "measurements": names, "measured_axis": "e3",
                    "min_excitation": s.min_excitation},

@@ -32,6 +32,7 @@ positions of 80 mm), so that the rounding the alpha = 1e-3 weights (7e4) amplify
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
@@ -56,15 +57,13 @@ from needlecli.numerics.unscented import (
 from needlecli.observers.base import (
     OBSERVERS,
     STATUS_DIVERGED,
-    STATUS_OK,
     STATUS_SINGULAR,
     EstimationProblem,
     Observer,
     ObserverSettings,
     Posterior,
-    cov_steps,
-    shrink_cov,
 )
+from needlecli.observers.record import RunRecorder
 from needlecli.schema import DistanceGrowth, NonNeg, Positive, Probability, Strict
 
 
@@ -142,6 +141,62 @@ def _chi2_quantile(p: float, m: int) -> float:
     from scipy.stats import chi2  # here: scipy.stats costs 0.5 s of start-up, and only gates need it
 
     return float(chi2.ppf(p, m))
+
+
+_DIVERGED = "non-finite or exploding covariance at t = {t:.2f} s"
+
+
+def _singular(model: Model) -> str:
+    """Why a run stopped where its estimate left the model's domain, ``{t}`` the time of the tick."""
+    return f"{model.singular_reason} (t = {{t:.2f}} s)"
+
+
+@dataclass
+class _Filter:
+    """What the tick loop works with, set up once per run of the filter: the filter's model and its
+    parameters, its inputs ``(N, T, m)``, the sigma-point weights and the order of the square root
+    (:meth:`UnscentedKalmanFilter._translation_order`), the ticks ``(K,)`` and grid step ``dt``, the
+    channels and one-sided channels, ``Q``, ``P0`` ``(n, n)``, the curvature's index, the tissue
+    interfaces and the prediction depths."""
+
+    model: Model
+    params: dict
+    inputs: np.ndarray
+    weights: MerweWeights
+    order: np.ndarray | slice | None
+    back: np.ndarray | slice | None
+    n_act: int
+    ticks: np.ndarray
+    dt: float
+    chans: list[dict]
+    bounds: list[dict]
+    Q: np.ndarray
+    P0: np.ndarray
+    kappa_i: int | None
+    interfaces: np.ndarray
+    depths: np.ndarray
+    angles: np.ndarray = field(init=False)
+    angle_sel: object = field(init=False)
+    tsel: np.ndarray | None = field(init=False)  # the translation states, moved relative to the central point
+
+    def __post_init__(self):
+        self.angles = self.model.angle_mask
+        self.angle_sel = angle_selection(self.angles)
+        self.tsel = None if self.order is None else np.array(
+            [self.model.index(k) for k in self.model.translation_states], dtype=np.int64)
+
+
+@dataclass
+class _Counts:
+    """The filter's counters per run ``(N,)`` (``nis``: per sample ``(N, M)``), by channel where named."""
+
+    repairs: np.ndarray
+    hits: np.ndarray
+    resets: np.ndarray
+    used: dict[str, np.ndarray]
+    gated: dict[str, np.ndarray]
+    nis: dict[str, np.ndarray]
+    violated: dict[str, np.ndarray]
 
 
 @OBSERVERS.register("ukf")
@@ -247,26 +302,10 @@ class UnscentedKalmanFilter(Observer):
         model: Model = self._model(problem)
         params = model.param_arrays()
         n, N = model.n, problem.n_runs
-        angles = model.angle_mask
-        ang_sel = angle_selection(angles)
         order, back, n_act = self._translation_order(model)
-        tsel = np.array([model.index(k) for k in model.translation_states], dtype=np.int64) if order is not None else None
         w = MerweWeights(n, s.alpha, s.beta, s.kappa)
-        wm, wc = w.wm, w.wc
-        sq_scale = np.sqrt(w.scale)
-        time = problem.time
-        T = len(time)
-        dt_grid = float(time[1] - time[0]) if T > 1 else 1.0
-        stride = 1 if s.rate is None else max(1, int(round(1.0 / (s.rate * dt_grid))))
-        ticks = np.arange(0, T, stride)
-        if ticks[-1] != T - 1:
-            ticks = np.append(ticks, T - 1)
-        # inputs of the filter's model, by name from the experiment's
-        in_cols = []
-        for k in model.input_names:
-            sl = problem.model.input_slice(k)
-            in_cols.extend(range(sl.start, sl.stop))
-        inputs = problem.inputs[..., in_cols]
+        dt_grid, stride, ticks = self._ticks(problem.time)
+        inputs = self._inputs(problem, model)
 
         # --- channels used, and the tick at which each sample becomes available
         chans = self._channels(problem, model)
@@ -277,7 +316,6 @@ class UnscentedKalmanFilter(Observer):
         for c in chans:  # needle coordinates: the reference axis, given or far from the initial tangent
             if c["frame"] == "needle":
                 c["axis"] = c["axis"] if c["axis"] is not None else reference_axis(model.tangent(x))
-        P = np.broadcast_to(P0, (N, n, n)).copy()
         Q = np.diag(np.array([s.q.get(k, 0.0) for k in model.state_names]) ** 2)
         kappa_i = model.index(model.curvature_param) if model.curvature_param in model.state_names else None
         interfaces = self._interfaces(problem, N)
@@ -293,205 +331,203 @@ class UnscentedKalmanFilter(Observer):
             if compiled.supports(model, chans) and all(c["frame"] == "world" for c in chans) and not bounds:
                 return self._from_kernel(compiled.filter_runs(
                     model, params, problem, s, chans, ticks, inputs, x, P0, Q, kappa_i, interfaces, depths, w, order,
-                    n_act, progress), model, s, chans, time, stride, dt_grid, depths)
+                    n_act, progress), problem, model, chans, stride, dt_grid, depths)
 
-        schedule = self._schedule(chans, ticks)
-        bound_schedule = self._schedule(bounds, ticks)
-        # --- outputs
-        states = np.empty((N, T, n))
-        keep = set(cov_steps(T, problem.cov_stride).tolist())
-        covs: list[np.ndarray] | None = [] if problem.cov_layout != "none" else None
-        status = np.full(N, STATUS_OK, dtype=object)
-        reason = np.full(N, "", dtype=object)
-        alive = np.ones(N, dtype=bool)
-        repairs = np.zeros(N, dtype=np.int64)
-        constraint_hits = np.zeros(N, dtype=np.int64)
-        resets = np.zeros(N, dtype=np.int64)
-        gated = {c["name"]: np.zeros(N, dtype=np.int64) for c in chans}
-        used = {c["name"]: np.zeros(N, dtype=np.int64) for c in chans}
-        nis = {c["name"]: np.full(c["valid"].shape, np.nan) for c in chans}  # per sample used: nu^T S^-1 nu
-        used.update({b["name"]: np.zeros(N, dtype=np.int64) for b in bounds})
-        violated = {b["name"]: np.zeros(N, dtype=np.int64) for b in bounds}  # the prediction broke the bound
-        pred_final = np.full((N, len(depths), n), np.nan)
-        pred_tick = np.full(len(depths), -1, dtype=np.int64)
+        f = _Filter(model=model, params=params, inputs=inputs, weights=w, order=order, back=back, n_act=n_act,
+                    ticks=ticks, dt=dt_grid, chans=chans, bounds=bounds, Q=Q, P0=P0, kappa_i=kappa_i,
+                    interfaces=interfaces, depths=depths)
+        return self._posterior(*self._filter(problem, f, x, progress), model, stride, dt_grid, depths)
+
+    def _filter(self, problem: EstimationProblem, f: _Filter, x: np.ndarray, progress=None):
+        """The tick loop on numpy, every run at once (the reference of the compiled kernel): at each tick,
+        predict, reset the curvature variance at an interface, update with what arrived, constrain the
+        curvature, then stop the runs that diverged or left the model's domain and record. ``x (N, n)``:
+        the initial estimate. Returns the recorder, the tick at which each prediction depth started
+        ``(D,)`` and the predicted final states ``(N, D, n)``."""
+        s = self.settings
+        N, n = x.shape
+        rec = RunRecorder(problem, n, progress=progress)
+        counts = self._counts(rec, f.chans, f.bounds)
+        schedule, bound_schedule = self._schedule(f.chans, f.ticks), self._schedule(f.bounds, f.ticks)
+        P = np.broadcast_to(f.P0, (N, n, n)).copy()
+        pred_tick = np.full(len(f.depths), -1, dtype=np.int64)
         roll = np.zeros((N, 0, n))  # rollouts to the final depth, advanced with the sigma points
         roll_ids: list[int] = []
-
-        def emit(lo: int, hi: int, xv: np.ndarray, pv: np.ndarray) -> None:
-            """Store the estimate for grid steps lo..hi (held between ticks)."""
-            states[:, lo : hi + 1] = xv[:, None, :]
-            if covs is not None:
-                for j in range(lo, hi + 1):
-                    if j in keep:
-                        covs.append(shrink_cov(pv, problem.cov_layout))
-
-        # samples available at t = 0 serve the initialisation only; updates start with the first tick
-        x_good, P_good = x, P
-        x_held, P_held = x, P  # the estimate of the last tick, stored until the next one
-        emit(0, 0, x, P)
-        every = max(1, len(ticks) // 100)
+        rec.record(0, x, P)  # samples available at t = 0 serve the initialisation only
         with np.errstate(all="ignore"):
-            for i in range(1, len(ticks)):
-                k0, k1 = ticks[i - 1], ticks[i]
-                # ---- predict: sigma points through the model over the grid steps of this tick
-                # the square root factors the states f depends on first (see _translation_order): the
-                # last columns then move positions only, and those sigma points move as the central one
-                root, bad = robust_cholesky(P[:, order][:, :, order] if order is not None else P)
-                repairs += bad & alive
-                if order is not None:
-                    root = root[:, back]
-                cols = np.swapaxes(root, -1, -2) * sq_scale  # row i: column i of sqrt(scale P)
-                S = 1 + 2 * n_act
-                X = np.empty((N, S + roll.shape[1], n))  # predictions in flight ride along with the sigma points
-                X[:, 0] = x
-                np.add(x[:, None, :], cols[:, :n_act], out=X[:, 1 : 1 + n_act])
-                np.subtract(x[:, None, :], cols[:, :n_act], out=X[:, 1 + n_act : S])
-                if tsel is not None:  # translation states relative to the central point's (see the module)
-                    X[:, 0, tsel] = 0.0
-                    X[:, 1 : 1 + n_act, tsel] = cols[:, :n_act, tsel]
-                    X[:, 1 + n_act : S, tsel] = -cols[:, :n_act, tsel]
-                X[:, S:] = roll
-                for j in range(k0, k1):
-                    X = model.step(X, inputs[:, j, None, :], params, dt_grid)
-                X, roll = X[:, :S], X[:, S:]
-                if n_act < n:  # the position-only points: displaced as the central point
-                    full = np.empty((N, 2 * n + 1, n))
-                    full[:, :S] = X
-                    moved = X[:, 0][:, None, :]
-                    np.add(moved, cols[:, n_act:], out=full[:, S : S + n - n_act])
-                    np.subtract(moved, cols[:, n_act:], out=full[:, S + n - n_act :])
-                    X = full
-                x_prev = x
-                x, dX = mean_and_residuals(X, wm, angles)
-                if tsel is not None:
-                    x[:, tsel] += x_prev[:, tsel]
-                P = symmetrize(weighted_cov(dX, dX, wc) + Q)
-                # ---- tissue interface: reset the curvature variance
-                if s.kappa_reset is not None and kappa_i is not None and interfaces.size:
-                    d0, d1 = problem.depth[:, k0], problem.depth[:, k1]
-                    crossed = np.any((d0[:, None] < interfaces) & (interfaces <= d1[:, None]), axis=-1) & alive
-                    if crossed.any():
-                        target = s.kappa_reset.factor * P0[kappa_i, kappa_i]
-                        add = np.maximum(target - P[:, kappa_i, kappa_i], 0.0) * crossed
-                        P[:, kappa_i, kappa_i] += add
-                        resets += crossed
+            for i in range(1, len(f.ticks)):
+                k0, k1 = f.ticks[i - 1], f.ticks[i]
+                x_prev, P_prev = x, P
+                x, P, roll = self._predict(f, x, P, roll, k0, k1, rec.alive, counts.repairs)
+                if s.kappa_reset is not None and f.kappa_i is not None and f.interfaces.size:
+                    self._reset_kappa(f, P, problem.depth[:, k0], problem.depth[:, k1], rec.alive, counts.resets)
                 # ---- update with what arrived in (t_k0, t_k1]
-                if len(schedule[i]) == 1 and schedule[i][0][0]["scalar"] and len(schedule[i][0][1]) == 1:
-                    (c, (j,)), = schedule[i]  # one scalar sample that is a state (seed 003's roll at 100 Hz)
-                    x, P = self._update_scalar(x, P, c, j, alive, used, nis)
-                    if ang_sel is not None:
-                        wrap_where_needed(x, ang_sel)
-                elif schedule[i]:
-                    if all(c["select"] is not None for c, _ in schedule[i]):
-                        # every h picks states: the unscented transform of a linear h is its closed form
-                        X = dX = None
-                    else:
-                        # from sigma points of the predicted (x, P): the propagated ones carry neither Q nor
-                        # the kappa reset, and Pyy, Pxy without them give a gain that is not the Kalman gain
-                        root, bad = robust_cholesky(P)
-                        repairs += bad & alive
-                        X = sigma_points(x, root, w, angles)
-                        dX = residual(X, x[..., None, :], angles)
-                    x, P = self._update(x, P, X, dX, schedule[i], w, alive, gated, used, nis)
-                    if ang_sel is not None:  # the update may carry an angle across the cut
-                        wrap_where_needed(x, ang_sel)
-                for b, samples in bound_schedule[i]:  # one-sided channels: one truncated update per sample
-                    for j in samples:
-                        x, P = self._update_bound(x, P, b, j, w, angles, alive, used, violated, repairs)
-                    if ang_sel is not None:
-                        wrap_where_needed(x, ang_sel)
+                x, P = self._update_tick(f, x, P, schedule[i], bound_schedule[i], rec.alive, counts)
                 # ---- curvature constraint: keep the previous estimate outside [0, kappa_max]
-                if kappa_i is not None and s.kappa_max is not None:
-                    kk = x[:, kappa_i]
-                    out = ((kk < 0) | (kk > s.kappa_max)) & alive
+                if f.kappa_i is not None and s.kappa_max is not None:
+                    kk = x[:, f.kappa_i]
+                    out = ((kk < 0) | (kk > s.kappa_max)) & rec.alive
                     if out.any():
-                        x[out, kappa_i] = x_prev[out, kappa_i]
-                        constraint_hits += out
-                # ---- divergence and model singularity
-                tr = np.trace(P, axis1=-2, axis2=-1)
-                finite = np.isfinite(x).all(-1) & np.isfinite(tr)  # NaN anywhere in P reaches x next tick
-                sing = model.left_domain(x_good, x, params)
-                bad = alive & (~finite | (tr > s.max_cov_trace) | sing)
-                if bad.any():
-                    is_s = bad & sing & finite
-                    status[is_s] = STATUS_SINGULAR
-                    reason[is_s] = f"{model.singular_reason} (t = {time[k1]:.2f} s)"
-                    is_d = bad & ~is_s
-                    status[is_d] = STATUS_DIVERGED
-                    reason[is_d] = f"non-finite or exploding covariance at t = {time[k1]:.2f} s"
-                    alive &= ~bad
-                if not alive.all():  # a stopped run holds its last good estimate
-                    x = np.where(alive[:, None], x, x_good)
-                    P = np.where(alive[:, None, None], P, P_good)
-                x_good, P_good = x, P
-                if k1 > k0 + 1:  # grid steps between ticks hold the last estimate: nothing is known earlier
-                    emit(k0 + 1, k1 - 1, x_held, P_held)
-                emit(k1, k1, x, P)
-                x_held, P_held = x, P
+                        x[out, f.kappa_i] = x_prev[out, f.kappa_i]
+                        counts.hits += out
+                rec.check(k1, x, P, singular=f.model.left_domain(x_prev, x, f.params), max_trace=s.max_cov_trace,
+                          singular_reason=_singular(f.model), diverged_reason=_DIVERGED)
+                x, P = rec.hold(x, x_prev), rec.hold(P, P_prev)  # a stopped run holds its last good estimate
+                rec.record(k1, x, P)
                 # ---- final-position prediction from the observation depths reached now
-                if depths.size:
-                    dnow = problem.depth[0, k1]
-                    due = np.nonzero((pred_tick < 0) & (depths <= dnow + 1e-9))[0]
+                if f.depths.size:
+                    due = np.nonzero((pred_tick < 0) & (f.depths <= problem.depth[0, k1] + 1e-9))[0]
                     if due.size:  # start one open-loop rollout per depth from the current estimate
                         roll = np.concatenate([roll, np.repeat(x[:, None, :], due.size, axis=1)], axis=1)
                         roll_ids.extend(due.tolist())
                         pred_tick[due] = k1
-                if progress is not None and (i % every == 0 or i == len(ticks) - 1):
-                    progress(i, len(ticks) - 1)
+        pred_final = np.full((N, len(f.depths), n), np.nan)
         if roll_ids:
             pred_final[:, roll_ids] = roll
-        cov = np.stack(covs, 1) if covs is not None else None
-        post = self._posterior(model, s, chans, time, stride, dt_grid, states, cov, status, reason, repairs,
-                               constraint_hits, resets, used, gated, nis, depths, pred_tick, pred_final)
-        for b in bounds:
-            post.extras[f"used/{b['name']}"] = used[b["name"]]
-            post.extras[f"bound_violated/{b['name']}"] = violated[b["name"]]
-        return post
-
-    def _from_kernel(self, k, model, s, chans, time, stride, dt_grid, depths) -> Posterior:
-        """The posterior from the compiled filter's arrays (status codes: 0 ok, 1 diverged, 2 singular)."""
-        status = np.where(k["status"] == 0, STATUS_OK, np.where(k["status"] == 2, STATUS_SINGULAR, STATUS_DIVERGED))
-        at = time[np.maximum(k["event"], 0)]
-        reason = np.array(["" if c == 0 else f"{model.singular_reason} (t = {t:.2f} s)" if c == 2 else
-                           f"non-finite or exploding covariance at t = {t:.2f} s" for c, t in zip(k["status"], at)],
-                          dtype=object)
-        return self._posterior(model, s, chans, time, stride, dt_grid, k["states"], k["cov"], status, reason,
-                               k["repairs"], k["hits"], k["resets"],
-                               {c["name"]: k["used"][:, i] for i, c in enumerate(chans)},
-                               {c["name"]: k["gated"][:, i] for i, c in enumerate(chans)},
-                               {c["name"]: k["nis"][i] for i, c in enumerate(chans)},
-                               depths, k["pred_tick"], k["roll"])
+        return rec, pred_tick, pred_final
 
     @staticmethod
-    def _posterior(model, s, chans, time, stride, dt_grid, states, cov, status, reason, repairs, constraint_hits,
-                   resets, used, gated, nis, depths, pred_tick, pred_final) -> Posterior:
-        extras = {
-            "cholesky_repairs": repairs,
-            "constraint_hits": constraint_hits,
-            "kappa_resets": resets,
-        }
-        for c in chans:
-            extras[f"used/{c['name']}"] = used[c["name"]]
-            extras[f"gated/{c['name']}"] = gated[c["name"]]
-            extras[f"nis/{c['name']}"] = nis[c["name"]]
+    def _predict(f: _Filter, x, P, roll, k0, k1, alive, repairs):
+        """Sigma points of ``(x (N, n), P (N, n, n))`` through the model over grid steps ``k0..k1``, with
+        the predictions in flight ``roll (N, R, n)`` riding along; the predicted ``(x, P)`` and ``roll``.
+        The square root factors the states f depends on first (:meth:`_translation_order`): its last
+        columns move positions only, and those sigma points move as the central one."""
+        N, n = x.shape
+        n_act, tsel = f.n_act, f.tsel
+        root, bad = robust_cholesky(P[:, f.order][:, :, f.order] if f.order is not None else P)
+        repairs += bad & alive
+        if f.order is not None:
+            root = root[:, f.back]
+        cols = np.swapaxes(root, -1, -2) * np.sqrt(f.weights.scale)  # row i: column i of sqrt(scale P)
+        S = 1 + 2 * n_act
+        X = np.empty((N, S + roll.shape[1], n))
+        X[:, 0] = x
+        np.add(x[:, None, :], cols[:, :n_act], out=X[:, 1 : 1 + n_act])
+        np.subtract(x[:, None, :], cols[:, :n_act], out=X[:, 1 + n_act : S])
+        if tsel is not None:  # translation states relative to the central point's (see the module)
+            X[:, 0, tsel] = 0.0
+            X[:, 1 : 1 + n_act, tsel] = cols[:, :n_act, tsel]
+            X[:, 1 + n_act : S, tsel] = -cols[:, :n_act, tsel]
+        X[:, S:] = roll
+        for j in range(k0, k1):
+            X = f.model.step(X, f.inputs[:, j, None, :], f.params, f.dt)
+        X, roll = X[:, :S], X[:, S:]
+        if n_act < n:  # the position-only points: displaced as the central point
+            full = np.empty((N, 2 * n + 1, n))
+            full[:, :S] = X
+            moved = X[:, 0][:, None, :]
+            np.add(moved, cols[:, n_act:], out=full[:, S : S + n - n_act])
+            np.subtract(moved, cols[:, n_act:], out=full[:, S + n - n_act :])
+            X = full
+        xp, dX = mean_and_residuals(X, f.weights.wm, f.angles)
+        if tsel is not None:
+            xp[:, tsel] += x[:, tsel]
+        return xp, symmetrize(weighted_cov(dX, dX, f.weights.wc) + f.Q), roll
+
+    def _reset_kappa(self, f: _Filter, P, d0, d1, alive, resets) -> None:
+        """Where the tip crossed a tissue interface between depths ``d0`` and ``d1`` ``(N,)``, raise the
+        curvature variance of ``P`` (in place) to ``factor * P0_kappa_kappa``."""
+        crossed = np.any((d0[:, None] < f.interfaces) & (f.interfaces <= d1[:, None]), axis=-1) & alive
+        if crossed.any():
+            i = f.kappa_i
+            target = self.settings.kappa_reset.factor * f.P0[i, i]
+            P[:, i, i] += np.maximum(target - P[:, i, i], 0.0) * crossed
+            resets += crossed
+
+    def _update_tick(self, f: _Filter, x, P, arrived, bounds, alive, counts: _Counts):
+        """The update of one tick with the samples that ``arrived`` and the one-sided ``bounds`` samples."""
+        angles, ang_sel = f.angles, f.angle_sel
+        if len(arrived) == 1 and arrived[0][0]["scalar"] and len(arrived[0][1]) == 1:
+            (c, (j,)), = arrived  # one scalar sample that is a state (seed 003's roll at 100 Hz)
+            x, P = self._update_scalar(x, P, c, j, alive, counts.used, counts.nis)
+            if ang_sel is not None:
+                wrap_where_needed(x, ang_sel)
+        elif arrived:
+            if all(c["select"] is not None for c, _ in arrived):
+                # every h picks states: the unscented transform of a linear h is its closed form
+                X = dX = None
+            else:
+                # from sigma points of the predicted (x, P): the propagated ones carry neither Q nor
+                # the kappa reset, and Pyy, Pxy without them give a gain that is not the Kalman gain
+                root, bad = robust_cholesky(P)
+                counts.repairs += bad & alive
+                X = sigma_points(x, root, f.weights, angles)
+                dX = residual(X, x[..., None, :], angles)
+            x, P = self._update(x, P, X, dX, arrived, f.weights, alive, counts.gated, counts.used, counts.nis)
+            if ang_sel is not None:  # the update may carry an angle across the cut
+                wrap_where_needed(x, ang_sel)
+        for b, samples in bounds:  # one-sided channels: one truncated update per sample
+            for j in samples:
+                x, P = self._update_bound(x, P, b, j, f.weights, angles, alive, counts.used, counts.violated,
+                                          counts.repairs)
+            if ang_sel is not None:
+                wrap_where_needed(x, ang_sel)
+        return x, P
+
+    def _from_kernel(self, k, problem, model, chans, stride, dt_grid, depths) -> Posterior:
+        """The posterior from the compiled filter's arrays (status codes: 0 ok, 1 diverged, 2 singular)."""
+        rec = RunRecorder(problem, model.n)
+        rec.adopt(k["states"], k["cov"])
+        at = np.maximum(k["event"], 0)
+        rec.stop(at, k["status"] == 2, STATUS_SINGULAR, _singular(model))
+        rec.stop(at, k["status"] != 0, STATUS_DIVERGED, _DIVERGED)
+        counts = self._counts(rec, chans, ())
+        counts.repairs[:], counts.hits[:], counts.resets[:] = k["repairs"], k["hits"], k["resets"]
+        for i, c in enumerate(chans):
+            counts.used[c["name"]][:] = k["used"][:, i]
+            counts.gated[c["name"]][:] = k["gated"][:, i]
+            counts.nis[c["name"]][:] = k["nis"][i]
+        return self._posterior(rec, k["pred_tick"], k["roll"], model, stride, dt_grid, depths)
+
+    @staticmethod
+    def _counts(rec: RunRecorder, chans: list[dict], bounds: list[dict]) -> _Counts:
+        """The filter's counters, kept by ``rec`` under their names in the results file."""
+        return _Counts(
+            repairs=rec.counter("cholesky_repairs"), hits=rec.counter("constraint_hits"),
+            resets=rec.counter("kappa_resets"),
+            used={c["name"]: rec.counter(f"used/{c['name']}") for c in [*chans, *bounds]},
+            gated={c["name"]: rec.counter(f"gated/{c['name']}") for c in chans},
+            # per sample used: nu^T S^-1 nu
+            nis={c["name"]: rec.extras.setdefault(f"nis/{c['name']}", np.full(np.shape(c["valid"]), np.nan))
+                 for c in chans},
+            violated={b["name"]: rec.counter(f"bound_violated/{b['name']}") for b in bounds},  # prediction broke it
+        )
+
+    def _posterior(self, rec: RunRecorder, pred_tick, pred_final, model, stride, dt_grid, depths) -> Posterior:
+        s = self.settings
+        extras = {}
         if depths.size:
             extras["prediction/depth"] = depths
-            extras["prediction/time"] = np.where(pred_tick >= 0, time[np.maximum(pred_tick, 0)], np.nan)
+            extras["prediction/time"] = np.where(pred_tick >= 0, rec.time[np.maximum(pred_tick, 0)], np.nan)
             extras["prediction/final_state"] = pred_final
-        return Posterior(
-            state=states,
-            cov=cov,
-            status=status.astype(str),
-            reason=reason.astype(str),
-            names=model.state_names,
-            units=model.state_units,
-            angle_states=model.angle_states,
-            extras=extras,
+        return rec.posterior(
+            model.state_names, model.state_units, angle_states=model.angle_states, extras=extras,
             attrs={"filter_rate": 1.0 / (stride * dt_grid), "model": model.registered_name,
                    "sigma_alpha": s.alpha, "sigma_beta": s.beta, "sigma_kappa": s.kappa},
         )
 
     # ------------------------------------------------------------------ pieces
+    def _ticks(self, time: np.ndarray) -> tuple[float, int, np.ndarray]:
+        """The grid step (s), the filter's stride in grid steps and its ticks ``(K,)``: grid steps every
+        stride from 0, and the last grid step."""
+        T = len(time)
+        dt_grid = float(time[1] - time[0]) if T > 1 else 1.0
+        rate = self.settings.rate
+        stride = 1 if rate is None else max(1, int(round(1.0 / (rate * dt_grid))))
+        ticks = np.arange(0, T, stride)
+        if ticks[-1] != T - 1:
+            ticks = np.append(ticks, T - 1)
+        return dt_grid, stride, ticks
+
+    @staticmethod
+    def _inputs(problem: EstimationProblem, model: Model) -> np.ndarray:
+        """The inputs of the filter's model ``(N, T, m)``, by name from the experiment's."""
+        in_cols = []
+        for k in model.input_names:
+            sl = problem.model.input_slice(k)
+            in_cols.extend(range(sl.start, sl.stop))
+        return problem.inputs[..., in_cols]
+
     @staticmethod
     def _translation_order(model: Model) -> tuple[np.ndarray | None, np.ndarray | None, int]:
         """State order for the square root of P: the states f depends on first, the positions it does not

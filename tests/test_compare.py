@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import h5py
 import numpy as np
 import pandas as pd
 import pytest
@@ -13,16 +14,13 @@ from typer.testing import CliRunner
 from needlecli.cli.app import app
 from needlecli.experiments.config.load import load_config
 from needlecli.experiments.simulation.runner import build_sensors
-from needlecli.experiments.studies.compare import (
-    Context,
-    candidates,
-    compare_observers,
-    compare_table,
-    direct_components,
-    ukf_defaults,
-)
+from needlecli.experiments.studies.compare import candidates, compare_observers
+from needlecli.io.results import read_results
+from needlecli.metrics import compute_errors
 from needlecli.models import MODELS
 from needlecli.observers import OBSERVERS
+from needlecli.observers.defaults import ComparisonContext, direct_components
+from needlecli.reports.compare import compare_table
 
 # seed 003's Table 1 set-up, tiny: 3 insertions of 15 mm, no observers (every one comes from defaults)
 TINY003 = """\
@@ -43,6 +41,12 @@ output: {store_every: 10, covariance: diag}
 
 def invoke(*args):
     return CliRunner().invoke(app, [str(a) for a in args])
+
+
+def table(result) -> pd.DataFrame:
+    """The comparison's table, from its results file alone (as needle compare prints it)."""
+    res = read_results(result.path)
+    return compare_table(res, compute_errors(res))
 
 
 @pytest.fixture(scope="module")
@@ -76,6 +80,27 @@ def test_compare_prints_the_appendix_table_with_ukf_and_open_loop(tiny, tmp_path
     assert (tmp_path / "tiny003_compare.h5").exists()
     r = invoke("evaluate", tmp_path / "tiny003_compare.h5", "--out", tmp_path / "ev", "--no-plots", "--quiet")
     assert r.exit_code == 0, r.output
+    # the tables are the results file's: needle evaluate gives the same ones, to the runtime
+    r = invoke("evaluate", tmp_path / "tiny003_compare.h5", "--tables", "compare,compare_appendix", "--out",
+               tmp_path / "ev2", "--format", "csv", "--no-plots", "--quiet")
+    assert r.exit_code == 0, r.output
+    pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "ev2" / "tiny003_compare.csv"),
+                                  pd.read_csv(tmp_path / "compare.csv"))
+    wide = pd.read_csv(tmp_path / "ev2" / "tiny003_compare_appendix.csv")
+    assert list(wide.columns[1:]) == list(df.index) and "Start" in set(wide.iloc[:, 0])
+    with h5py.File(tmp_path / "tiny003_compare.h5") as f:  # what the comparison decided, for the tables
+        g = f["compare"]
+        assert list(g["observer"].asstr()[()]) == list(df.index)
+        assert dict(zip(g["skipped/observer"].asstr()[()], g["skipped/reason"].asstr()[()]))["so3_invariant"].endswith(
+            "the SO(3) observer needs a tangent sensor; there is none")
+        assert "initial estimate" in g.attrs["start"] and list(g.attrs["sensors"]) == ["us3d", "robot", "swe"]
+
+
+def test_compare_tables_of_another_results_file_are_empty(tiny, tmp_path):
+    r = invoke("simulate", tiny, "--out", tmp_path / "sim.h5", "--quiet")
+    assert r.exit_code == 0, r.output
+    res = read_results(tmp_path / "sim.h5")
+    assert compare_table(res, compute_errors(res)).empty
 
 
 def test_same_insertions_for_every_observer_and_config_settings_kept(tiny, tmp_path):
@@ -90,12 +115,10 @@ def test_same_insertions_for_every_observer_and_config_settings_kept(tiny, tmp_p
     cfg_path = tmp_path / "own.yaml"
     cfg_path.write_text(text)
     res = compare_observers(cfg_path, observers=["my_ukf", "open_loop"], out_dir=tmp_path / "o")
-    df = compare_table(res).set_index("observer")
+    df = table(res).set_index("observer")
     assert list(df.index) == ["my_ukf", "open_loop"]
     assert df.loc["my_ukf", "settings"] == "config" and df.loc["open_loop", "settings"] == "defaults"
     assert res.cfg.observers[0].predict_at_depths == [3.0, 3.75]  # 25 % added to its own depths
-    from needlecli.io.results import read_results
-
     f = read_results(res.path)
     assert set(f.data["estimates"].data) == {"my_ukf", "open_loop"}
     # the same truth as a plain simulation of the config: simulated once, shared by the observers
@@ -115,8 +138,9 @@ def test_ukf_defaults_from_the_sensors(tiny):
     assert direct_components(sensors["us3d"], model) == {"x": (0, "x"), "y": (1, "y"), "z": (2, "z")}
     assert direct_components(sensors["robot"], model) == {"gamma": (0, "roll")}
     assert direct_components(sensors["swe"], model) == {"kappa": (0, "kappa")}
-    ctx = Context(cfg=cfg, model=model, sensors=sensors, replay=False, final_depth=15.0, dt=0.02)
-    s = ukf_defaults(ctx)
+    ctx = ComparisonContext(model=model, sensors=sensors, replay=False, final_depth=15.0, dt=0.02,
+                            process_std=cfg.process_noise.std, param_std=cfg.model.param_std)
+    s = OBSERVERS.get("ukf").derived_settings(ctx)
     assert s["measurements"]["us3d"]["sigma"] == 0.3 and s["measurements"]["us3d"]["growth"]["a"] == 1.0
     assert s["init"]["first_measurement"] == {"x": "us3d.x", "y": "us3d.y", "z": "us3d.z", "gamma": "robot.roll",
                                               "kappa": "swe.kappa"}
@@ -124,9 +148,9 @@ def test_ukf_defaults_from_the_sensors(tiny):
     assert s["p0"]["x"] == pytest.approx((2 * 0.3) ** 2) and s["p0"]["kappa"] == pytest.approx(1e-6)
     assert s["q"]["x"] == pytest.approx(0.02 * np.sqrt(0.02))  # the truth's process noise per tick
     assert s["predict_at_depths"] == [3.75]
-    OBSERVERS.get("ukf").Settings.model_validate(s)
+    OBSERVERS.get("ukf").Settings.model_validate({"type": "ukf", **s})
     # without a sensor with a nominal sigma that the model predicts, the UKF is skipped with the reason
-    bare = Context(cfg=cfg, model=model, sensors={}, replay=False, final_depth=15.0, dt=0.02)
+    bare = ComparisonContext(model=model, sensors={}, replay=False, final_depth=15.0, dt=0.02)
     cands = {c.type: c for c in candidates(bare, [], None)}
     assert "no sensor" in cands["ukf"].skip and not cands["open_loop"].skip
 
@@ -172,8 +196,6 @@ def test_no_observer_starts_better_informed_than_the_reference(tiny, tmp_path):
     cfg_path = tmp_path / "fair.yaml"
     cfg_path.write_text(tiny.read_text() + OWN_UKF)
     res = compare_observers(cfg_path, out_dir=tmp_path / "o")
-    from needlecli.io.results import read_results
-
     f = read_results(res.path)
     est = f.data["estimates"].data
     ukf0 = est["my_ukf"].data["state"][:, 0]
@@ -184,7 +206,7 @@ def test_no_observer_starts_better_informed_than_the_reference(tiny, tmp_path):
         names = list(est[name].attrs["names"])
         err0 = np.abs(est[name].data["state"][:, 0, names.index("kappa")] - truth[:, 0, k])
         assert err0.min() > 1e-6, (name, err0)  # not the run's own truth
-    df = compare_table(res).set_index("observer")
+    df = table(res).set_index("observer")
     assert df.loc["my_ukf", "start"] == "common (reference)"
     assert (df.drop(index="my_ukf")["start"].str.startswith("common")).all()
     assert df.loc["high_gain", "start"] == "common; x, beta = 0"  # seed 000's prescribed start on top

@@ -15,6 +15,7 @@ from typer.testing import CliRunner
 from needlecli.cli.app import app
 from needlecli.errors import ConfigError
 from needlecli.experiments.studies.crossval import group_of, make_folds
+from needlecli.reports.crossval import crossval_tables
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -62,6 +63,17 @@ def test_crossval_tunes_a_wrong_constant_on_held_out_trials(tmp_path, monkeypatc
         held = yaml.safe_load((out / "folds" / f"fold{k}.yaml").read_text()) if (out / "folds" / f"fold{k}.yaml").exists() else None
         assert held is None or not set(fit["source"]["trials"]) & set(held["source"]["trials"])
     assert (out / "crossval_by_depth.md").exists() and (out / "folds" / "fold0.h5").exists()
+    # the tables are those of the folds' results files: each says which trials it held out and what its fit gave
+    tables = crossval_tables([out / "folds" / f"fold{k}.h5" for k in range(2)])
+    pd.testing.assert_frame_equal(tables["constants"], c, check_exact=False, rtol=1e-9)
+    pd.testing.assert_frame_equal(tables["summary"].set_index("Observer"), s, check_exact=False, rtol=1e-9)
+    import h5py
+
+    with h5py.File(out / "folds" / "fold1.h5") as f:
+        g = f["crossval"]
+        assert int(g.attrs["fold"]) == 1 and list(g.attrs["tuned"]) == ["model_em"]
+        assert not set(g.attrs["train"]) & set(g.attrs["test"]) and len(g.attrs["test"]) == 2
+        assert list(g["constants/name"].asstr()[()]) == ["c"]
     assert (out / "crossval_by_depth.png").stat().st_size > 10_000
     # each fold takes its training trials' fits from one EM over all of them: the same as fitting the fold
     r = CliRunner().invoke(app, ["fit-em", str(out / "folds" / "fold0_train.yaml"), "--out", str(tmp_path / "direct.h5"),

@@ -28,7 +28,10 @@ def compare(
     """
     import textwrap
 
-    from needlecli.experiments.studies.compare import FOOTNOTE, appendix_form, compare_observers, compare_table, terminal_form
+    from needlecli.experiments.studies.compare import compare_observers
+    from needlecli.io.results import read_results
+    from needlecli.metrics import compute_errors
+    from needlecli.reports.compare import appendix_form, compare_table, notes, skipped, terminal_form, truth_failed
     from needlecli.reports.tables import _atomic_text, to_markdown, write_table
 
     setup_logging(quiet)
@@ -37,17 +40,17 @@ def compare(
         result = compare_observers(source, observers=wanted, runs=runs, seed=seed, model=model, overrides=set_,
                                    out_dir=out, progress=bar)
     out_dir = result.path.parent
-    df = compare_table(result)
-    wide = appendix_form(df, result)
-    skipped = [f"{c.name} ({c.type}): {c.skip}" for c in result.skipped]
-    caption = f"Observers on the same insertions of {result.cfg.name} ({result.n_runs} runs)."
+    res = read_results(result.path)  # the tables, as every table, from the results file alone
+    df = compare_table(res, compute_errors(res))
+    wide = appendix_form(df, res)
+    n_runs = int(res.data["truth"].data["status"].shape[0])
+    caption = f"Observers on the same insertions of {res.attrs.get('name', '')} ({n_runs} runs)."
     write_table(df, out_dir / "compare", ["csv"])
-    notes = FOOTNOTE + f"\n\nStart: {result.start}." + ("\n\nSkipped:\n" + "\n".join(f"- {s}" for s in skipped) if skipped else "")
-    _atomic_text(out_dir / "compare.md", f"{caption}\n\n{to_markdown(wide)}\n\n{notes}\n")
-    typer.echo(terminal_form(df, result) if len(df) else "(no observer could run)")
-    if result.truth_failed:
-        typer.echo(f"{result.truth_failed} run(s) of the truth stopped early (not counted above)")
-    for s in skipped:
+    _atomic_text(out_dir / "compare.md", f"{caption}\n\n{to_markdown(wide)}\n\n{notes(res)}\n")
+    typer.echo(terminal_form(df, res) if len(df) else "(no observer could run)")
+    if truth_failed(res):
+        typer.echo(f"{truth_failed(res)} run(s) of the truth stopped early (not counted above)")
+    for s in skipped(res):
         typer.echo(textwrap.fill(f"skipped: {s}", 80, subsequent_indent="  "))
     typer.echo(f"table: {out_dir / 'compare.md'}, {out_dir / 'compare.csv'}")
     typer.echo(f"results: {result.path}")

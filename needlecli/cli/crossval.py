@@ -28,8 +28,9 @@ def crossval(
 
     Example: needle crossval configs/real/em_tracker.yaml --observer open_loop --leave-one-out --group-by 'id~^[^-]+' --within
     """
-    from needlecli.experiments.studies.crossval import check_args, crossval_plot, crossval_tables
+    from needlecli.experiments.studies.crossval import check_args
     from needlecli.experiments.studies.crossval import crossval as run_crossval
+    from needlecli.reports.crossval import crossval_plot, crossval_tables
     from needlecli.reports.tables import to_markdown, write_table
 
     setup_logging(quiet)
@@ -38,7 +39,7 @@ def crossval(
         result = run_crossval(config, observers=observer, model=model, folds=folds if folds is not None else 5,
                               leave_one_out=leave_one_out, group_by=group_by, within=within, out_dir=out,
                               overrides=set_, progress=bar)
-    tables = crossval_tables(result)
+    tables = crossval_tables(result.results)  # from the folds' results files alone
     how = ("leave-one-out" + (f" within groups ({group_by})" if within else "") if leave_one_out
            else f"{len(result.folds)} folds" + (f" of whole groups ({group_by})" if group_by else ""))
     captions = {

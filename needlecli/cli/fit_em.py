@@ -1,4 +1,4 @@
-"""``needle fit-em CONFIG...``: EM of seed 004 on every trial of an experiment, for one or both models."""
+"""``needle fit-em CONFIG...``: EM of seed 004 on every trial of an experiment, for each model to fit."""
 
 from __future__ import annotations
 
@@ -13,31 +13,35 @@ from needlecli.cli.common import check_results_target, fail, log, progress_bar, 
 def fit_em_cmd(
     sources: list[Path] = typer.Argument(..., metavar="CONFIG_OR_LOG...", help="Experiment configs (.yaml); "
                                          "recorded trials through a config with `source: {logs: [...]}`."),
-    model: str = typer.Option(None, "--model", "-m", help="mnm, binm or both (default: the config's fit.models)."),
+    model: str = typer.Option(None, "--model", "-m", help="Models to fit: any model a fit section can fit (needle "
+                              "list), comma-separated, or both: every model of the config's fit.models (the default)."),
     out: Path = typer.Option(None, "--out", "-o", help="Fit file (default: results/NAME_fit.h5; one source only)."),
     set_: list[str] = typer.Option([], "--set", help="Override a config key: --set fit.em.max_iter=50"),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar or log lines."),
 ) -> None:
-    """Fit the process noise Q, each measurement noise R_j and the model's constant (c of the MNM,
-    l_inv of the BiNM) to every trial by EM with the iterated extended Kalman smoother, and write the
-    fits, smoothed trajectories and convergence histories to one HDF5 file per config.
+    """Fit the process noise Q, each measurement noise R_j and the model's constants (c of the MNM,
+    l_inv of the BiNM, kappa of the unicycle, ...) to every trial by EM with the iterated extended Kalman
+    smoother, for each model of the config's fit section (or those of --model), and write the fits,
+    smoothed trajectories and convergence histories to one HDF5 file per config.
 
     Example: needle fit-em configs/seed004/study.yaml --model both --out results/seed004_fit.h5
     """
     import numpy as np
 
-    from needlecli.experiments.studies.fit import default_fit_output, fit_tree, fit_trials, load_fit_config, load_trials
+    from needlecli.experiments.studies.fit import (
+        default_fit_output,
+        fit_models_option,
+        fit_tree,
+        fit_trials,
+        load_fit_config,
+        load_trials,
+    )
     from needlecli.io.results import write_atomic
 
     setup_logging(quiet)
     if out is not None and len(sources) > 1:
         fail("--out: give one source with --out (each source gets its own fit file)")
-    models = None
-    if model is not None:
-        choice = model.strip().lower()
-        if choice not in ("mnm", "binm", "both"):
-            fail(f"--model: {model!r} is not one of mnm, binm, both")
-        models = ["mnm", "binm"] if choice == "both" else [choice]
+    models = fit_models_option(model)
     for src in sources:  # every config and output checked before the first fit
         cfg, _ = load_fit_config(src, overrides=set_)
         check_results_target(cfg, out if out is not None else default_fit_output(cfg), src.parent, what="the fit file")

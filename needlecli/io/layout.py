@@ -120,6 +120,29 @@ RESULTS = G(attrs={
     "control": G(optional=True, open=False, members={"*": G(members={
         "command": D("float", _s(("N", "T")), optional=True),
     })}),
+    # needle compare only: what the comparison decided per observer (K observers run, S skipped)
+    "compare": G(optional=True, attrs={"start": A("str", optional=True), "prediction_fraction": A("num", optional=True),
+                                      "sensors": A("strs", optional=True)}, members={
+        "observer": D("str", _s(("K",))),
+        "type": D("str", _s(("K",))),
+        "settings": D("str", _s(("K",))),
+        "start": D("str", _s(("K",))),
+        "causal": D("bool", _s(("K",))),
+        "model": D("str", _s(("K",)), optional=True),
+        "seconds": D("float", _s(("K",))),
+        "error": D("str", _s(("K",))),
+        "skipped": G(optional=True, open=False, members={
+            "observer": D("str", _s(("S",))), "type": D("str", _s(("S",))), "reason": D("str", _s(("S",))),
+        }),
+    }),
+    # needle crossval only (its folds' results files): the fold, and each held-out trial's group
+    "crossval": G(optional=True, attrs={"fold": A("int"), "model": A("str"), "train": A("strs"), "test": A("strs"),
+                                       "tuned": A("strs", optional=True), "group_by": A("str", optional=True)}, members={
+        "group": D("str", _s(("*",)), optional=True),  # in the order of attribute test
+        "constants": G(optional=True, attrs={"trials_ok": A("int"), "trials": A("int")}, members={
+            "name": D("str", _s(("P",))), "median": D("float", _s(("P",))), "se": D("float", _s(("P",))),
+        }),
+    }),
 })
 
 FIT = G(attrs={

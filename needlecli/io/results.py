@@ -23,6 +23,8 @@
     /estimates/<observer>/<extra>  further arrays an observer reports
     /control/<controller>/command  (N, T)        closed loops only (config section control:): what a
     /control/<controller>/...                    controller applied, and from which samples
+    /compare/...                   needle compare only: what it decided per observer run (K,) and skipped (S,)
+    /crossval/...                  needle crossval's folds only: the fold's trials, tuned observers, constants
 """
 
 from __future__ import annotations

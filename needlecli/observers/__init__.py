@@ -20,7 +20,10 @@ OBSERVERS: Registry[type[Observer]] = Registry("observer type", group="needlecli
 
 _LAZY = {  # the contract, imported on first use (this package's import is light: ``needle list``)
     "Channel": "needlecli.problem",
+    "ComparisonContext": "needlecli.observers.defaults",
     "EstimationProblem": "needlecli.problem",
+    "FitTakes": "needlecli.observers.base",
+    "NotApplicable": "needlecli.observers.defaults",
     "Observer": "needlecli.observers.base",
     "ObserverSettings": "needlecli.observers.base",
     "Posterior": "needlecli.observers.base",
@@ -30,4 +33,5 @@ _LAZY = {  # the contract, imported on first use (this package's import is light
 __getattr__ = lazy_attributes(__name__, _LAZY)
 
 
-__all__ = ["OBSERVERS", "Channel", "EstimationProblem", "Observer", "ObserverSettings", "Posterior", "RunRecorder"]
+__all__ = ["OBSERVERS", "Channel", "ComparisonContext", "EstimationProblem", "FitTakes", "NotApplicable", "Observer",
+           "ObserverSettings", "Posterior", "RunRecorder"]

@@ -5,14 +5,27 @@ An observer knows nothing about where measurements come from: it is handed an :c
 means, covariances and a status per run, on the problem's time grid. It works on all runs at once.
 
 New observers: subclass :class:`Observer` with a ``Settings`` schema whose ``type`` is a ``Literal``
-and decorate with ``@OBSERVERS.register("type")``.
+and decorate with ``@OBSERVERS.register("type")`` (or register it through an entry point). Besides
+``run``, an observer class declares what the rest of needlecli needs to know about it, read through
+the registry (nothing outside the observer's module names its type):
+
+* ``check``: problems with running on a model and sensors (the config check, ``needle compare``);
+* ``takes_common_start``, ``initial_estimate``, ``default_reference``, ``prescribed_start``: its part
+  in the common start of a comparison (``needle compare``, ``needle crossval``);
+* ``causal``: a filter (True) or a smoother;
+* ``derived_settings``: its settings for a fair comparison, from the experiment
+  (:class:`~needlecli.observers.defaults.ComparisonContext`);
+* ``fit_takes``: what ``from_fit`` may set on it from a fit of ``needle fit-em`` (:class:`FitTakes`).
+
+A subclass registered under another name inherits all of it (a UKF variant is compared and tuned as
+the UKF is, under its own type).
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import ClassVar
+from typing import TYPE_CHECKING, ClassVar, Literal
 
 import numpy as np
 from pydantic import Field
@@ -21,6 +34,9 @@ from needlecli.models import Model
 from needlecli.observers import OBSERVERS  # noqa: F401  (the registry, at the package's front door)
 from needlecli.problem import Channel, CommonStart, EstimationProblem  # noqa: F401  (part of the observer contract)
 from needlecli.schema import Name, Strict
+
+if TYPE_CHECKING:
+    from needlecli.observers.defaults import ComparisonContext
 
 STATUS_OK = "ok"
 STATUS_DIVERGED = "diverged"
@@ -68,6 +84,32 @@ def shrink_cov(p: np.ndarray, layout: str) -> np.ndarray | None:
     return p
 
 
+@dataclass(frozen=True)
+class FitTakes:
+    """What ``from_fit`` (:mod:`needlecli.experiments.config.from_fit`) may set on an observer from a fit of
+    ``needle fit-em``: always its process noise ``q`` (the std of each fitted state's noise) and its model
+    constants ``params``; further as declared here.
+
+    Attributes
+    ----------
+    q : {"per_tick", "per_root_second"}
+        How the observer's ``q`` is given: a std per filter tick, ``sqrt(Q_ii dt_tick)`` (the tick: the
+        observer's ``rate`` setting, else the grid step ``simulation.dt``), or per square-root second,
+        ``sqrt(Q_ii)``.
+    measurements : bool
+        Whether it takes each fitted channel's noise as ``measurements.<channel>.sigma`` (and the
+        channel's ``frame`` and ``across_axis`` where R was fitted in needle coordinates).
+    sensor_states : bool
+        Whether a channel has sensor states in it (``measurements.<channel>.along_offset``): it then takes
+        a fitted offset along the needle as that state (``tau``, ``sigma``); without, the offset's
+        variance joins the channel's noise along the needle.
+    """
+
+    q: Literal["per_tick", "per_root_second"]
+    measurements: bool = True
+    sensor_states: bool = False
+
+
 class Observer:
     """Base class of observers. ``compatible(model)`` tells the config check whether it can run."""
 
@@ -78,6 +120,11 @@ class Observer:
     takes_common_start: ClassVar[bool] = False
     #: whether the estimate at time t uses the samples available up to t only (False: a smoother)
     causal: ClassVar[bool] = True
+    #: whether, with its derived settings, it gives the common start of a comparison whose config's
+    #: observers give none (built-in types are tried before plug-ins, each in name order)
+    default_reference: ClassVar[bool] = False
+    #: what ``from_fit`` may set on it (None: it cannot take a fit)
+    fit_takes: ClassVar[FitTakes | None] = None
 
     def __init__(self, settings: ObserverSettings) -> None:
         self.settings = settings
@@ -93,6 +140,27 @@ class Observer:
                          rng: np.random.Generator) -> CommonStart | None:
         """The initial estimate this observer would start from (its own draw from ``rng``), as a common
         start for the others of a comparison; None for an observer that cannot give one."""
+        return None
+
+    @classmethod
+    def derived_settings(cls, ctx: ComparisonContext) -> dict:
+        """Its settings for a fair comparison, derived from the experiment (``needle compare`` runs every
+        registered type that the config does not name with these): a mapping in the config's form without
+        ``type`` and ``name`` (the comparison fills in the registered name). The default: none, the
+        schema's defaults.
+
+        Raises
+        ------
+        NotApplicable
+            (:class:`~needlecli.observers.defaults.NotApplicable`) it cannot derive settings for this
+            experiment; the message says why.
+        """
+        return {}
+
+    @classmethod
+    def prescribed_start(cls, settings: ObserverSettings) -> str | None:
+        """A start that ``settings`` prescribe on top of a common start (seed 000's x_hat0 = beta_hat0 = 0),
+        as the note for a comparison's table (``"x, beta = 0"``); None: the common start as it is."""
         return None
 
     def run(self, problem: EstimationProblem, rng: np.random.Generator, progress=None) -> Posterior:

@@ -241,6 +241,21 @@ class HighGainObserver(Observer):
     takes_common_start = True  # with a common start, seed 000's prescribed init.values apply on top of it
 
     @classmethod
+    def derived_settings(cls, ctx):
+        """Seed 000's start, x_hat0 = beta_hat0 = 0 (the roll from the common start)."""
+        return {"init": {"from": "nominal", "values": {"x": 0.0, "beta": 0.0}}}
+
+    @classmethod
+    def prescribed_start(cls, settings):
+        """``init.values`` (seed 000: x_hat0 = beta_hat0 = 0) apply on top of a common start."""
+        vals = settings.init.values
+        if not vals:
+            return None
+        if len(set(vals.values())) == 1:
+            return f"{', '.join(vals)} = {next(iter(vals.values())):g}"
+        return ", ".join(f"{k} = {v:g}" for k, v in vals.items())
+
+    @classmethod
     def _position_channels(cls, sensors) -> list[str]:
         return [n for n, s in sensors.items() if s.registered_name == "position" and "x" in s.channel_names]
 

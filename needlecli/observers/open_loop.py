@@ -19,10 +19,12 @@ from needlecli.observers.base import (
     STATUS_DIVERGED,
     STATUS_SINGULAR,
     EstimationProblem,
+    FitTakes,
     Observer,
     ObserverSettings,
     Posterior,
 )
+from needlecli.observers.defaults import INIT_ANGLE_STD
 from needlecli.observers.record import RunRecorder
 from needlecli.schema import NonNeg
 
@@ -45,6 +47,13 @@ class OpenLoopSettings(ObserverSettings):
 class OpenLoop(Observer):
     Settings = OpenLoopSettings
     takes_common_start = True
+    fit_takes = FitTakes(q="per_root_second", measurements=False, sensor_states=False)
+
+    @classmethod
+    def derived_settings(cls, ctx):
+        """The prediction from what is known before the insertion: the model's nominal initial state
+        (nominal curvature, not the run's true one) with 5 deg std on the angle states."""
+        return {"init": {"from": "nominal", "std": {a: INIT_ANGLE_STD for a in ctx.model.angle_states}}}
 
     @staticmethod
     def _params(problem, settings) -> dict:

@@ -59,10 +59,12 @@ from needlecli.observers.base import (
     STATUS_DIVERGED,
     STATUS_SINGULAR,
     EstimationProblem,
+    FitTakes,
     Observer,
     ObserverSettings,
     Posterior,
 )
+from needlecli.observers.defaults import filter_settings
 from needlecli.observers.record import RunRecorder
 from needlecli.schema import DistanceGrowth, NonNeg, Positive, Probability, Strict
 
@@ -210,6 +212,15 @@ class UnscentedKalmanFilter(Observer):
 
     Settings = UKFSettings
     takes_common_start = True
+    default_reference = True  # a comparison whose config gives no start starts from this, derived settings
+    fit_takes = FitTakes(q="per_tick", measurements=True, sensor_states=False)
+
+    @classmethod
+    def derived_settings(cls, ctx):
+        """:func:`~needlecli.observers.defaults.filter_settings`: every sensor with a nominal sigma, the
+        start from the first samples, ``q`` per tick from the truth's process noise, a prediction from
+        25 % of the insertion."""
+        return filter_settings(ctx)
 
     # ------------------------------------------------------------------ configuration checks
     @classmethod

@@ -21,6 +21,7 @@ _TABLE_MODULES = {
                                "em_per_trial", "em_per_speed", "em_loglik"),
     "needlecli.reports.design": ("fit_by_design", "fit_regression", "fit_warnings"),
     "needlecli.reports.along_across": ("real_error_along_across",),
+    "needlecli.reports.compare": ("compare", "compare_appendix"),
 }
 _PLOT_MODULES = {
     "needlecli.reports.plots": ("error_vs_depth", "trajectories"),

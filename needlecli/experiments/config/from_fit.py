@@ -5,34 +5,39 @@ measurement noise and the model's constants from a fit file of ``needle fit-em``
 
     observers:
       - name: ukf_em
-        type: ukf                       # ukf, ekf, eks or open_loop
+        type: ukf                       # any type whose class declares fit_takes (needle explain observers)
         from_fit: {file: ../results/study_fit.h5, model: mnm, pick: median}   # pick: median | mean | trial
         p0: {...}                        # everything else as usual
 
-What it sets, from the trials whose fit is ``ok`` (``pick: median`` / ``mean`` element-wise over them, or
-``pick: trial`` with ``trial:`` an index or a trial id):
+What an observer takes is what its class declares (``Observer.fit_takes``, a
+:class:`~needlecli.observers.base.FitTakes` read through the registry: the built-in UKF, EKF, EKS and
+open loop, and any plug-in that declares it; a subclass takes what its parent takes). What it sets, from
+the trials whose fit is ``ok`` (``pick: median`` / ``mean`` element-wise over them, or ``pick: trial``
+with ``trial:`` an index or a trial id):
 
 * ``q``: the standard deviation of each state's process noise, ``sqrt(Q_ii)`` per square-root second
-  (``ekf``, ``eks``, ``open_loop``) or per filter tick, ``sqrt(Q_ii dt_tick)`` (``ukf``); the fit's
-  correlations are dropped (these observers take a diagonal ``Q``);
+  (``FitTakes.q: per_root_second``: the EKF, EKS, open loop) or per filter tick, ``sqrt(Q_ii dt_tick)``
+  (``per_tick``: the UKF); the fit's correlations are dropped (these observers take a diagonal ``Q``);
 * ``measurements.<channel>.sigma``: ``sqrt(diag R_j)`` of each fitted channel the observer has a sensor
-  for (not ``open_loop``); a measured direction's R is in its tangent plane and is not taken;
+  for (``FitTakes.measurements``; not the open loop); a measured direction's R is in its tangent plane
+  and is not taken;
 * ``params``: each fitted constant (``c`` of the MNM, a curvature, ...);
-* a channel's fitted offset along the needle (a sensor state, ``along_offset``): for ``ekf`` and ``eks``
-  that state (``measurements.<channel>.along_offset`` with the fitted ``tau`` and ``sigma``); for the
-  others its variance joins the channel's sigma along the needle (``offset``: :func:`offset_variance`).
+* a channel's fitted offset along the needle (a sensor state, ``along_offset``): for an observer with
+  sensor states (``FitTakes.sensor_states``: the EKF and EKS) that state
+  (``measurements.<channel>.along_offset`` with the fitted ``tau`` and ``sigma``); for the others its
+  variance joins the channel's sigma along the needle (``offset``: :func:`offset_variance`).
 
-Checked before any work, with the key path: the file is a fit file, it fitted ``model``, that model is
-the observer's (its ``model`` key, else the experiment's), the picked trial exists and is ``ok``, every
-channel has a sensor, and the observer does not also set what ``from_fit`` sets. A weakly identified
-quantity (the fit's identifiability) is taken but named in the log.
+Checked before any work, with the key path: the observer's type can take a fit, the file is a fit file,
+it fitted ``model``, that model is the observer's (its ``model`` key, else the experiment's), the picked
+trial exists and is ``ok``, every channel has a sensor, and the observer does not also set what
+``from_fit`` sets. A weakly identified quantity (the fit's identifiability) is taken but named in the log.
 """
 
 from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from pydantic import Field, ValidationError
@@ -40,13 +45,10 @@ from pydantic import Field, ValidationError
 from needlecli.errors import ConfigError, DataError
 from needlecli.schema import Strict, validation_error
 
+if TYPE_CHECKING:
+    from needlecli.observers.base import FitTakes
+
 log = logging.getLogger("needlecli")
-
-#: observers with a channel's sensor states (``measurements.<channel>.along_offset``): from_fit gives them the
-#: fitted offset itself; the others fold it into the channel's noise along the needle (``FromFit.offset``)
-SENSOR_STATES = ("ekf", "eks")
-TAKES = {"ukf": ("q_tick", True), "ekf": ("q_root_s", True), "eks": ("q_root_s", True), "open_loop": ("q_root_s", False)}
-
 
 class FromFit(Strict):
     """Where an observer's fitted parameters come from (``from_fit:``)."""
@@ -60,7 +62,7 @@ class FromFit(Strict):
                                         "the trials recorded at the same insertion speed)")
     offset: Literal["stationary", "white"] = Field(
         "stationary", description="a fitted offset of a channel along the needle (an Ornstein-Uhlenbeck sensor "
-        "state) in an observer without that state (ukf, open_loop; ekf and eks take the state itself) joins the "
+        "state) in an observer without that state (the UKF, the open loop; the EKF and EKS take the state itself) joins the "
         "channel's noise along the needle: stationary, its variance sigma^2 (what one sample sees), or white, as "
         "white noise of the same power at low frequencies, 2 sigma^2 tau / dt (dt the mean interval between the "
         "channel's valid samples: what a filter averaging over more than tau sees)")
@@ -85,18 +87,38 @@ def expand_from_fit(data: dict, source: str, base_dir: Path) -> list[str]:
         if not isinstance(obs, dict) or "from_fit" not in obs:
             continue
         loc = ("observers", i, "from_fit")
-        kind = obs.get("type")
-        if kind not in TAKES:
-            raise ConfigError(source, ("observers", i, "type"),
-                              f"from_fit works for {', '.join(TAKES)} observers, not {kind!r}")
+        takes = fit_takes(obs.get("type"), source, ("observers", i, "type"))
         try:
             spec = FromFit.model_validate(obs["from_fit"])
         except ValidationError as e:
             raise validation_error(e, obs["from_fit"], source, prefix=loc, schema=FromFit) from None
         values = fitted_values(spec, base_dir, source, loc)
-        changed.append(_apply(obs, values, data, source, ("observers", i)))
+        changed.append(_apply(obs, takes, values, data, source, ("observers", i)))
         del obs["from_fit"]
     return changed
+
+
+def fit_takes(kind, source: str, loc: tuple) -> FitTakes:
+    """What ``from_fit`` may set on an observer of type ``kind``, as the observer class declares it
+    (``Observer.fit_takes``, read through the registry). A ConfigError at ``loc`` for an unknown type, a
+    plug-in that cannot be loaded, or a type that cannot take a fit (saying why, and which types can)."""
+    from needlecli.observers import OBSERVERS
+    from needlecli.registry import PluginError
+
+    if not isinstance(kind, str):
+        raise ConfigError(source, loc, "required key is missing: from_fit needs the observer's type")
+    try:
+        cls = OBSERVERS.get(kind)
+    except KeyError as e:
+        raise ConfigError(source, loc, str(e.args[0])) from None
+    except PluginError as e:
+        raise ConfigError(source, loc, str(e)) from None
+    if cls.fit_takes is None:
+        can = [n for n, c in OBSERVERS.loaded().items() if c.fit_takes is not None]
+        raise ConfigError(source, loc, f"observer type {kind!r} cannot take a fit: it declares no process noise q, "
+                          f"measurement noise or model constants that a fit sets (fit_takes); from_fit works for "
+                          f"{', '.join(can)}")
+    return cls.fit_takes
 
 
 def _apply_to_fit(fit: dict, source: str, base_dir: Path) -> str:
@@ -247,9 +269,8 @@ def fitted_values(spec: FromFit, base_dir: Path, source: str, loc: tuple) -> dic
             "trials": int(sel.sum()), "weak": weak, "path": str(path), "pick": spec.pick}
 
 
-def _apply(obs: dict, v: dict, data: dict, source: str, loc: tuple) -> str:
+def _apply(obs: dict, takes: FitTakes, v: dict, data: dict, source: str, loc: tuple) -> str:
     kind = obs["type"]
-    qmode, takes_r = TAKES[kind]
     own = obs.get("model") or (data.get("model") or {}).get("type")
     if own != v["model"]:
         raise ConfigError(source, loc + ("from_fit", "model"),
@@ -257,7 +278,7 @@ def _apply(obs: dict, v: dict, data: dict, source: str, loc: tuple) -> str:
     for key in ("q", "params"):
         if key in obs:
             raise ConfigError(source, loc + (key,), "from_fit sets it: give one of them")
-    if qmode == "q_tick":
+    if takes.q == "per_tick":
         dt = float((data.get("simulation") or {}).get("dt", 0.01))
         rate = obs.get("rate")
         stride = 1 if rate is None else max(1, int(round(1.0 / (float(rate) * dt))))
@@ -266,7 +287,7 @@ def _apply(obs: dict, v: dict, data: dict, source: str, loc: tuple) -> str:
         obs["q"] = {s: float(np.sqrt(max(q, 0.0))) for s, q in v["q_var"].items()}
     obs["params"] = dict(v["params"])
     taken = ["q", "params"]
-    if takes_r:
+    if takes.measurements:
         sensors = {s.get("name") or s.get("type") for s in data.get("sensors") or [] if isinstance(s, dict)}
         meas = obs.setdefault("measurements", {})
         if not isinstance(meas, dict):
@@ -283,7 +304,7 @@ def _apply(obs: dict, v: dict, data: dict, source: str, loc: tuple) -> str:
             if "sigma" in spec:
                 raise ConfigError(source, loc + ("measurements", ch, "sigma"), "from_fit sets it: give one of them")
             var = np.array(var, dtype=float)
-            if ch in v["offsets"] and kind in SENSOR_STATES:  # the observer has the offset state EM fitted
+            if ch in v["offsets"] and takes.sensor_states:  # the observer has the offset state EM fitted
                 if "along_offset" in spec:
                     raise ConfigError(source, loc + ("measurements", ch, "along_offset"),
                                       "from_fit sets it: give one of them")

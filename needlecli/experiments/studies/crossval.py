@@ -25,15 +25,15 @@ import copy
 import dataclasses
 import re
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-import pandas as pd
 import yaml
 
 from needlecli.errors import ConfigError, DataError
+from needlecli.io.tree import Group
 
 if TYPE_CHECKING:
     from needlecli.experiments.config.types import ExperimentConfig
@@ -58,8 +58,6 @@ class CrossvalResult:
     observers: list[str]
     model: str
     out_dir: Path
-    constants: pd.DataFrame = field(default_factory=pd.DataFrame)
-    groups: dict[str, str] = field(default_factory=dict)  # trial id -> its group (with group_by)
 
 
 def group_of(trial_id: str, meta: dict, spec: str | None) -> str:
@@ -202,7 +200,7 @@ def crossval(
     plan = make_folds(ids, groups, k=None if leave_one_out else folds, leave_one_out=leave_one_out, within=within)
     results, fits = [], []
     tuned = {f"{o}_em": o for o in observers}
-    rows = []
+    group_of_id = dict(zip(ids, groups))
     # every trial's EM is its own: fit each training trial once, and give each fold its training trials' fits
     fitted = [t for t in ids if any(t in fd.train for fd in plan)]
     every = copy.deepcopy(base)
@@ -223,27 +221,38 @@ def crossval(
         fits.append(fit_path)
         mf = fo.fits[fit_model]
         ok = mf.result.status == "ok"
+        medians, ses = [], []
         for i, c in enumerate(mf.system.dm.augment):
             v = mf.result.x0[ok, mf.system.dm.nx + i]
             se = np.nan
             if mf.identifiability is not None and c in mf.identifiability.names:
                 se = float(mf.identifiability.pooled_se[mf.identifiability.names.index(c)])
-            rows.append({"Fold": fd.index, "Held out": ", ".join(fd.test), "Trained on": len(fd.train),
-                         "Constant": c, "Median": float(np.median(v)) if v.size else np.nan, "SE (pooled)": se,
-                         "Trials ok": f"{int(ok.sum())}/{len(ok)}"})
+            medians.append(float(np.median(v)) if v.size else np.nan)
+            ses.append(se)
+        constants = Group(data={"name": np.array(list(mf.system.dm.augment), dtype=object),
+                                "median": np.array(medians, dtype=float), "se": np.array(ses, dtype=float)},
+                          attrs={"trials_ok": int(ok.sum()), "trials": len(ok)})
         test = copy.deepcopy(base)
         test["source"]["trials"] = fd.test
         test["observers"] = raw_obs + [_tuned_copy(o, fit_path, fit_model) for o in raw_obs
                                        if (o.get("name") or o.get("type")) in observers]
         test_text = yaml.safe_dump(test, sort_keys=False)
         tcfg, ttext = load_config(out / "folds" / f"fold{fd.index}.yaml", text=test_text)
-        results.append(_run_common_start(tcfg, ttext, out / "folds" / f"fold{fd.index}.h5", base_dir, progress, fd))
-    return CrossvalResult(plan, results, fits, tuned, [n for n in names] + list(tuned), fit_model, out,
-                          constants=pd.DataFrame(rows), groups=dict(zip(ids, groups)) if group_by else {})
+        fold = Group(data={"constants": constants},
+                     attrs={"fold": fd.index, "model": fit_model, "train": list(fd.train), "test": list(fd.test),
+                            "tuned": list(tuned), "group_by": group_by or ""})
+        if group_by:
+            fold.data["group"] = np.array([group_of_id[t] for t in fd.test], dtype=object)
+        results.append(_run_common_start(tcfg, ttext, out / "folds" / f"fold{fd.index}.h5", base_dir, progress, fd,
+                                         fold))
+    return CrossvalResult(plan, results, fits, tuned, [n for n in names] + list(tuned), fit_model, out)
 
 
-def _run_common_start(cfg: ExperimentConfig, text, path: Path, base_dir: Path, progress, fd: Fold) -> Path:
-    """Replay a fold's held-out trials through every observer from one common start; write its results."""
+def _run_common_start(cfg: ExperimentConfig, text, path: Path, base_dir: Path, progress, fd: Fold,
+                      fold: Group) -> Path:
+    """Replay a fold's held-out trials through every observer from one common start; write its results,
+    with the fold's ``/crossval`` group (``fold``: which trials trained and which were held out, the tuned
+    observers, the held-out trials' groups, the fitted constants)."""
     from needlecli.experiments.simulation.replay import replay_truth
     from needlecli.experiments.simulation.runner import build_problem, results_tree
     from needlecli.experiments.simulation.truth import stream
@@ -264,97 +273,9 @@ def _run_common_start(cfg: ExperimentConfig, text, path: Path, base_dir: Path, p
         obs = OBSERVERS.get(o.type)(o)
         cb = (lambda k, n, _n=obs.name: progress(f"fold {fd.index + 1}: {_n}", k, n)) if progress else None
         estimates[obs.name] = obs.run(problem, stream(seed, f"observer/{obs.name}"), progress=cb)
-    return write_atomic(path, results_tree(cfg, text, truth, streams, estimates, sensors))
-
-
-# ---------------------------------------------------------------------------------------------- tables
-DEPTH_BINS = (0.0, 10.0, 20.0, 30.0, 40.0, 60.0, 80.0, 120.0, 200.0)
-
-
-def crossval_tables(result: CrossvalResult) -> dict[str, pd.DataFrame]:
-    """``summary``: per observer, the position error over every held-out trial and time (mean, std, final),
-    its constants' error where the truth has them; ``by_depth``: the mean position error per depth bin
-    (what a planner needs), over all held-out trials and, with groups, per group of the held-out trials;
-    ``constants``: each fold's fitted constants."""
-    from needlecli.io.results import read_results
-    from needlecli.metrics import compute_errors
-
-    per_obs: dict[str, list[np.ndarray]] = {}
-    depth_obs: dict[tuple[str, str], list[np.ndarray]] = {}  # (observer, group or "all")
-    final: dict[str, list[np.ndarray]] = {}
-    unit = "mm"
-    for path in result.results:
-        res = read_results(path)
-        errs = compute_errors(res)
-        depth = np.asarray(res.data["depth"], dtype=float)
-        for name, es in errs.items():
-            q = es.quantities.get("E_xyz")
-            if q is None:
-                continue
-            unit = q.unit
-            v = q.values
-            d = depth[q.runs] if depth.ndim == 2 else np.broadcast_to(depth, v.shape)
-            per_obs.setdefault(name, []).append(v[:, 1:].ravel())
-            depth_obs.setdefault((name, "all"), []).append(np.stack([d.ravel(), v.ravel()], -1))
-            if result.groups:  # and per group of the held-out trials (a recording day)
-                ids = np.asarray(res.data["truth"].data.get("trial_id", [])).astype(str)[q.runs]
-                for g in dict.fromkeys(result.groups.get(t, t) for t in ids):
-                    sel = np.array([result.groups.get(t, t) == g for t in ids])
-                    depth_obs.setdefault((name, g), []).append(np.stack([d[sel].ravel(), v[sel].ravel()], -1))
-            fin = np.isfinite(v)
-            k_last = np.where(fin, np.arange(v.shape[1]), -1).max(axis=1)  # the last time with an error
-            final.setdefault(name, []).append(np.where(k_last >= 0, v[np.arange(len(v)), np.maximum(k_last, 0)], np.nan))
-    rows = []
-    for name, parts in per_obs.items():
-        v = np.concatenate(parts)
-        v = v[np.isfinite(v)]
-        f = np.concatenate(final[name])
-        f = f[np.isfinite(f)]
-        rows.append({"Observer": name, "Parameters": ("EM on the other trials" if name in result.tuned
-                                                      else "config (hand-tuned)"),
-                     f"E_xyz mean [{unit}]": float(v.mean()) if v.size else np.nan,
-                     f"E_xyz std [{unit}]": float(v.std()) if v.size else np.nan,
-                     f"E_xyz final mean [{unit}]": float(f.mean()) if f.size else np.nan,
-                     "Held-out trials": int(f.size)})
-    summary = pd.DataFrame(rows)
-    brow = []
-    for (name, group), parts in sorted(depth_obs.items(), key=lambda kv: (kv[0][1] != "all", kv[0][1], kv[0][0])):
-        a = np.concatenate(parts)
-        row = {"Observer": name, **({"Held-out group": group} if result.groups else {})}
-        for lo, hi in zip(DEPTH_BINS[:-1], DEPTH_BINS[1:]):
-            sel = (a[:, 0] >= lo) & (a[:, 0] < hi) & np.isfinite(a[:, 1])
-            row[f"{lo:g}-{hi:g} mm"] = float(a[sel, 1].mean()) if sel.any() else np.nan
-        brow.append(row)
-    by_depth = pd.DataFrame(brow)
-    by_depth = by_depth.loc[:, [c for c in by_depth.columns if c in ("Observer", "Held-out group") or by_depth[c].notna().any()]]
-    return {"summary": summary, "by_depth": by_depth, "constants": result.constants}
-
-
-def crossval_plot(by_depth: pd.DataFrame, path: Path, title: str) -> Path | None:
-    """Mean held-out position error against inserted depth (the by-depth table, drawn at each bin's
-    centre): one colour per observer, one line style per held-out group (solid: all trials)."""
-    from needlecli.reports.plots import CASE_STYLES, save_figure, subplots
-
-    if by_depth.empty:
-        return None
-    bins = [c for c in by_depth.columns if c.endswith(" mm")]
-    centres = np.array([np.mean([float(x) for x in c[:-3].split("-")]) for c in bins])
-    observers = list(dict.fromkeys(by_depth["Observer"]))
-    groups = list(dict.fromkeys(by_depth["Held-out group"])) if "Held-out group" in by_depth else ["all"]
-    fig, ax = subplots(1, 1, figsize=(7.5, 4.2))
-    for _, row in by_depth.iterrows():
-        g = row.get("Held-out group", "all")
-        v = row[bins].to_numpy(dtype=float)
-        fin = np.isfinite(v)
-        ax.plot(centres[fin], v[fin], marker="o", ms=3.5, lw=1.4 if g == "all" else 1.0,
-                color=f"C{observers.index(row['Observer']) % 10}", ls=CASE_STYLES[groups.index(g) % len(CASE_STYLES)],
-                label=f"{row['Observer']} ({g})", gid=f"observer:{row['Observer']}")
-    ax.set_xlabel("inserted depth [mm] (bin centres)")
-    ax.set_ylabel("mean position error, held out [mm]")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize="small", ncol=2)
-    ax.set_title(title, fontsize=9)
-    return save_figure(fig, path)
+    tree = results_tree(cfg, text, truth, streams, estimates, sensors)
+    tree.data["crossval"] = fold
+    return write_atomic(path, tree)
 
 
 def check_args(leave_one_out: bool, within: bool, folds: int | None) -> None:

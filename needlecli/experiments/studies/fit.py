@@ -55,6 +55,37 @@ class Trials:
     simulated: bool
 
 
+#: ``needle fit-em --model both``: every model of the config's fit section (``fit.models``; seed 004's
+#: configs fit mnm and binm, whence the word)
+EVERY_MODEL = "both"
+
+
+def fit_models_option(choice: str | None) -> list[str] | None:
+    """The models ``needle fit-em --model`` asks for: a model name or several, comma-separated, each one
+    a fit section can fit (``fit.models`` takes every registered model, built-in or a plug-in's); None
+    for every model of the config's fit section (no choice, or :data:`EVERY_MODEL`).
+
+    Raises
+    ------
+    ConfigError
+        A name that is no registered model (the message names the accepted ones).
+    """
+    from needlecli.errors import ConfigError, did_you_mean
+
+    if choice is None:
+        return None
+    names = [m.strip().lower() for m in choice.split(",") if m.strip()]
+    if not names or names == [EVERY_MODEL]:
+        return None
+    known = MODELS.names()
+    for m in names:
+        if m not in known:
+            raise ConfigError("--model", (), f"{m!r} is not a model a fit section can fit; give {', '.join(known)} "
+                              f"(several comma-separated) or {EVERY_MODEL} (every model of the config's fit.models)"
+                              + did_you_mean(m, known + [EVERY_MODEL]))
+    return list(dict.fromkeys(names))
+
+
 def load_fit_config(path: str | Path, *, overrides: list[str] | None = None):
     """Read and check the config of a fit: ``(cfg, text)``. A file that is not a config is a DataError
     saying what to do instead."""

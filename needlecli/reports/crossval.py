@@ -1,0 +1,132 @@
+"""The tables and the plot of ``needle crossval``, from its folds' results files alone.
+
+Each fold's results file (``DIR/folds/fold<k>.h5``) holds the held-out trials run through every observer
+and a ``/crossval`` group saying which trials trained the fold's fit and which were held out, which
+observers are the EM-tuned copies, each held-out trial's group (with ``--group-by``) and the constants
+the fold's fit gave (docs/reference/results-file.md). The tables pool the held-out errors of all folds.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from needlecli.errors import DataError
+
+DEPTH_BINS = (0.0, 10.0, 20.0, 30.0, 40.0, 60.0, 80.0, 120.0, 200.0)
+
+
+def _texts(values) -> list[str]:
+    return [v.decode() if isinstance(v, bytes) else str(v) for v in np.atleast_1d(values)]
+
+
+def crossval_tables(paths: list[Path]) -> dict[str, pd.DataFrame]:
+    """From the folds' results files ``paths``: ``summary``: per observer, the position error over every
+    held-out trial and time (mean, std, final); ``by_depth``: the mean position error per depth bin (what
+    a planner needs), over all held-out trials and, with groups, per group of the held-out trials;
+    ``constants``: each fold's fitted constants.
+
+    Raises
+    ------
+    DataError
+        A file that is not a fold's results file of needle crossval (no ``/crossval`` group).
+    """
+    from needlecli.io.results import read_results
+    from needlecli.metrics import compute_errors
+
+    per_obs: dict[str, list[np.ndarray]] = {}
+    depth_obs: dict[tuple[str, str], list[np.ndarray]] = {}  # (observer, group or "all")
+    final: dict[str, list[np.ndarray]] = {}
+    tuned: set[str] = set()
+    grouped = False
+    rows = []
+    unit = "mm"
+    for path in paths:
+        res = read_results(path)
+        cv = res.data.get("crossval")
+        if cv is None:
+            raise DataError(f"{path}: not a fold of needle crossval (no /crossval group)")
+        tuned |= set(_texts(cv.attrs.get("tuned", [])))
+        test = _texts(cv.attrs["test"])
+        groups = dict(zip(test, _texts(cv.data["group"]))) if "group" in cv.data else {}
+        grouped = grouped or bool(groups)
+        const = cv.data.get("constants")
+        if const is not None:
+            for c, med, se in zip(_texts(const.data["name"]), np.atleast_1d(const.data["median"]),
+                                  np.atleast_1d(const.data["se"])):
+                rows.append({"Fold": int(cv.attrs["fold"]), "Held out": ", ".join(test),
+                             "Trained on": len(_texts(cv.attrs["train"])), "Constant": c, "Median": float(med),
+                             "SE (pooled)": float(se),
+                             "Trials ok": f"{int(const.attrs['trials_ok'])}/{int(const.attrs['trials'])}"})
+        errs = compute_errors(res)
+        depth = np.asarray(res.data["depth"], dtype=float)
+        for name, es in errs.items():
+            q = es.quantities.get("E_xyz")
+            if q is None:
+                continue
+            unit = q.unit
+            v = q.values
+            d = depth[q.runs] if depth.ndim == 2 else np.broadcast_to(depth, v.shape)
+            per_obs.setdefault(name, []).append(v[:, 1:].ravel())
+            depth_obs.setdefault((name, "all"), []).append(np.stack([d.ravel(), v.ravel()], -1))
+            if groups:  # and per group of the held-out trials (a recording day)
+                ids = np.asarray(res.data["truth"].data.get("trial_id", [])).astype(str)[q.runs]
+                for g in dict.fromkeys(groups.get(t, t) for t in ids):
+                    sel = np.array([groups.get(t, t) == g for t in ids])
+                    depth_obs.setdefault((name, g), []).append(np.stack([d[sel].ravel(), v[sel].ravel()], -1))
+            fin = np.isfinite(v)
+            k_last = np.where(fin, np.arange(v.shape[1]), -1).max(axis=1)  # the last time with an error
+            final.setdefault(name, []).append(np.where(k_last >= 0, v[np.arange(len(v)), np.maximum(k_last, 0)], np.nan))
+    out = []
+    for name, parts in per_obs.items():
+        v = np.concatenate(parts)
+        v = v[np.isfinite(v)]
+        f = np.concatenate(final[name])
+        f = f[np.isfinite(f)]
+        out.append({"Observer": name, "Parameters": ("EM on the other trials" if name in tuned
+                                                     else "config (hand-tuned)"),
+                    f"E_xyz mean [{unit}]": float(v.mean()) if v.size else np.nan,
+                    f"E_xyz std [{unit}]": float(v.std()) if v.size else np.nan,
+                    f"E_xyz final mean [{unit}]": float(f.mean()) if f.size else np.nan,
+                    "Held-out trials": int(f.size)})
+    summary = pd.DataFrame(out)
+    brow = []
+    for (name, group), parts in sorted(depth_obs.items(), key=lambda kv: (kv[0][1] != "all", kv[0][1], kv[0][0])):
+        a = np.concatenate(parts)
+        row = {"Observer": name, **({"Held-out group": group} if grouped else {})}
+        for lo, hi in zip(DEPTH_BINS[:-1], DEPTH_BINS[1:]):
+            sel = (a[:, 0] >= lo) & (a[:, 0] < hi) & np.isfinite(a[:, 1])
+            row[f"{lo:g}-{hi:g} mm"] = float(a[sel, 1].mean()) if sel.any() else np.nan
+        brow.append(row)
+    by_depth = pd.DataFrame(brow)
+    by_depth = by_depth.loc[:, [c for c in by_depth.columns if c in ("Observer", "Held-out group") or by_depth[c].notna().any()]]
+    return {"summary": summary, "by_depth": by_depth, "constants": pd.DataFrame(rows)}
+
+
+def crossval_plot(by_depth: pd.DataFrame, path: Path, title: str) -> Path | None:
+    """Mean held-out position error against inserted depth (the by-depth table, drawn at each bin's
+    centre): one colour per observer, one line style per held-out group (solid: all trials)."""
+    from needlecli.reports.plots import CASE_STYLES, save_figure, subplots
+
+    if by_depth.empty:
+        return None
+    bins = [c for c in by_depth.columns if c.endswith(" mm")]
+    centres = np.array([np.mean([float(x) for x in c[:-3].split("-")]) for c in bins])
+    observers = list(dict.fromkeys(by_depth["Observer"]))
+    groups = list(dict.fromkeys(by_depth["Held-out group"])) if "Held-out group" in by_depth else ["all"]
+    fig, ax = subplots(1, 1, figsize=(7.5, 4.2))
+    for _, row in by_depth.iterrows():
+        g = row.get("Held-out group", "all")
+        v = row[bins].to_numpy(dtype=float)
+        fin = np.isfinite(v)
+        ax.plot(centres[fin], v[fin], marker="o", ms=3.5, lw=1.4 if g == "all" else 1.0,
+                color=f"C{observers.index(row['Observer']) % 10}", ls=CASE_STYLES[groups.index(g) % len(CASE_STYLES)],
+                label=f"{row['Observer']} ({g})", gid=f"observer:{row['Observer']}")
+    ax.set_xlabel("inserted depth [mm] (bin centres)")
+    ax.set_ylabel("mean position error, held out [mm]")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize="small", ncol=2)
+    ax.set_title(title, fontsize=9)
+    return save_figure(fig, path)

@@ -40,7 +40,7 @@ import pandas as pd
 import yaml
 from pydantic import ValidationError
 
-from needlecli.errors import ConfigError, DataError
+from needlecli.errors import ComponentError, ConfigError, DataError, NeedleError
 from needlecli.models import NotMeasurable
 
 if TYPE_CHECKING:
@@ -404,10 +404,11 @@ def compare_observers(
     """Simulate (or replay) once, run every applicable observer on the same problem, write the results
     file ``<out_dir>/<name>_compare.h5`` and return what is needed for :func:`compare_table`."""
     from needlecli.experiments.config.load import load_config
+    from needlecli.experiments.simulation import components
     from needlecli.experiments.simulation.replay import replay_truth
     from needlecli.experiments.simulation.runner import build_problem, results_tree, simulate_and_measure
     from needlecli.experiments.simulation.truth import stream
-    from needlecli.io.atomic import check_output_dir
+    from needlecli.io.atomic import check_output_dir, raised_signal
     from needlecli.io.results import read_results, write_atomic
     from needlecli.io.yamlfile import parse_yaml
     from needlecli.metrics import compute_errors
@@ -446,14 +447,17 @@ def compare_observers(
     problem = dataclasses.replace(problem, start=start)
     estimates, runs_out = {}, []
     for c, o in zip(chosen, cfg1.observers):
-        obs = OBSERVERS.get(o.type)(o)
-        cb = (lambda k, n, _name=obs.name: progress(f"observer {_name}", k, n)) if progress else None
+        name = o.name or o.type
+        cb = (lambda k, n, _name=name: progress(f"observer {_name}", k, n)) if progress else None
         r = ObserverRun(candidate=c)
         t0 = time.perf_counter()
-        try:
-            estimates[obs.name] = obs.run(problem, stream(seed_, f"observer/{obs.name}"), progress=cb)
-        except Exception as e:  # noqa: BLE001 (one observer's crash is a row of the table, not the end)
-            r.error = f"{type(e).__name__}: {e}".splitlines()[0]
+        try:  # guarded and checked (components): one observer's failure is a row of the table, not the end
+            obs = components.build_observer(o)
+            estimates[name] = components.run_observer(obs, o, problem, stream(seed_, f"observer/{name}"), progress=cb)
+        except NeedleError as e:  # a crash, sys.exit, a posterior that breaks the contract, a user error inside
+            if raised_signal() is not None:  # a signal that the observer's code swallowed: the end after all
+                raise
+            r.error = e.reason if isinstance(e, ComponentError) else " ".join(str(e).split())
         r.seconds = time.perf_counter() - t0
         runs_out.append(r)
     path = write_atomic(out / f"{cfg.name}_compare.h5", results_tree(cfg1, text1, truth, streams, estimates, sensors, control))

@@ -52,6 +52,31 @@ class OutputError(NeedleError):
         super().__init__(f"{path}: {message}")
 
 
+class ComponentError(NeedleError):
+    """A component (model, sensor, pipeline, observer, controller: built-in or a plug-in) that failed in a
+    call -- raised, or called ``sys.exit`` -- or returned something that breaks its contract (a shape
+    that does not fit the problem, NaN in a run it marked ok, a covariance that is not symmetric positive
+    semi-definite). Raised by :mod:`needlecli.guard`; one line, exit code 2.
+
+    Parameters
+    ----------
+    component : str
+        The component, its config name and type, and its package:
+        ``"observer 'my' (type bad_ukf, package needle-bad-ukf)"``.
+    reason : str
+        What went wrong, starting with the call: ``"run raised ValueError: ..."``,
+        ``"run returned state of shape (2, 11, 3), expected (N, T, n) = (2, 11, 6)"``.
+    """
+
+    def __init__(self, component: str, reason: str) -> None:
+        self.component = component
+        self.reason = reason
+        super().__init__(f"{component}: {reason}")
+
+    def __reduce__(self):  # a sweep's worker process sends it back to the parent
+        return type(self), (self.component, self.reason)
+
+
 class Interrupted(KeyboardInterrupt):
     """SIGINT or SIGTERM while a command runs (both handled the same way). Exit code 128 + the signal:
     130 for SIGINT, 143 for SIGTERM. ``hint`` may say how to carry on (``--resume``)."""

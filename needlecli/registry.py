@@ -11,8 +11,12 @@ components that other installed packages add. An implementation is imported on f
 them. An entry point names a module (whose import registers the component) or an object in it
 (``package.module:Class``), registered under the entry point's name when its module does not register it.
 
-A plug-in that fails to import raises :class:`PluginError` (one line naming its package) where it is
-used; other components and commands are unaffected.
+A registry declares what its components are (``base``: a class they subclass, named as
+``"module:Class"`` and imported only when a plug-in is loaded, so that the front doors stay light; or
+``callable`` for tables and plots). A plug-in that fails to import, or whose entry point gives something
+else (a function where a class is needed, a number), raises :class:`PluginError` (one line naming the
+entry point, its package and what it is instead) where it is used; other components and commands are
+unaffected. What a component does once loaded is guarded where it is called (:mod:`needlecli.guard`).
 """
 
 from __future__ import annotations
@@ -46,6 +50,22 @@ def _one_line(e: BaseException) -> str:
     return f"{type(e).__name__}: {text}" if text else type(e).__name__
 
 
+def _what(obj: Any) -> str:
+    """What an object is, for a message: ``a function``, ``the class Foo``, ``an int (3)``, ``a module``."""
+    import inspect
+
+    if isinstance(obj, type):
+        return f"the class {obj.__qualname__}"
+    if isinstance(obj, type(importlib)):
+        return "a module"
+    if inspect.isroutine(obj):
+        return "a function"
+    kind = type(obj).__name__
+    article = "an" if kind[:1].lower() in "aeiou" else "a"
+    text = repr(obj)
+    return f"{article} {kind} ({text[:40]})" if len(text) <= 40 else f"{article} {kind}"
+
+
 class Registry(Generic[T]):
     """Name -> component mapping with lazy built-ins, entry points and a readable error for unknown names.
 
@@ -57,11 +77,16 @@ class Registry(Generic[T]):
         The entry-point group other packages register in (``"needlecli.observers"``).
     builtins : mapping, optional
         ``name -> module`` of the built-in components; importing the module registers the name.
+    base : str or callable, optional
+        What every component is: ``"module:Class"`` (each a subclass of that class; imported when a plug-in
+        is loaded), or the builtin ``callable`` (each a function, or any callable object). None: anything.
     """
 
-    def __init__(self, what: str, *, group: str | None = None, builtins: Mapping[str, str] | None = None) -> None:
+    def __init__(self, what: str, *, group: str | None = None, builtins: Mapping[str, str] | None = None,
+                 base: str | Callable[[object], bool] | None = None) -> None:
         self.what = what
         self.group = group
+        self.base = base
         self._builtins = dict(builtins or {})
         self._items: dict[str, T] = {}
         self._plugins: dict[str, Any] | None = None  # name -> importlib.metadata.EntryPoint, read once
@@ -79,6 +104,11 @@ class Registry(Generic[T]):
             return obj
 
         return deco
+
+    @property
+    def kind(self) -> str:
+        """What one component is called in messages about it: ``observer`` (of ``observer type``)."""
+        return self.what.removesuffix(" type")
 
     # ---------------------------------------------------------------------------------- discovery
     def plugins(self) -> dict[str, Any]:
@@ -113,7 +143,28 @@ class Registry(Generic[T]):
         if name not in self._items:
             if isinstance(obj, type(importlib)):  # a module that registered other names, or none
                 raise PluginError(f"{where}: importing the module did not register {name!r}", name=name, registry=self.what)
+            obj = self._checked(obj, where, name)
             self.register(name)(obj)
+        else:  # its module registered it: the same check
+            try:
+                self._checked(self._items[name], where, name)
+            except PluginError:
+                del self._items[name]
+                raise
+
+    def _checked(self, obj: Any, where: str, name: str) -> Any:
+        """``obj`` if it is what this registry's components are (:attr:`base`), else a PluginError."""
+        if self.base is None:
+            return obj
+        if self.base is callable:
+            if callable(obj):
+                return obj
+            raise PluginError(f"{where}: is {_what(obj)}, not a function", name=name, registry=self.what)
+        module, _, attr = str(self.base).partition(":")
+        cls = getattr(importlib.import_module(module), attr)
+        if isinstance(obj, type) and issubclass(obj, cls):
+            return obj
+        raise PluginError(f"{where}: is {_what(obj)}, not a subclass of {cls.__name__}", name=name, registry=self.what)
 
     # ---------------------------------------------------------------------------------- lookup
     def get(self, name: str) -> T:

@@ -16,7 +16,7 @@ PKG = Path(__file__).resolve().parent.parent / "needlecli"
 
 #: each package (or top-level module) and the ones it may import: docs/layout.md's layer drawing, as data
 LAYERS: dict[str, set[str]] = {
-    "foundation": set(),  # errors, registry, schema, provenance, the package's __init__
+    "foundation": set(),  # errors, guard, registry, schema, provenance, the package's __init__
     "kernels": {"foundation"},  # compiled numerics: import nothing of the package above them
     "numerics": {"kernels", "foundation"},
     "models": {"numerics", "foundation", "kernels"},
@@ -42,7 +42,7 @@ LAYERS: dict[str, set[str]] = {
             "fitting", "control", "reports", "metrics", "problem", "sensors", "io", "models", "numerics",
             "foundation", "kernels"},
 }
-FOUNDATION = {"needlecli", "needlecli.errors", "needlecli.registry", "needlecli.schema", "needlecli.provenance"}
+FOUNDATION = {"needlecli", "needlecli.errors", "needlecli.guard", "needlecli.registry", "needlecli.schema", "needlecli.provenance"}
 
 
 def module_name(path: Path) -> str:

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 
 import typer
 
-from needlecli.errors import Interrupted, NeedleError
+from needlecli.errors import ComponentError, Interrupted, NeedleError
 
 if TYPE_CHECKING:
     from needlecli.experiments.config.types import ExperimentConfig
@@ -48,6 +48,8 @@ def user_errors(fn: Callable) -> Callable:
                 return fn(*args, **kwargs)
             except NeedleError as e:
                 hold_signals()
+                if isinstance(e, ComponentError) and raised_signal() is not None:  # a component swallowed a signal
+                    _interrupted(raised_signal())
                 JOURNAL.remove_inflight()
                 fail(str(e), e.exit_code)
             except KeyboardInterrupt as e:  # Interrupted (SIGINT, SIGTERM), or Ctrl-C before the handlers

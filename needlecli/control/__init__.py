@@ -16,7 +16,7 @@ from needlecli.registry import Registry, lazy_attributes
 if TYPE_CHECKING:
     from needlecli.control.base import Controller
 
-CONTROLLERS: Registry[type[Controller]] = Registry("controller type", group="needlecli.controllers", builtins={
+CONTROLLERS: Registry[type[Controller]] = Registry("controller type", group="needlecli.controllers", base="needlecli.control.base:Controller", builtins={
     "opacity_bz": "needlecli.control.opacity_bz",
 })
 

@@ -9,7 +9,7 @@ from needlecli.registry import Registry, lazy_attributes
 if TYPE_CHECKING:
     from needlecli.models.base import Model
 
-MODELS: Registry[type[Model]] = Registry("model", group="needlecli.models", builtins={
+MODELS: Registry[type[Model]] = Registry("model", group="needlecli.models", base="needlecli.models.base:Model", builtins={
     "unicycle": "needlecli.models.unicycle",
     "modified_unicycle": "needlecli.models.unicycle",
     "so3": "needlecli.models.so3",

@@ -9,7 +9,7 @@ from needlecli.registry import Registry, lazy_attributes
 if TYPE_CHECKING:
     from needlecli.observers.base import Observer
 
-OBSERVERS: Registry[type[Observer]] = Registry("observer type", group="needlecli.observers", builtins={
+OBSERVERS: Registry[type[Observer]] = Registry("observer type", group="needlecli.observers", base="needlecli.observers.base:Observer", builtins={
     "open_loop": "needlecli.observers.open_loop",
     "ukf": "needlecli.observers.ukf",
     "high_gain": "needlecli.observers.high_gain",

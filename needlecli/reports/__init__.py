@@ -42,10 +42,10 @@ FIT_TABLE_NAMES = ("seed004_table1", "seed004_table2", "seed004_table3", "seed00
 FIT_DEFAULT = FIT_TABLE_NAMES[:9]
 
 #: table functions ``(results, errors) -> DataFrame``
-TABLES: Registry = Registry("table", group="needlecli.tables",
+TABLES: Registry = Registry("table", group="needlecli.tables", base=callable,
                             builtins={n: m for m, names in _TABLE_MODULES.items() for n in names})
 #: plot functions ``(results, errors, path_stem) -> Path | None`` (None: not applicable to this file)
-PLOTS: Registry = Registry("plot", group="needlecli.plots",
+PLOTS: Registry = Registry("plot", group="needlecli.plots", base=callable,
                            builtins={n: m for m, names in _PLOT_MODULES.items() for n in names})
 
 __all__ = ["FIT_DEFAULT", "FIT_TABLE_NAMES", "PLOTS", "TABLES"]

@@ -10,11 +10,11 @@ from needlecli.registry import Registry, lazy_attributes
 if TYPE_CHECKING:
     from needlecli.sensors.base import Pipeline, Sensor
 
-SENSORS: Registry[type[Sensor]] = Registry("sensor type", group="needlecli.sensors", builtins={
+SENSORS: Registry[type[Sensor]] = Registry("sensor type", group="needlecli.sensors", base="needlecli.sensors.base:Sensor", builtins={
     **{name: "needlecli.sensors.statistical" for name in ("position", "encoder", "elastography", "tangent", "bfield")},
     "image_plane": "needlecli.sensors.plane",
 })
-PIPELINES: Registry[type[Pipeline]] = Registry("measurement pipeline", group="needlecli.pipelines", builtins={
+PIPELINES: Registry[type[Pipeline]] = Registry("measurement pipeline", group="needlecli.pipelines", base="needlecli.sensors.base:Pipeline", builtins={
     "gaussian": "needlecli.sensors.base",
     "image": "needlecli.sensors.imaging.pipeline",
 })

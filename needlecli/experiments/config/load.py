@@ -23,6 +23,7 @@ from needlecli.experiments.config.from_fit import expand_from_fit
 from needlecli.experiments.config.overrides import apply_overrides
 from needlecli.experiments.config.schedule import signal_size
 from needlecli.experiments.config.schema import all_tags, experiment_schema, used_types
+from needlecli.guard import Component
 from needlecli.io.yamlfile import parse_yaml, read_text
 from needlecli.models import MODELS, Model
 from needlecli.observers import OBSERVERS
@@ -243,8 +244,8 @@ def check_consistency(cfg: ExperimentConfig, source: str, problems: list | None 
         if name in obs_names:
             report(("observers", i, "name"), f"observer name {name!r} is used twice")
         obs_names.add(name)
-        for loc, msg in cls.check(o, model, names):
-            report(("observers", i) + tuple(loc), msg + _hint(msg, names))
+        for loc, msg in _checked(Component.of(OBSERVERS, o.type, name), cls.check, o, model, names):
+            report(("observers", i) + loc, msg + _hint(msg, names))
     cs = cfg.runs.common_start
     if cs is not None:
         by_name = {o.name or o.type: o for o in cfg.observers if not isinstance(o, dict)}
@@ -270,6 +271,12 @@ def check_consistency(cfg: ExperimentConfig, source: str, problems: list | None 
 
         for loc, msg in check_fit(cfg.fit, names):
             report(("fit",) + tuple(loc), msg + _hint(msg, names))
+
+
+def _checked(component: Component, check, settings, model, sensors) -> list[tuple[tuple, str]]:
+    """A component's ``check(settings, model, sensors)``, guarded (:mod:`needlecli.guard`: a failure is
+    one line naming it and its package): its problems as ``[(loc, message)]``."""
+    return component.call("check", lambda: [(tuple(loc), str(msg)) for loc, msg in check(settings, model, sensors)])
 
 
 def _hint(msg: str, sensors: dict) -> str:
@@ -311,9 +318,9 @@ def check_control(cfg: ExperimentConfig, model: Model, sensors: dict, source: st
             report(("control", i, "sensor"), f"no sensor named {c.sensor!r}; sensors are {known}"
                    + did_you_mean(c.sensor, sensors))
             continue
-        problems = list(cls.check(c, model, sensors))
+        problems = _checked(Component.of(CONTROLLERS, c.type, name), cls.check, c, model, sensors)
         for loc, msg in problems:
-            report(("control", i) + tuple(loc), msg)
+            report(("control", i) + loc, msg)
         if problems:
             continue
         sensor = sensors[c.sensor]

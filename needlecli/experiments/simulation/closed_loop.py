@@ -12,9 +12,8 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from needlecli.control.base import CONTROLLERS
+from needlecli.experiments.simulation import components
 from needlecli.experiments.simulation.truth import TruthSimulator, stream
-from needlecli.sensors import SENSORS
 
 if TYPE_CHECKING:
     from needlecli.experiments.config.types import ExperimentConfig
@@ -27,11 +26,11 @@ def simulate_closed_loop(cfg: ExperimentConfig, *, progress=None):
     :class:`~needlecli.io.results.Group` of what it did.
     """
     seed = cfg.runs.seed
-    sim = TruthSimulator(cfg, progress=progress)
+    sim = components.simulated(cfg, "simulate", TruthSimulator, cfg, progress=progress)
     model = sim.model
-    sensors = [SENSORS.get(s.type)(s, model) for s in cfg.sensors]
+    sensors = components.build_sensors(cfg, model)
     by_name = {s.name: s for s in sensors}
-    controllers = [CONTROLLERS.get(c.type)(c, model) for c in cfg.control]
+    controllers = [components.GuardedController(c, model) for c in cfg.control]  # every call guarded
     in_loop = {c.settings.sensor for c in controllers}
     if len(in_loop) != 1:  # the config check says so already
         raise ValueError("every controller must read the same sensor")
@@ -49,14 +48,18 @@ def simulate_closed_loop(cfg: ExperimentConfig, *, progress=None):
     def on_frame(j, outputs):
         for c in controllers:
             c.on_sample(j, outputs)
-            if c.first_action(j) <= sim.acted:  # a command for a grid time already stepped from
-                raise RuntimeError(f"controller {c.name!r}: sample {j} acts at grid index {c.first_action(j)}, "
-                                   f"but the simulation has stepped from index {sim.acted}")
+            k = c.first_action(j)
+            if k <= sim.acted:  # a command for a grid time already stepped from
+                raise c.component.broke("first_action", f"grid index {k} for sample {j}, but the simulation "
+                                        f"has stepped from index {sim.acted}")
 
     sim.before_step = before_step
-    finish = loop_sensor.measure_live(sim, stream(seed, f"sensor/{loop_sensor.name}"), on_frame)
-    truth = sim.finish()
+    # the pass (the model stepped between the samples, the controllers called from on_frame, each guarded)
+    live = components.sensor_component(loop_sensor)
+    finish = live.call("measure_live", loop_sensor.measure_live, sim, stream(seed, f"sensor/{loop_sensor.name}"), on_frame)
+    truth = components.simulated(cfg, "simulate", sim.finish)
     streams = {}
     for s in sensors:
-        streams[s.name] = finish(truth) if s is loop_sensor else s.measure(truth, stream(seed, f"sensor/{s.name}"))
+        streams[s.name] = (components.measured(s, "measure_live", finish, truth) if s is loop_sensor
+                           else components.measure(s, truth, stream(seed, f"sensor/{s.name}")))
     return truth, sensors, streams, {c.name: c.results(truth) for c in controllers}

@@ -13,12 +13,14 @@ import numpy as np
 
 from needlecli import kernels
 from needlecli.experiments.config.types import Stop
+from needlecli.experiments.simulation import components
+from needlecli.experiments.simulation.components import build_sensors
 from needlecli.experiments.simulation.replay import replay_truth
 from needlecli.experiments.simulation.truth import Truth, simulate_truth, stream
 from needlecli.io.results import Group, root_attrs, write_atomic
-from needlecli.observers import OBSERVERS, Channel, EstimationProblem, Posterior
+from needlecli.observers import Channel, EstimationProblem, Posterior
 from needlecli.observers.base import cov_steps
-from needlecli.sensors import SENSORS, MeasurementStream
+from needlecli.sensors import MeasurementStream
 from needlecli.sensors.base import inequality_function, measurement_function
 
 if TYPE_CHECKING:
@@ -41,10 +43,6 @@ def default_output(cfg: ExperimentConfig) -> Path:
     return Path(cfg.output.path) if cfg.output.path else Path("results") / f"{cfg.name}.h5"
 
 
-def build_sensors(cfg: ExperimentConfig, model):
-    return [SENSORS.get(s.type)(s, model) for s in cfg.sensors]
-
-
 def simulate_and_measure(cfg: ExperimentConfig, *, progress: Callable[[int, int], None] | None = None,
                          measure_progress: Progress | None = None):
     """Simulate the truth of a config and measure it with every sensor: in open loop (the truth first,
@@ -56,12 +54,12 @@ def simulate_and_measure(cfg: ExperimentConfig, *, progress: Callable[[int, int]
         from needlecli.experiments.simulation.closed_loop import simulate_closed_loop
 
         return simulate_closed_loop(cfg, progress=progress)
-    truth = simulate_truth(cfg, progress=progress)
+    truth = components.simulated(cfg, "simulate", simulate_truth, cfg, progress=progress)
     sensors = build_sensors(cfg, truth.model)
     for s in sensors:
         if measure_progress is not None:
             s.progress = lambda k, n, _n=s.name: measure_progress(f"sensor {_n}", k, n)
-    streams = {s.name: s.measure(truth, stream(cfg.runs.seed, f"sensor/{s.name}")) for s in sensors}
+    streams = {s.name: components.measure(s, truth, stream(cfg.runs.seed, f"sensor/{s.name}")) for s in sensors}
     return truth, sensors, streams, {}
 
 
@@ -125,11 +123,11 @@ def run_experiment(
         warm.cancel()
     shared = common_start_problem(cfg, problem)
     estimates: dict[str, Posterior] = {}
-    for o in cfg.observers:
-        obs = OBSERVERS.get(o.type)(o)
+    for o in cfg.observers:  # each run guarded and its posterior checked before anything is written
+        obs = components.build_observer(o)
         cb = (lambda k, n, _name=obs.name: progress(f"observer {_name}", k, n)) if progress else None
         own = shared if shared is not None and obs.name in cfg.runs.common_start.observers else problem
-        estimates[obs.name] = obs.run(own, stream(seed, f"observer/{obs.name}"), progress=cb)
+        estimates[obs.name] = components.run_observer(obs, o, own, stream(seed, f"observer/{obs.name}"), progress=cb)
     path = tree = None
     if write:
         path = Path(out) if out is not None else default_output(cfg)
@@ -159,7 +157,7 @@ def _observe_briefly(cfg: ExperimentConfig) -> None:
     problem = build_problem(cfg, truth, sensors, streams)
     shared = common_start_problem(cfg, problem)
     for o in cfg.observers:
-        obs = OBSERVERS.get(o.type)(o)
+        obs = components.build_observer(o)
         own = shared if shared is not None and obs.name in cfg.runs.common_start.observers else problem
         obs.run(own, stream(cfg.runs.seed, f"observer/{obs.name}"))
 
@@ -171,7 +169,7 @@ def common_start_problem(cfg: ExperimentConfig, problem):
     if cs is None:
         return None
     ref = next(o for o in cfg.observers if (o.name or o.type) == cs.observer)
-    start = OBSERVERS.get(ref.type).initial_estimate(ref, problem, stream(cfg.runs.seed, f"observer/{cs.observer}"))
+    start = components.initial_estimate(ref, problem, stream(cfg.runs.seed, f"observer/{cs.observer}"))
     return dataclasses.replace(problem, start=start)
 
 

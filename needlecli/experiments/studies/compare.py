@@ -46,7 +46,7 @@ import numpy as np
 import yaml
 from pydantic import ValidationError
 
-from needlecli.errors import ConfigError, DataError
+from needlecli.errors import ComponentError, ConfigError, DataError, NeedleError
 from needlecli.observers.defaults import PREDICTION_FRACTION, ComparisonContext, NotApplicable
 
 if TYPE_CHECKING:
@@ -227,10 +227,11 @@ def compare_observers(
     file ``<out_dir>/<name>_compare.h5`` with the comparison's ``/compare`` group (the tables of
     :mod:`needlecli.reports.compare` read it)."""
     from needlecli.experiments.config.load import load_config
+    from needlecli.experiments.simulation import components
     from needlecli.experiments.simulation.replay import replay_truth
     from needlecli.experiments.simulation.runner import build_problem, results_tree, simulate_and_measure
     from needlecli.experiments.simulation.truth import stream
-    from needlecli.io.atomic import check_output_dir
+    from needlecli.io.atomic import check_output_dir, raised_signal
     from needlecli.io.results import write_atomic
     from needlecli.io.yamlfile import parse_yaml
     from needlecli.observers import OBSERVERS
@@ -270,14 +271,17 @@ def compare_observers(
     problem = dataclasses.replace(problem, start=start)
     estimates, runs_out = {}, []
     for c, o in zip(chosen, cfg1.observers):
-        obs = OBSERVERS.get(o.type)(o)
-        cb = (lambda k, n, _name=obs.name: progress(f"observer {_name}", k, n)) if progress else None
+        name = o.name or o.type
+        cb = (lambda k, n, _name=name: progress(f"observer {_name}", k, n)) if progress else None
         r = ObserverRun(candidate=c)
         t0 = time.perf_counter()
-        try:
-            estimates[obs.name] = obs.run(problem, stream(seed_, f"observer/{obs.name}"), progress=cb)
-        except Exception as e:  # noqa: BLE001 (one observer's crash is a row of the table, not the end)
-            r.error = f"{type(e).__name__}: {e}".splitlines()[0]
+        try:  # guarded and checked (components): one observer's failure is a row of the table, not the end
+            obs = components.build_observer(o)
+            estimates[name] = components.run_observer(obs, o, problem, stream(seed_, f"observer/{name}"), progress=cb)
+        except NeedleError as e:  # a crash, sys.exit, a posterior that breaks the contract, a user error inside
+            if raised_signal() is not None:  # a signal that the observer's code swallowed: the end after all
+                raise
+            r.error = e.reason if isinstance(e, ComponentError) else " ".join(str(e).split())
         r.seconds = time.perf_counter() - t0
         runs_out.append(r)
     tree = results_tree(cfg1, text1, truth, streams, estimates, sensors, control)
@@ -331,6 +335,7 @@ def common_start(ctx: ComparisonContext, chosen: list[Candidate], cfg: Experimen
     UKF), with its derived settings, drawn from the reference's own random stream. Marks each candidate's
     ``start`` (with the note of a start its settings prescribe on top, ``Observer.prescribed_start``) and
     ``causal``; returns ``(start, recipe)`` (``(None, why)`` when no observer can give one)."""
+    from needlecli.experiments.simulation import components
     from needlecli.experiments.simulation.truth import stream
     from needlecli.observers import OBSERVERS
     from needlecli.registry import PluginError
@@ -341,8 +346,7 @@ def common_start(ctx: ComparisonContext, chosen: list[Candidate], cfg: Experimen
     derived = [c for c in chosen if c.origin != "config" and OBSERVERS.get(c.type).default_reference]
     order = [c for c in chosen if c.origin == "config"] + sorted(derived, key=lambda c: _plugin(c.type))
     for c in order:
-        cls = OBSERVERS.get(c.type)
-        start = cls.initial_estimate(by_name[c.name], problem, stream(seed, f"observer/{c.name}"))
+        start = components.initial_estimate(by_name[c.name], problem, stream(seed, f"observer/{c.name}"))
         if start is not None:
             ref = c.name
             break

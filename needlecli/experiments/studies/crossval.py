@@ -253,26 +253,26 @@ def _run_common_start(cfg: ExperimentConfig, text, path: Path, base_dir: Path, p
     """Replay a fold's held-out trials through every observer from one common start; write its results,
     with the fold's ``/crossval`` group (``fold``: which trials trained and which were held out, the tuned
     observers, the held-out trials' groups, the fitted constants)."""
+    from needlecli.experiments.simulation import components
     from needlecli.experiments.simulation.replay import replay_truth
     from needlecli.experiments.simulation.runner import build_problem, results_tree
     from needlecli.experiments.simulation.truth import stream
     from needlecli.io.results import write_atomic
-    from needlecli.observers import OBSERVERS
 
     truth, sensors, streams = replay_truth(cfg, base_dir)
     problem = build_problem(cfg, truth, sensors, streams)
     seed = cfg.runs.seed
     start = None
     for o in cfg.observers:
-        start = OBSERVERS.get(o.type).initial_estimate(o, problem, stream(seed, f"observer/{o.name or o.type}"))
+        start = components.initial_estimate(o, problem, stream(seed, f"observer/{o.name or o.type}"))
         if start is not None:
             break
     problem = dataclasses.replace(problem, start=start)
     estimates = {}
-    for o in cfg.observers:
-        obs = OBSERVERS.get(o.type)(o)
+    for o in cfg.observers:  # each guarded and checked: a failure ends the study before this fold is written
+        obs = components.build_observer(o)
         cb = (lambda k, n, _n=obs.name: progress(f"fold {fd.index + 1}: {_n}", k, n)) if progress else None
-        estimates[obs.name] = obs.run(problem, stream(seed, f"observer/{obs.name}"), progress=cb)
+        estimates[obs.name] = components.run_observer(obs, o, problem, stream(seed, f"observer/{obs.name}"), progress=cb)
     tree = results_tree(cfg, text, truth, streams, estimates, sensors)
     tree.data["crossval"] = fold
     return write_atomic(path, tree)

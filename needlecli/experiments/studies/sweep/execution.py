@@ -28,7 +28,7 @@ from pathlib import Path
 import pandas as pd
 import yaml
 
-from needlecli.errors import SweepError
+from needlecli.errors import NeedleError, SweepError
 from needlecli.experiments.studies.sweep.plan import Cell, config_hash
 from needlecli.io.atomic import install_worker_signals, worker_task, write_text_atomic
 from needlecli.reports.sweep import cell_metrics, param_info, sweep_table, write_sweep_table
@@ -128,8 +128,8 @@ def _run_cell(cell: Cell, path: Path, t0: float) -> CellOutcome:
         _write_sidecar(cell, out)
         return out
     except Exception as e:  # noqa: BLE001 (a cell's failure is data: recorded, the sweep goes on)
-        out = CellOutcome(cell.id, "failed", error=f"{type(e).__name__}: {e}".splitlines()[0],
-                          seconds=time.perf_counter() - t0)
+        said = str(e) if isinstance(e, NeedleError) else f"{type(e).__name__}: {e}"  # (a user's error says what)
+        out = CellOutcome(cell.id, "failed", error=said.splitlines()[0], seconds=time.perf_counter() - t0)
         try:
             _record_failure(cell, out, traceback.format_exc())
         except Exception:  # noqa: BLE001 (the folder went away: the outcome still says why)

@@ -1,69 +1,72 @@
 """Every call that depends on the operating system, each with its capability check and a plain fallback.
 
-needlecli runs on Linux, where it is tested and measured; on macOS and Windows every command works with
-the fallbacks below (slower in places, never different numbers). No other module of needlecli calls an
-operating-system-specific function (``tests/test_architecture.py`` checks it with ``ast``): the decision
-"have it, or fall back" lives here, once. The module is light (the standard library only, most of it
-imported when a function is called): ``needle --help`` imports it.
+needlecli is tested and measured on Linux; on macOS and Windows every command takes the fallbacks below
+(slower in places, never other numbers; not tested there: ``tests/test_platform.py`` takes the Linux-only
+capabilities away on Linux). No other module of needlecli calls an operating-system-specific function
+(``tests/test_architecture.py`` checks it with ``ast``): the decision "have it, or fall back" lives here,
+once. The module is light (the standard library only, most of it imported when a function is called):
+``needle --help`` imports it.
 
 ========================  ======================================  ============================================
-capability                used by                                 without it
+capability [switch name]  used by                                 without it
 ========================  ======================================  ============================================
 posix_fallocate (Linux,   reserve, has_positioned_io: the         the results file is built in memory (an HDF5
-BSD); pread, pwrite,      results writer reserves the file's      file image) and written after: one more copy
-preadv                    room, then HDF5 writes into it          of the arrays, their size again in memory; a
-                          (io/results.py)                         full disk is still one clear error, nothing
+BSD) [fallocate]; pread,  results writer reserves the file's      file image) and written after: one more copy
+pwrite, preadv            room, then HDF5 writes into it          of the arrays, their size again in memory; a
+[positioned_io]           (io/results.py)                         full disk is still one clear error, nothing
                                                                   half-written
 
 O_DIRECT (Linux)          open_direct: the arrays' whole blocks   every write goes through the page cache: the
-                          go to the disk past the page cache      same bytes, slower on virtual machines
+[o_direct]                go to the disk past the page cache      same bytes, slower on virtual machines
                           (io/results.py)
 
 statvfs (POSIX)           free_bytes: the room checked before     shutil.disk_usage (the same figure on Linux)
-                          the work (io/atomic.py)
+[statvfs]                 the work (io/atomic.py)
 
 pathconf (POSIX)          max_name_length: a file name too long   255 bytes, the limit of the common file
-                          refused before the work (io/atomic.py)  systems
+[pathconf]                refused before the work (io/atomic.py)  systems
 
 /proc/meminfo (Linux)     available_memory: the memory check      sysconf's available pages (BSD), else no
-                          before the work                         memory check (NEEDLECLI_MEMORY sets the
+[proc]                    before the work                         memory check (NEEDLECLI_MEMORY sets the
                           (experiments/config/budget.py)          limit by hand)
 
 glibc mallopt (Linux)     malloc_tune: freed memory kept for      the C library's defaults: more page faults
-                          reuse (cli/app.py memory_policy)        in fit-em, the same numbers
+[mallopt]                 reuse (cli/app.py memory_policy)        in fit-em, the same numbers
 
 transparent huge pages    no_transparent_huge_pages: numpy's      nothing to do (numpy madvises huge pages on
-(Linux)                   large arrays on 4 KB pages (cli/app.py  Linux only)
+(Linux) [huge_pages]      large arrays on 4 KB pages (cli/app.py  Linux only)
                           memory_policy)
 
 sched_getaffinity         usable_cores: the kernels' worker       os.cpu_count: every core of the machine,
 (Linux)                   threads (kernels/_threads.py)           also those a job scheduler did not give
+[sched_getaffinity]
 
 BLAS / OpenMP thread      one_thread_env, pin_thread_pools,       THREAD_ENV works everywhere; without
 pools: THREAD_ENV,        thread_pools_limited (sweep's           threadpoolctl a BLAS loaded before the
-threadpoolctl,            workers), single_blas_thread (fit-em's  variables were set keeps its threads;
-/proc/self/maps + ctypes  processes)                              without /proc OpenBLAS keeps its threads in
-                                                                  fit-em: slower on shared cores, the same
-                                                                  numbers
+threadpoolctl             workers), single_blas_thread (fit-em's  variables were set keeps its threads;
+[threadpoolctl],          processes)                              without /proc OpenBLAS keeps its threads in
+/proc/self/maps [proc] +                                          fit-em: slower on shared cores, the same
+ctypes                                                            numbers
 
 fork (Linux, BSD; not     fork_available: the kernels' warm-up    a first run compiles the observers' kernels
 macOS, where a forked     process (kernels/__init__.py), fit-     itself, after the truth's (one core instead
 child may crash in the    em's process per model                  of two); fit-em fits the models one after
 system's libraries)       (experiments/studies/fit.py)            another on every core; the same numbers
+[fork]
 
 prctl PR_SET_PDEATHSIG    die_with_parent: the warm-up process    a warm-up process whose run was killed
-(Linux)                   ends with its run                       outright finishes compiling into the cache,
+(Linux) [prctl]           ends with its run                       outright finishes compiling into the cache,
                           (kernels/__init__.py)                   then ends
 
-fcntl.flock (POSIX)       file_lock: numba's saves to the kernel  msvcrt.locking (Windows), else an exclusive
-                          cache, one process at a time            lock file (O_EXCL) that a process killed
-                          (kernels/_jit.py)                       while holding it leaves: broken when that
+fcntl.flock (POSIX)       file_lock: numba's saves to the kernel  msvcrt.locking, else an exclusive lock file
+[flock]; msvcrt.locking   cache, one process at a time            (O_EXCL); one that a process killed while
+(Windows) [msvcrt]        (kernels/_jit.py)                       holding it leaves is broken when that
                                                                   process is gone, or after LOCK_STALE s
 
 signals to a process:     send_self, pid_alive, parent_alive      signal.raise_signal for the process's own
 kill, getppid of a re-    (io/atomic.py): the signal re-sent      signals; a killed run's temporary file is
 parented child (POSIX)    from the unraisable hook, stale         removed after a day (STALE_AGE), not at
-                          temporary files, sweep workers whose    once; a sweep worker whose parent was killed
+[posix_signals]           temporary files, sweep workers whose    once; a sweep worker whose parent was killed
                           parent died                             waits until it is ended
 
 SIGINT, SIGTERM           STOP_SIGNALS: what stops a command      both exist on Linux, macOS and Windows
@@ -72,12 +75,13 @@ SIGINT, SIGTERM           STOP_SIGNALS: what stops a command      both exist on 
 ========================  ======================================  ============================================
 
 **Taking a capability away** (a testing and debugging aid): the environment variable
-``NEEDLECLI_PLATFORM_WITHOUT``, a comma-separated list of the names of :data:`CAPABILITIES`, makes each
-check below answer "not here" as on a platform that lacks it, e.g. ``NEEDLECLI_PLATFORM_WITHOUT=o_direct,
-fallocate needle simulate ...`` writes the results file as on macOS. ``NEEDLECLI_NO_DIRECT_IO=1`` is the
-older spelling of ``o_direct``. The checks also look each capability up when they are called (``os``'s
-and ``fcntl``'s attributes, the C library's symbols through ``ctypes``), so that a capability removed
-before needlecli runs (``tests/test_platform.py`` deletes them in a ``sitecustomize``) is seen as absent.
+``NEEDLECLI_PLATFORM_WITHOUT``, a comma-separated list of switch names (:data:`CAPABILITIES`, in
+brackets above), makes each check answer "not here" as on a platform that lacks it: e.g.
+``NEEDLECLI_PLATFORM_WITHOUT=o_direct,fallocate needle simulate ...`` writes the results file as on
+macOS. ``NEEDLECLI_NO_DIRECT_IO=1`` is the older spelling of ``o_direct``. The checks also look each
+capability up when they are called (``os``'s and ``fcntl``'s attributes, the C library's symbols through
+``ctypes``), so that a capability removed before needlecli runs (``tests/test_platform.py`` deletes them
+in a ``sitecustomize``) is seen as absent.
 """
 
 from __future__ import annotations
@@ -451,12 +455,12 @@ def single_blas_thread() -> Iterator[None]:
     another BLAS)."""
     found = []
     try:
-        if without("proc"):
-            raise OSError("no /proc")
         import ctypes
 
-        with open("/proc/self/maps", encoding="utf-8") as f:
-            paths = sorted({line.split()[-1] for line in f if "openblas" in line.lower() and "/" in line})
+        paths = []
+        if not without("proc"):
+            with open("/proc/self/maps", encoding="utf-8") as f:
+                paths = sorted({line.split()[-1] for line in f if "openblas" in line.lower() and "/" in line})
         for path in paths:
             lib = ctypes.CDLL(path)
             for name in _BLAS_SETTERS:

@@ -16,7 +16,7 @@ PKG = Path(__file__).resolve().parent.parent / "needlecli"
 
 #: each package (or top-level module) and the ones it may import: docs/layout.md's layer drawing, as data
 LAYERS: dict[str, set[str]] = {
-    "foundation": set(),  # errors, guard, registry, schema, provenance, the package's __init__
+    "foundation": set(),  # errors, guard, registry, schema, provenance, platform, the package's __init__
     "kernels": {"foundation"},  # compiled numerics: import nothing of the package above them
     "numerics": {"kernels", "foundation"},
     "models": {"numerics", "foundation", "kernels"},
@@ -42,7 +42,8 @@ LAYERS: dict[str, set[str]] = {
             "fitting", "control", "reports", "metrics", "problem", "sensors", "io", "models", "numerics",
             "foundation", "kernels"},
 }
-FOUNDATION = {"needlecli", "needlecli.errors", "needlecli.guard", "needlecli.registry", "needlecli.schema", "needlecli.provenance"}
+FOUNDATION = {"needlecli", "needlecli.errors", "needlecli.guard", "needlecli.registry", "needlecli.schema",
+              "needlecli.provenance", "needlecli.platform"}
 
 
 def module_name(path: Path) -> str:
@@ -210,3 +211,51 @@ def test_every_config_argument_is_typed():
                                                                                  not in ast.unparse(a.annotation))):
                         untyped.append(f"{path.relative_to(PKG.parent)}:{node.lineno} {node.name}({a.arg})")
     assert not untyped, "config arguments without their type:\n" + "\n".join(untyped)
+
+
+#: what only needlecli/platform.py may use: modules of one operating system, ``os`` functions some platforms
+#: lack (or where they mean something else: ``os.kill`` ends a process on Windows), the C library's symbols
+PLATFORM_MODULES = {"fcntl", "msvcrt", "ctypes", "resource", "termios", "winreg", "_winapi", "threadpoolctl"}
+PLATFORM_NAMES = {"posix_fallocate", "O_DIRECT", "statvfs", "pathconf", "sched_getaffinity", "sysconf", "getppid",
+                  "prctl", "mallopt", "flock", "lockf", "get_all_start_methods", "raise_signal",
+                  "_set_madvise_hugepage"}
+PLATFORM_OS = {"kill", "fork", "forkpty", "killpg", "setsid", "nice", "uname", "name"}  # as attributes of ``os``
+
+
+def platform_uses(tree: ast.AST) -> list[tuple[int, str]]:
+    """The operating-system-specific names a module's code uses (docstrings and comments aside): imports of
+    :data:`PLATFORM_MODULES`, attributes (or ``getattr`` strings) of :data:`PLATFORM_NAMES`, ``os.<one of
+    PLATFORM_OS>``, ``sys.platform``, paths under ``/proc/``."""
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found += [(node.lineno, f"import {a.name}") for a in node.names if a.name.split(".")[0] in PLATFORM_MODULES]
+        elif isinstance(node, ast.ImportFrom) and not node.level and (node.module or "").split(".")[0] in PLATFORM_MODULES:
+            found.append((node.lineno, f"from {node.module} import"))
+        elif isinstance(node, ast.ImportFrom) and node.module == "os":
+            found += [(node.lineno, f"from os import {a.name}") for a in node.names
+                      if a.name in PLATFORM_NAMES | PLATFORM_OS]
+        elif isinstance(node, ast.Attribute):
+            base = node.value.id if isinstance(node.value, ast.Name) else ""
+            if node.attr in PLATFORM_NAMES or (base == "os" and node.attr in PLATFORM_OS) \
+                    or (base == "sys" and node.attr == "platform"):
+                found.append((node.lineno, ast.unparse(node)))
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str):
+            if node.value in PLATFORM_NAMES or node.value.startswith("/proc/"):
+                found.append((node.lineno, repr(node.value)))
+    return sorted(found)
+
+
+def test_the_platform_check_finds_each_kind_of_use():
+    code = ("import fcntl\nfrom ctypes import CDLL\nos.posix_fallocate(fd, 0, 1)\ngetattr(os, 'O_DIRECT', 0)\n"
+            "os.kill(1, 0)\nsys.platform\nopen('/proc/meminfo')\nlib.mallopt(1, 2)\n"
+            "'os.statvfs(path) in a docstring'\np.kill()\nx.name\nos.pread(fd, 1, 0)\n")
+    assert [line for line, _ in platform_uses(ast.parse(code))] == [1, 2, 3, 4, 5, 6, 7, 8]
+
+
+def test_operating_system_calls_only_in_the_platform_module():
+    """Every call that depends on the operating system is made in needlecli/platform.py, with its capability
+    check and its fallback (issue 24): no other module uses those names."""
+    wrong = [f"{path.relative_to(PKG.parent)}:{line}: {what}" for path in sorted(PKG.rglob("*.py"))
+             if path != PKG / "platform.py" for line, what in platform_uses(ast.parse(path.read_text()))]
+    assert not wrong, "operating-system-specific calls outside needlecli/platform.py:\n" + "\n".join(wrong)

@@ -83,7 +83,8 @@ def memory_policy() -> None:
     """How this process gets memory: first-touched memory is the slow part of the machines needlecli is
     measured on (virtual, shared), so it asks for fresh memory less often. The same numbers either way:
     only how memory is mapped changes. Set before numpy is imported; inherited by the processes a
-    command forks (fit-em's models, sweep's local workers).
+    command forks (fit-em's models, sweep's local workers). Each is a no-op where the platform lacks it
+    (:mod:`needlecli.platform`).
 
     * No transparent huge pages for numpy's large arrays (unless ``NUMPY_MADVISE_HUGEPAGE`` says so): the
       first touch of each madvised 2 MB page waits for the kernel to compact memory, 0.05 to 1.8 s of
@@ -93,32 +94,25 @@ def memory_policy() -> None:
       from the heap, which is not trimmed, so that the arrays of one EM pass reuse the pages of the last
       one instead of faulting fresh ones in (fit-em of seed 004: 1.6 million page faults -> 0.7 million,
       2.9 -> 1.25 s of system time; its peak resident memory 640 -> 720 MB)."""
-    import os
-    import sys
+    from needlecli import platform
 
-    os.environ.setdefault("NUMPY_MADVISE_HUGEPAGE", "0")
-    if "numpy" in sys.modules and os.environ["NUMPY_MADVISE_HUGEPAGE"] == "0":  # imported before run()
-        setter = getattr(sys.modules["numpy"]._core.multiarray, "_set_madvise_hugepage", None)
-        if setter is not None:
-            setter(False)
-    if sys.platform != "linux" or any(k.startswith("MALLOC_") and k.endswith("_") for k in os.environ):
-        return
-    try:
-        import ctypes
-
-        mallopt = ctypes.CDLL(None).mallopt
-    except (OSError, AttributeError):  # not glibc
-        return
-    M_TRIM_THRESHOLD, M_TOP_PAD, M_MMAP_THRESHOLD = -1, -2, -3
-    mallopt(M_MMAP_THRESHOLD, 32 << 20)  # glibc's largest
-    mallopt(M_TRIM_THRESHOLD, 1 << 30)
-    mallopt(M_TOP_PAD, 64 << 20)
+    platform.no_transparent_huge_pages()
+    platform.malloc_tune(mmap_threshold=32 << 20,  # glibc's largest
+                         trim_threshold=1 << 30, top_pad=64 << 20)
 
 
 def run() -> None:
     import signal
 
+    from needlecli import platform
+    from needlecli.errors import NeedleError
+
+    try:
+        platform.check_switch()
+    except NeedleError as e:
+        typer.echo(f"error: {e}", err=True)
+        raise SystemExit(e.exit_code) from None
     memory_policy()
-    for s in (signal.SIGINT, signal.SIGTERM):
+    for s in platform.STOP_SIGNALS:
         signal.signal(s, _quiet_exit)
     app()

@@ -38,6 +38,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from needlecli import platform
 from needlecli.errors import Interrupted, OutputError
 from needlecli.schema import NAME_PATTERN
 
@@ -106,7 +107,7 @@ class _SignalState:
 
 
 _SIG = _SignalState()
-_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+_SIGNALS = platform.STOP_SIGNALS
 
 
 def _handler(signum, frame) -> None:  # noqa: ARG001
@@ -123,7 +124,7 @@ def _unraisable(u) -> None:
     is not lost: the signal is sent again, from another thread 5 ms later (once this hook has returned), and acts at the
     next line of ordinary code (should it land in a finalizer again, it comes back here)."""
     if isinstance(u.exc_value, Interrupted) and _SIG.installed:
-        t = threading.Timer(0.005, os.kill, (os.getpid(), u.exc_value.signum))  # after this hook returned
+        t = threading.Timer(0.005, platform.send_self, (u.exc_value.signum,))  # after this hook returned
         t.daemon = True
         t.start()
         return
@@ -168,7 +169,7 @@ def handle_signals() -> Iterator[None]:
             signal.signal(s, h)
         pending, _SIG.pending, _SIG.deferring = _SIG.pending, None, 0
         if pending is not None and finished:
-            os.kill(os.getpid(), pending)
+            platform.send_self(pending)
 
 
 def start_signals() -> None:
@@ -198,9 +199,9 @@ def _worker_handler(signum, frame) -> None:
 def _watch_parent(parent: int) -> None:
     """A worker whose parent is gone (killed with SIGKILL) stops as if it got SIGTERM, instead of waiting
     for tasks for ever."""
-    while os.getppid() == parent:
+    while platform.parent_alive(parent):
         time.sleep(0.5)
-    os.kill(os.getpid(), signal.SIGTERM)
+    platform.send_self(signal.SIGTERM)
 
 
 def install_worker_signals() -> None:
@@ -214,7 +215,7 @@ def install_worker_signals() -> None:
         import multiprocessing
 
         parent = multiprocessing.parent_process()  # the process that started this one, even if already gone
-        parent_pid = parent.pid if parent is not None and parent.pid else os.getppid()
+        parent_pid = parent.pid if parent is not None and parent.pid else platform.parent_pid()
         threading.Thread(target=_watch_parent, args=(parent_pid,), daemon=True, name="needle-parent").start()
 
 
@@ -253,16 +254,6 @@ def temp_path(path: Path) -> Path:
     return path.parent / f".{path.name[:120]}.{_HOST}-{os.getpid()}-{secrets.token_hex(4)}{TMP_MARK}"
 
 
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
 _swept: set[Path] = set()
 
 
@@ -291,7 +282,7 @@ def remove_stale(folder: Path, *, force: bool = False) -> list[Path]:
             continue
         pid = int(m["pid"])
         mine = m["host"] == _HOST
-        stale = (mine and pid != os.getpid() and not _pid_alive(pid)) or age > STALE_AGE
+        stale = (mine and pid != os.getpid() and not platform.pid_alive(pid)) or age > STALE_AGE
         if stale:
             with contextlib.suppress(OSError):
                 os.unlink(e.path)
@@ -323,13 +314,6 @@ def _nearest_existing(path: Path) -> Path:
     return p
 
 
-def _name_max(folder: Path) -> int:
-    try:
-        return os.pathconf(folder, "PC_NAME_MAX")
-    except (OSError, ValueError):
-        return 255
-
-
 def _probe(folder: Path, target: Path) -> None:
     """Create and remove a temporary file in ``folder``: proves that files can be made there."""
     probe = temp_path(folder / "probe")
@@ -352,11 +336,7 @@ def human_bytes(n: float) -> str:
 
 def free_space(folder: Path) -> int | None:
     """Bytes free for an ordinary user on the file system of ``folder`` (None if unknown)."""
-    try:
-        st = os.statvfs(folder)
-    except OSError:
-        return None
-    return st.f_bavail * st.f_frsize
+    return platform.free_bytes(folder)
 
 
 def _check_names(path: Path, target: Path, last: str = "folder") -> None:
@@ -398,7 +378,7 @@ def check_output_file(path: str | Path, *, what: str = "the file", size: int | N
         raise OutputError(path, f"is a folder; give a file name for {what} (e.g. {path / 'name'})")
     base = _check_parents(path.parent, path, what)
     folder = path.parent if path.parent.is_dir() else base
-    limit = _name_max(folder)
+    limit = platform.max_name_length(folder)
     if len(path.name.encode()) > limit:
         raise OutputError(path, f"the file name is too long ({len(path.name.encode())} bytes; at most {limit})")
     if path.exists():

@@ -30,7 +30,6 @@
 from __future__ import annotations
 
 import datetime as _dt
-import errno
 import itertools
 import mmap
 import os
@@ -39,7 +38,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from needlecli import __version__
+from needlecli import __version__, platform
 from needlecli.errors import DataError
 from needlecli.io.atomic import atomic_path, deferred_signals, write_fd
 from needlecli.io.layout import RESULTS, check_layout
@@ -261,27 +260,18 @@ class _Reserved:
             self._bounce = None
 
 
-def _open_direct(path: Path) -> int | None:
-    """A second descriptor of ``path`` for O_DIRECT writes, where the platform and file system have them."""
-    flag = getattr(os, "O_DIRECT", 0)
-    if not flag or os.environ.get("NEEDLECLI_NO_DIRECT_IO"):
-        return None
-    try:
-        return os.open(path, os.O_WRONLY | flag)
-    except OSError:  # tmpfs and others: no O_DIRECT
-        return None
-
-
 def write_atomic(path: str | Path, root: Group, compression: str = "auto", progress=None) -> Path:
     """Write ``root`` to ``path``, so that a reader never sees a half-written file, a full disk is one clear
     error, and the earlier file at ``path`` is kept until the new one is complete: the file is written to
     a temporary file beside ``path`` and renamed over it (:func:`~needlecli.io.atomic.atomic_path`).
 
     HDF5 must never meet a full disk (it cannot recover from a failed write): the room for the whole file
-    (:func:`_size_bound`, more than it needs) is reserved first (``posix_fallocate``, a full disk fails
-    there, before HDF5 starts), then HDF5 writes the arrays straight from memory into it (one copy, no
-    file image; signals held while it works) and the file is cut to its size. Where the file system
-    cannot reserve room, the file is built in memory and written after (:func:`file_image`).
+    (:func:`_size_bound`, more than it needs) is reserved first (:func:`needlecli.platform.reserve`,
+    ``posix_fallocate``: a full disk fails there, before HDF5 starts), then HDF5 writes the arrays straight
+    from memory into it (one copy, no file image; signals held while it works; the arrays' whole blocks
+    past the page cache where :func:`needlecli.platform.open_direct` can) and the file is cut to its size.
+    Where the platform (macOS, Windows) or the file system cannot reserve room, the file is built in
+    memory and written after (:func:`file_image`).
 
     ``progress(done, total)`` (bytes: the arrays copied into the file, and the file image written where
     one is built) reports how far it is."""
@@ -299,15 +289,8 @@ def write_atomic(path: str | Path, root: Group, compression: str = "auto", progr
     with atomic_path(path) as tmp:
         fd = os.open(tmp, os.O_RDWR)
         try:
-            try:
-                os.posix_fallocate(fd, 0, _size_bound(root))
-                reserved = True
-            except OSError as e:
-                if e.errno not in (errno.EOPNOTSUPP, errno.EINVAL, errno.ENOSYS):
-                    raise
-                reserved = False
-            if reserved:
-                direct = _open_direct(tmp)
+            if platform.has_positioned_io() and platform.reserve(fd, _size_bound(root)):
+                direct = platform.open_direct(tmp)  # a second descriptor, for the arrays' whole blocks
                 target = _Reserved(fd, direct)
                 try:
                     with deferred_signals(), h5py.File(target, "w") as f:

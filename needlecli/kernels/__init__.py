@@ -156,9 +156,10 @@ def warm_up(fn, *args) -> WarmUp:
     cores this way. A no-op where processes cannot be forked or one core is all there is."""
     import multiprocessing as mp
 
+    from needlecli import platform
     from needlecli.kernels import _threads
 
-    if "fork" not in mp.get_all_start_methods() or _threads.n_threads() < 2 or mp.current_process().daemon:
+    if not platform.fork_available() or _threads.n_threads() < 2 or mp.current_process().daemon:
         return WarmUp()  # (a daemonic process, e.g. one of fit-em's, may not start processes of its own)
     p = mp.get_context("fork").Process(target=_warm_child, args=(fn, args), daemon=True)
     try:
@@ -171,20 +172,15 @@ def warm_up(fn, *args) -> WarmUp:
 def _warm_child(fn, args) -> None:
     import signal
 
+    from needlecli import platform
+
     devnull = os.open(os.devnull, os.O_WRONLY)
     os.dup2(devnull, 1)
     os.dup2(devnull, 2)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent's Ctrl-C is the parent's (it terminates this one)
-    try:  # and if the parent is killed outright, this one ends too (Linux); the cache's writes are atomic
-        import ctypes
-
-        ctypes.CDLL(None).prctl(1, int(signal.SIGTERM))  # PR_SET_PDEATHSIG
-        if os.getppid() == 1:
-            os._exit(0)
-    except (OSError, AttributeError):
-        pass
-    try:
-        fn(*args)
+    try:  # if the parent is killed outright, this one ends too (Linux); the cache's writes are atomic
+        if platform.die_with_parent():  # (False: the parent is gone already)
+            fn(*args)
     except BaseException:  # noqa: BLE001  (only a cache is lost: the parent compiles what is missing)
         pass
     finally:

@@ -75,26 +75,20 @@ def _locked_cache_saves() -> None:
     """numba saves a compiled function by reading its cache index, adding the entry and writing it back;
     two processes compiling the same function at once (a first run that compiles in two processes,
     :func:`needlecli.kernels.warm_up`) could then lose an entry or overwrite each other's data file. Each
-    save here holds an exclusive lock on a file beside the index (POSIX ``flock``), so saves of one
-    function follow one another; loads are unchanged (the index and data files are replaced atomically)."""
-    try:
-        import fcntl
+    save here holds an exclusive lock on a file beside the index (:func:`needlecli.platform.file_lock`:
+    ``flock`` where the platform has it), so saves of one function follow one another; loads are unchanged
+    (the index and data files are replaced atomically)."""
+    from numba.core import caching
 
-        from numba.core import caching
-    except ImportError:  # pragma: no cover  (not POSIX)
-        return
+    from needlecli.platform import file_lock
     cls = caching.IndexDataCacheFile
     if getattr(cls.save, "_needlecli_locked", False):
         return
     plain = cls.save
 
     def save(self, key, data):
-        with open(self._index_path + ".lock", "a") as lock:
-            fcntl.flock(lock, fcntl.LOCK_EX)
-            try:
-                return plain(self, key, data)
-            finally:
-                fcntl.flock(lock, fcntl.LOCK_UN)
+        with file_lock(self._index_path + ".lock"):
+            return plain(self, key, data)
 
     save._needlecli_locked = True
     cls.save = save

@@ -12,6 +12,8 @@ import os
 import threading
 from collections.abc import Callable, Sequence
 
+from needlecli import platform
+
 
 def n_threads() -> int:
     """Worker threads: ``NEEDLECLI_THREADS``, else ``NUMBA_NUM_THREADS``, else the usable cores."""
@@ -19,10 +21,7 @@ def n_threads() -> int:
         v = os.environ.get(var, "").strip()
         if v.isdigit() and int(v) > 0:
             return int(v)
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # not Linux
-        return max(1, os.cpu_count() or 1)
+    return platform.usable_cores()
 
 
 _FORCED: list[int] = []

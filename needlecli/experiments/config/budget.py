@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from needlecli import platform
 from needlecli.errors import ConfigError
 from needlecli.io.atomic import human_bytes
 from needlecli.models import MODELS
@@ -72,7 +73,8 @@ class Estimate:
 
 
 def available_memory() -> int | None:
-    """Bytes of memory a new experiment may use: ``NEEDLECLI_MEMORY`` if set, else ``MemAvailable``."""
+    """Bytes of memory a new experiment may use: ``NEEDLECLI_MEMORY`` if set, else what the system says is
+    available (:func:`needlecli.platform.available_memory`; None where it cannot say: no check)."""
     env = os.environ.get("NEEDLECLI_MEMORY", "").strip()
     if env:
         units = {"K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
@@ -82,17 +84,7 @@ def available_memory() -> int | None:
             return int(float(env))
         except ValueError:
             raise ConfigError("NEEDLECLI_MEMORY", (), f"{env!r} is not a number of bytes (e.g. 8G)") from None
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    try:
-        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (OSError, ValueError, AttributeError):
-        return None
+    return platform.available_memory()
 
 
 # ---------------------------------------------------------------------------------------------- the time grid

@@ -9,7 +9,6 @@ files are refused with a message that says what to do. Everything after that poi
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import multiprocessing as mp
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -19,7 +18,7 @@ from typing import TYPE_CHECKING
 import h5py
 import numpy as np
 
-from needlecli import kernels
+from needlecli import kernels, platform
 from needlecli.errors import DataError
 from needlecli.experiments.config.load import load_config
 from needlecli.experiments.simulation.runner import build_problem, simulate_and_measure
@@ -134,39 +133,6 @@ def _not_a_config(path: Path) -> str:
     return f"{path}: not an experiment config (.yaml); fit-em takes configs (recorded trials through `source: logs`)"
 
 
-_BLAS_SETTERS = ("scipy_openblas_set_num_threads64_", "scipy_openblas_set_num_threads",
-                 "openblas_set_num_threads64_", "openblas_set_num_threads")
-
-
-@contextlib.contextmanager
-def single_blas_thread():
-    """Run with one OpenBLAS thread per loaded OpenBLAS (restored after): with one EM process per core,
-    OpenBLAS's own threads would only compete with them (the arithmetic is on stacks of 10 x 10
-    matrices, which OpenBLAS does not split). A no-op where the library or its setter cannot be found
-    (not Linux, another BLAS)."""
-    found = []
-    try:
-        with open("/proc/self/maps", encoding="utf-8") as f:
-            paths = sorted({line.split()[-1] for line in f if "openblas" in line.lower() and "/" in line})
-        for path in paths:
-            lib = ctypes.CDLL(path)
-            for name in _BLAS_SETTERS:
-                if hasattr(lib, name):
-                    getter = getattr(lib, name.replace("set_num_threads", "get_num_threads"), None)
-                    before = int(getter()) if getter is not None else None
-                    getattr(lib, name)(1)
-                    found.append((getattr(lib, name), before))
-                    break
-    except OSError:
-        pass
-    try:
-        yield
-    finally:
-        for setter, before in found:
-            if before is not None:
-                setter(before)
-
-
 def em_options(fit: FitSettings, system: System) -> EMOptions:
     e = fit.em
     return EMOptions(
@@ -239,11 +205,12 @@ def fit_trials(
         return res, assess(S, res, fit, meas), time.perf_counter() - t0, rob
 
     # models are independent: all but the first go to child processes (forked, so nothing is pickled
-    # but the results), the first runs here; the children report progress through a queue
-    parallel = workers > 1 and len(names) > 1
-    with single_blas_thread() if parallel else contextlib.nullcontext(), kernels.using(cfg.simulation.kernels), \
+    # but the results), the first runs here; the children report progress through a queue. Where
+    # processes cannot be forked (macOS, Windows) the models run here one after another, on every core
+    parallel = workers > 1 and len(names) > 1 and platform.fork_available()
+    with platform.single_blas_thread() if parallel else contextlib.nullcontext(), kernels.using(cfg.simulation.kernels), \
             kernels.threads(1 if parallel else None):  # a process per model: one kernel thread each
-        _run_models(names, workers, run, systems, out, progress)
+        _run_models(names, workers if parallel else 1, run, systems, out, progress)
     out.fits = {name: out.fits[name] for name in names}
     for mf in out.fits.values():
         add_data_hints(mf.result, problem)
@@ -296,7 +263,7 @@ def add_data_hints(result: EMResult, problem) -> None:
 
 def _run_models(names, workers, run, systems, out, progress) -> None:
     children = {}
-    if workers > 1 and len(names) > 1 and "fork" in mp.get_all_start_methods():
+    if workers > 1 and len(names) > 1:  # (forked: only where platform.fork_available())
         ctx = mp.get_context("fork")
         queue = ctx.Queue()
         for name in names[1 : workers]:

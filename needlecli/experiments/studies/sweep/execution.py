@@ -28,15 +28,13 @@ from pathlib import Path
 import pandas as pd
 import yaml
 
+from needlecli import platform
 from needlecli.errors import NeedleError, SweepError
 from needlecli.experiments.studies.sweep.plan import Cell, config_hash
 from needlecli.io.atomic import install_worker_signals, worker_task, write_text_atomic
 from needlecli.reports.sweep import cell_metrics, param_info, sweep_table, write_sweep_table
 
 CONNECT_TIMEOUT = "10s"  # to reach a Dask scheduler
-#: environment variables that size the thread pools of BLAS / OpenMP in a worker process
-THREAD_ENV = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "VECLIB_MAXIMUM_THREADS",
-              "NUMEXPR_NUM_THREADS", "BLIS_NUM_THREADS")
 Progress = Callable[[str, int, int], None]
 
 
@@ -49,19 +47,6 @@ class CellOutcome:
     rows: list[dict] = field(default_factory=list)  # one per observer: its metrics
     error: str = ""
     seconds: float = 0.0
-
-
-@contextlib.contextmanager
-def _one_thread() -> Iterator[None]:
-    """Pin the BLAS/OpenMP thread pools to one thread while a cell runs (threadpoolctl if installed; the
-    local executor's workers are also started with the environment variables set)."""
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:
-        yield
-        return
-    with threadpool_limits(limits=1):
-        yield
 
 
 def results_complete(cell: Cell) -> bool:
@@ -120,7 +105,7 @@ def _run_cell(cell: Cell, path: Path, t0: float) -> CellOutcome:
         path.parent.mkdir(parents=True, exist_ok=True)
         for stale in (_error_file(cell), _sidecar(cell)):  # an earlier results file stays until the new one replaces it
             stale.unlink(missing_ok=True)
-        with _one_thread():
+        with platform.thread_pools_limited(1):  # (local workers also start with platform.THREAD_ENV at 1)
             cfg, text = load_config(cell.config_source, text=cell.config_text)
             run_experiment(cfg, text, out=path, base_dir=cell.base_dir)
             rows = cell_metrics(path)
@@ -161,29 +146,11 @@ def _pin_worker_threads() -> None:
     process started, so before numpy is imported); threadpoolctl, if installed, makes sure. SIGINT and
     SIGTERM stop the cell being run cleanly (its temporary file removed)."""
     install_worker_signals()
-    for k in THREAD_ENV:
-        os.environ[k] = "1"
-    try:
-        from threadpoolctl import threadpool_limits
-
-        threadpool_limits(limits=1)
-    except ImportError:
-        pass
+    platform.pin_thread_pools()
 
 
-@contextlib.contextmanager
-def _thread_env() -> Iterator[None]:
-    """Set the thread-pool variables to 1 while worker processes are started (they inherit them)."""
-    old = {k: os.environ.get(k) for k in THREAD_ENV}
-    os.environ.update({k: "1" for k in THREAD_ENV})
-    try:
-        yield
-    finally:
-        for k, v in old.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
+#: the thread-pool variables at 1 while worker processes are started (they inherit them)
+_thread_env = platform.one_thread_env
 
 
 def _failed(cell: Cell, e: BaseException) -> CellOutcome:

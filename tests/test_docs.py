@@ -108,6 +108,8 @@ def test_readme_is_a_front_page_with_the_two_commands():
     assert "pip install -e '.[test]' && python -m pytest" in text
     ci = (ROOT / ".ci" / "run").read_text()
     assert "/^## Set up/" in ci and 'bash -c "set -e; $cmd"' in ci  # CI runs README's two commands verbatim
+    setup = text.split("## Set up", 1)[1].split("\n## ", 1)[0]
+    assert re.search(r"\d+ minutes", setup) and "LaTeX" in setup and "builds the documentation" in setup
     assert "needle evaluate" in text and "docs/img/default_error_vs_depth.png" in text
     for link in re.findall(r"\]\((docs/[^)#]+)", text):
         assert (ROOT / link).exists(), link
@@ -242,3 +244,58 @@ def test_no_page_fetches_anything_from_outside(site):
         outside += [f"{f.relative_to(site)}: {m.group(0)[:120]}" for m in FETCHING.finditer(text)]
     assert not outside, outside[:10]
     assert "Built from needlecli" in _text(site / "index.html")  # the footer: version and commit
+
+
+# ---------------------------------------------------------------------------------------------- pages a user meets
+def test_configs_are_shown_inline_and_equal_their_files():
+    """A config on a page is the YAML itself, titled with its path (GitHub shows a snippet directive
+    raw), and it is the file, byte for byte."""
+    shown = 0
+    for page in (ROOT / "docs").rglob("*.md"):
+        text = page.read_text(encoding="utf-8")
+        assert "--8<--" not in text, page
+        for path, body in re.findall(r'^```yaml title="([^"]+)"\n(.*?)^```', text, re.S | re.M):
+            assert (ROOT / path).read_text(encoding="utf-8") == body, (page.name, path)
+            shown += 1
+    assert shown >= 4
+
+
+def test_getting_started_describes_every_command_once():
+    import typer
+
+    from needlecli.cli.app import app
+
+    text = (ROOT / "docs" / "getting-started.md").read_text(encoding="utf-8")
+    rows = re.findall(r"^\| \[`needle ([a-z-]+(?: [a-z-]+)?)", text, re.M)
+    root = typer.main.get_command(app)
+    have = []
+    for name, cmd in root.commands.items():
+        subs = list(getattr(cmd, "commands", {}) or {})
+        have += [f"{name} {s}" for s in subs] if subs else [name]
+    assert sorted(rows) == sorted(have)
+    paragraphs = [" ".join(p.split()) for p in re.split(r"\n\s*\n", text) if len(p) > 100]
+    assert len(paragraphs) == len(set(paragraphs)), "a paragraph is repeated"
+
+
+def test_user_pages_name_no_issue_numbers():
+    """Issues are the project's bookkeeping, not the user's (docs/benchmarks.md is what make bench wrote)."""
+    hits = []
+    for page in (ROOT / "docs").rglob("*.md"):
+        if page.name != "benchmarks.md":
+            hits += [f"{page.relative_to(ROOT)}: {m.group(0)}"
+                     for m in re.finditer(r"\bissues? \d+", page.read_text(encoding="utf-8"), re.I)]
+    assert not hits, hits
+
+
+def test_every_tutorial_has_a_figure_and_long_output_wraps(site):
+    for page in sorted((ROOT / "docs" / "tutorials").glob("*.md")):
+        figs = re.findall(r"!\[[^\]]*\]\((img/[^)]+\.png)\)", page.read_text(encoding="utf-8"))
+        assert figs, f"{page.name}: no figure"
+        for fig in figs:
+            assert (site / "tutorials" / fig).is_file(), (page.name, fig)
+    # what needle prints (console) and the files it writes (text) wrap instead of running past the block
+    css = (site / "assets/site.css").read_text(encoding="utf-8")
+    rule = re.search(r"\.language-console pre > code,\s*\.md-typeset \.language-text pre > code \{([^}]*)\}", css)
+    assert rule and "white-space: pre-wrap" in rule.group(1)
+    first = (site / "tutorials/first-study/index.html").read_text(encoding="utf-8")
+    assert 'class="language-console highlight"' in first and 'href="../../assets/site.css"' in first

@@ -170,3 +170,69 @@ def test_needle_explain_covers_every_key_with_its_description():
     assert not missing, missing[:20]
     assert not bare, bare[:20]
     assert not sorted(set(unpaged)), sorted(set(unpaged))[:20]
+
+
+# ------------------------------------------------------------------------ the CSV mapping of needle log import-csv
+def _mapping_paths():
+    """Every key of the CSV mapping as `needle explain` names it (``mapping.sensors.quaternion.tol``: the
+    values of a name -> section mapping are described at the mapping's own key), walked here from the
+    pydantic model itself."""
+    from needlecli.io.csv_import import Mapping
+
+    out = []
+
+    def walk(schema, prefix):
+        assert prefix.count(".") < 8, prefix
+        for name, info in schema.model_fields.items():
+            key = f"{prefix}.{info.alias or name}"
+            out.append(key)
+            for m in _schemas_of(info.annotation):
+                walk(m, key)
+
+    walk(Mapping, "mapping")
+    return out
+
+
+def test_needle_explain_covers_every_mapping_key_with_its_description():
+    from needlecli.experiments.config.explain import mapping_page
+    from needlecli.experiments.config.schema import experiment_schema
+
+    assert "mapping" not in experiment_schema().model_fields  # the word names the mapping, never a config key
+    paths = _mapping_paths()
+    names = {p.rsplit(".", 1)[1] for p in paths}
+    assert len(names) >= 44 and {"quaternion", "sigma_column", "leading_invalid", "valid_column", "meta_file"} <= names
+    page = mapping_page()
+    missing, bare = [], []
+    for path in paths:
+        parent, _, key = path.rpartition(".")
+        try:
+            explain(path)
+            sec = explain(parent)
+        except ConfigError as e:
+            missing.append(f"{path}: {e}")
+            continue
+        hit = [f for f in sec.fields if f.name == key]
+        if not hit:
+            missing.append(path)
+        elif not hit[0].description:
+            bare.append(path)
+        assert (f"# `{parent}`" if parent != "mapping" else "# `mapping`") in page, parent
+        assert f"| `{key}` |" in page, path
+    assert not missing, missing[:20]
+    assert not bare, bare[:20]
+
+
+def test_explain_mapping_in_the_terminal_and_as_markdown(tmp_path):
+    r = invoke("explain", "mapping")
+    assert r.exit_code == 0 and "needle log import-csv" in r.output and "sensors:" in r.output and "[required]" in r.output
+    r = invoke("explain", "mapping.sensors.quaternion")
+    assert r.exit_code == 0 and "tol: number  [default 0.05]" in r.output and "scalar part" in r.output
+    r = invoke("explain", "mapping.sensors.quaternoin")
+    assert r.exit_code == 2 and "[mapping -> sensors -> quaternoin] no key 'quaternoin' here" in r.output
+    assert "did you mean 'quaternion'" in r.output
+    r = invoke("explain", "mapping.leading_invalid", "--format", "md")
+    assert r.exit_code == 0 and "| `leading_invalid` | one of 'start', 'trim', 'keep' | `'start'` |" in r.output
+    r = invoke("explain", "--format", "md", "--out", tmp_path / "ref")
+    from needlecli.experiments.config.explain import mapping_page
+
+    assert r.exit_code == 0 and (tmp_path / "ref" / "mapping.md").read_text() == mapping_page()

@@ -12,16 +12,19 @@ from needlecli.cli.common import user_errors
 @user_errors
 def explain(
     key: str = typer.Argument(None, help="A section, component or key: sensors, sensors.position, observers.ukf, "
-                                         "model.mnm, observers.ukf.init, fit.em, inputs.flips (default: the top level)."),
+                                         "model.mnm, observers.ukf.init, fit.em, inputs.flips (default: the top level); "
+                                         "mapping, mapping.sensors, ...: the CSV mapping of needle log import-csv."),
     format_: str = typer.Option("text", "--format", "-f", help="text (the terminal) or md (Markdown)."),
-    out: Path = typer.Option(None, "--out", "-o", help="With --format md and no KEY: write every reference page to this folder."),
+    out: Path = typer.Option(None, "--out", "-o", help="With --format md and no KEY: write every reference page to this "
+                                                       "folder (the config's and mapping.md)."),
 ) -> None:
-    """Print the keys of a config section with their type, default, allowed values and description.
+    """Print the keys of a config section (or of the CSV mapping) with their type, default, allowed values
+    and description.
 
     Example: needle explain observers.ukf
     """
     from needlecli.errors import ConfigError
-    from needlecli.experiments.config.explain import as_markdown, as_text, explain, reference_pages
+    from needlecli.experiments.config.explain import as_markdown, as_text, explain, mapping_page, reference_pages
 
     if format_ not in ("text", "md"):
         raise ConfigError("--format", (), f"unknown format {format_!r}; use text or md")
@@ -31,7 +34,7 @@ def explain(
         from needlecli.io.atomic import write_text_atomic
 
         out.mkdir(parents=True, exist_ok=True)
-        pages = reference_pages()
+        pages = {**reference_pages(), "mapping": mapping_page()}
         for name, text in pages.items():
             write_text_atomic(out / f"{name}.md", text)
         typer.echo(f"reference: {len(pages)} page(s) in {out}")

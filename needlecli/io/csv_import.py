@@ -82,21 +82,26 @@ def unit_factor(have: str, want: str) -> float | None:
 
 
 class TrialSpec(Strict):
-    id: Name
-    dir: str = "."
-    meta: dict[str, str | int | float | bool] = Field(default_factory=dict)
+    id: Name = Field(description="the trial's name in the log (letters, digits, _ and -)")
+    dir: str = Field(".", description="folder of the trial's CSV files, relative to the mapping")
+    meta: dict[str, str | int | float | bool] = Field(default_factory=dict, description="the trial's metadata "
+                                                      "(needle, medium, design factors, ...): names to values")
     meta_file: str | None = Field(None, description="a command file of this trial (key,value lines, a header "
                                   "and a row, or YAML/JSON), relative to the mapping")
 
 
 class InputSpec(Strict):
-    file: str | None = None
-    column: str | list[str] | None = None
+    file: str | None = Field(None, description="CSV file of the input in the trial's folder; may hold {id} and "
+                             "metadata fields (or give value)")
+    column: str | list[str] | None = Field(None, description="the input's column, or one column per component "
+                                           "(e.g. omega_B)")
     value: float | str | None = Field(None, description="a constant: a number or a formula of the trial's "
                                       "metadata (e.g. speed_mm_s), instead of file and column")
-    unit: str = ""
-    kind: Literal["commanded", "measured"] = "commanded"
-    time: TimeSpec | None = None
+    unit: str = Field("", description="unit of the values (mm/s, cm/s, m/s, deg/s, rad/s), converted to "
+                      "length_unit/s (v) or rad/s (u, omega_B); empty: already in those")
+    kind: Literal["commanded", "measured"] = Field("commanded", description="what the values are: the command sent "
+                                                   "to the robot or a measurement of what it did (kept in the log)")
+    time: TimeSpec | None = Field(None, description="this input's time (default: the mapping's)")
 
     @model_validator(mode="after")
     def _source(self):
@@ -111,7 +116,8 @@ class StreamSpec(Strict):
     file: str = Field(description="CSV file in the trial's folder; may hold {id} and metadata fields")
     columns: dict[str, str] = Field(default_factory=dict, description="channel name -> CSV column (none for a tangent from a quaternion)")
     units: list[str] | None = Field(None, description="one unit per column of `columns`, in their order")
-    valid_column: str | None = None
+    valid_column: str | None = Field(None, description="a column that marks each sample valid (1/0 or true/false); "
+                                     "an invalid sample is kept as lost")
     time: TimeSpec | None = Field(None, description="this stream's time (default: the mapping's)")
     missing: MissingSpec | None = Field(None, description="this stream's lost-sample rules (default: the mapping's)")
     quaternion: QuaternionSpec | None = Field(None, description="orientation columns (w, x, y, z)")
@@ -132,29 +138,36 @@ class SensorSpec(StreamSpec):
 
 
 class TruthSpec(StreamSpec):
-    kind: Literal["ground truth", "manual segmentation"] = "ground truth"
+    kind: Literal["ground truth", "manual segmentation"] = Field(
+        "ground truth", description="where the truth comes from: a reference instrument (ground truth) or the "
+        "tip marked by hand in the images (manual segmentation); kept in the log")
 
 
 class Mapping(Strict):
-    description: str = ""
-    time_column: str = "t"
-    time_unit: Literal["s", "ms"] = "s"
+    description: str = Field("", description="what the data are (kept in the log's attributes)")
+    time_column: str = Field("t", description="the time column of every CSV, unless time or a stream's time says "
+                             "otherwise")
+    time_unit: Literal["s", "ms"] = Field("s", description="unit of time_column")
     time: TimeSpec | None = Field(None, description="where sample times come from (default: time_column)")
     length_unit: Literal["mm", "m"] = Field("mm", description="the project's length unit for this data")
     discover: DiscoverSpec | None = Field(None, description="trials from file names instead of a list")
     trials: list[TrialSpec] = Field(default_factory=list, validate_default=True,
                                     description="the trials, each with its id and folder (or use discover)")
     factors: list[str] = Field(default_factory=list, description="metadata keys that are design factors")
-    missing: MissingSpec | None = None
+    missing: MissingSpec | None = Field(None, description="rows that are lost samples although every cell holds a "
+                                        "number (default: none), for every stream")
     leading_invalid: Literal["start", "trim", "keep"] = Field(
         "start", description="start: the trial starts at the first valid sample of start_stream; trim: that "
         "stream's leading invalid rows are dropped; keep: as recorded")
     start_stream: str | None = Field(None, description="the stream whose first valid sample starts the trial "
                                      "(default: the frame's reference, else the first sensor)")
     frame: FrameSpec | None = Field(None, description="express each trial in its own frame")
-    inputs: dict[Name, InputSpec] = Field(default_factory=dict)
-    sensors: dict[Name, SensorSpec] = Field(min_length=1)
-    truth: TruthSpec | None = None
+    inputs: dict[Name, InputSpec] = Field(default_factory=dict, description="the model's inputs by name (v, u, "
+                                          "omega_B): a column of a CSV or a constant")
+    sensors: dict[Name, SensorSpec] = Field(min_length=1, description="the measurement streams by sensor name (at "
+                                            "least one): file, columns, units and the sensor's settings")
+    truth: TruthSpec | None = Field(None, description="the reference the estimates are compared with (optional): "
+                                    "positions and/or orientations")
 
     @field_validator("trials")
     @classmethod

@@ -81,10 +81,10 @@ class MissingSpec(Strict):
 class QuaternionSpec(Strict):
     """Orientation as a unit quaternion, by column names (scalar ``w``)."""
 
-    w: str
-    x: str
-    y: str
-    z: str
+    w: str = Field(description="column of the scalar part w")
+    x: str = Field(description="column of the x part")
+    y: str = Field(description="column of the y part")
+    z: str = Field(description="column of the z part")
     tol: Positive = Field(0.05, description="a quaternion whose length is further than this from 1 is lost")
 
     @property

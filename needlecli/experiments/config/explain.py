@@ -6,6 +6,10 @@ A path names a section of the config (``sensors``, ``fit.em``, ``output``), a re
 a section that chooses one by ``type`` (``sensors.position``, ``observers.ukf``, ``model.mnm``,
 ``control.opacity_bz``), or a field below either (``observers.ukf.init``, ``model.mnm.params``,
 ``inputs.flips``: the kinds of input signals). Components of installed plug-ins are included.
+
+``mapping`` names the other YAML a user writes: the CSV mapping of ``needle log import-csv``
+(``needle explain mapping``, ``mapping.sensors.quaternion``), read from its schema
+(:class:`needlecli.io.csv_import.Mapping`) the same way.
 """
 
 from __future__ import annotations
@@ -23,6 +27,12 @@ from needlecli.errors import ConfigError, did_you_mean
 
 #: the sections that choose a registered component by ``type`` (``model`` is one component)
 COMPONENT_SECTIONS = ("model", "sensors", "observers", "control")
+#: the first part of a path into the CSV mapping of ``needle log import-csv`` (not a config section)
+MAPPING = "mapping"
+MAPPING_DOC = ("The mapping YAML of `needle log import-csv`: which CSV files and columns make each input, sensor "
+               "and the truth of every trial, in which units (converted to mm, rad, s; m with `length_unit: m`), "
+               "where the times come from, which samples are lost, and the trial's frame. "
+               "`needle explain mapping.<key>` for any key below.")
 
 
 @dataclass
@@ -224,11 +234,25 @@ def _signal_kinds() -> dict[str, type[BaseModel]]:
     return out
 
 
+def mapping_schema() -> type[BaseModel]:
+    """The schema of the CSV mapping (``needle log import-csv``)."""
+    from needlecli.io.csv_import import Mapping
+
+    return Mapping
+
+
 def explain(path: str | None = None) -> SectionDoc:
-    """The reference of the config at ``path`` (module docstring). Raises ConfigError for a path that
-    names nothing (with what is there)."""
+    """The reference of the config at ``path`` (module docstring), or of the CSV mapping for a path that
+    starts with ``mapping``. Raises ConfigError for a path that names nothing (with what is there)."""
     from needlecli.experiments.config.schema import experiment_schema
 
+    parts = path.split(".") if path else []
+    if parts[:1] == [MAPPING]:
+        if len(parts) == 1:
+            sec = describe_model(mapping_schema(), MAPPING)
+            sec.doc = MAPPING_DOC
+            return sec
+        return _walk(mapping_schema(), parts, [MAPPING], 1, sections=False)
     root = experiment_schema()
     if not path:
         sec = describe_model(root, "")
@@ -240,16 +264,20 @@ def explain(path: str | None = None) -> SectionDoc:
             elif f.name == "inputs":
                 f.type = f"mapping of input name to a number, a list or a signal ({', '.join(_signal_kinds())})"
         sec.doc = ("An experiment config: YAML, validated in full before any work (unknown keys are errors). "
-                   "Units: mm, rad, s (the magnetic models: m). `needle explain <section>` for any section below.")
+                   "Units: mm, rad, s (the magnetic models: m). `needle explain <section>` for any section below; "
+                   "`needle explain mapping` for the CSV mapping of `needle log import-csv`.")
         return sec
-    parts = path.split(".")
+    return _walk(root, parts, [], 0, sections=True)
+
+
+def _walk(root: type[BaseModel], parts: list[str], where: list[str], i: int, sections: bool) -> SectionDoc:
+    """The section or key ``parts[i:]`` below ``root`` (reached by ``where``); ``sections``: the
+    config's top level, whose component sections and inputs choose their schema by type or kind."""
     cur: Any = root
-    where: list[str] = []
-    i = 0
     while i < len(parts):
         p = parts[i]
         where.append(p)
-        if not where[:-1] and p in COMPONENT_SECTIONS:
+        if sections and not where[:-1] and p in COMPONENT_SECTIONS:
             schemas = _component_schemas(p)
             if i + 1 == len(parts):  # the section: the keys every entry has, and the types it may name
                 sec = _section_of(p, schemas)
@@ -263,7 +291,7 @@ def explain(path: str | None = None) -> SectionDoc:
             where.append(t)
             i += 2
             continue
-        if where == ["inputs"] and cur is root:
+        if sections and where == ["inputs"] and cur is root:
             kinds = _signal_kinds()
             if i + 1 == len(parts):
                 sec = SectionDoc(path="inputs", doc="One entry per model input (`inputs.<name>`): a number or list "
@@ -379,25 +407,7 @@ def reference_pages() -> dict[str, str]:
     seen: set[str] = set()
 
     def walk(sec: SectionDoc, level: int, into: list[str]) -> None:
-        for f in sec.fields:
-            models = f.nested if isinstance(f.nested, list) else ([f.nested] if f.nested is not None else [])
-            base = f"{sec.path}.{f.name}" if sec.path else f.name
-            chosen = variants(models)
-            if chosen is not None and base not in seen:  # the variants' list, then each variant
-                seen.add(base)
-                into.append(as_markdown(_variants_section(base, models), level))
-            names = chosen[1] if chosen is not None else {}
-            by_model = {id(m): v for v, m in names.items()}
-            for m in models:
-                p = base
-                if len(models) > 1:
-                    p += f".{by_model[id(m)]}" if id(m) in by_model else f" ({m.__name__})"
-                if p in seen:
-                    continue
-                seen.add(p)
-                sub = describe_model(m, p)
-                into.append(as_markdown(sub, level))
-                walk(sub, min(level + 1, 6), into)
+        _walk_nested(sec, level, into, seen)
 
     for f in top.fields:
         if f.name in COMPONENT_SECTIONS:
@@ -421,6 +431,39 @@ def reference_pages() -> dict[str, str]:
             pages[f.name] = "\n".join(parts)
     pages["index"] = "\n".join(body)
     return pages
+
+
+def _walk_nested(sec: SectionDoc, level: int, into: list[str], seen: set[str]) -> None:
+    """Append the Markdown of every section nested below ``sec``'s keys to ``into``, depth first (each
+    path once: ``seen``)."""
+    for f in sec.fields:
+        models = f.nested if isinstance(f.nested, list) else ([f.nested] if f.nested is not None else [])
+        base = f"{sec.path}.{f.name}" if sec.path else f.name
+        chosen = variants(models)
+        if chosen is not None and base not in seen:  # the variants' list, then each variant
+            seen.add(base)
+            into.append(as_markdown(_variants_section(base, models), level))
+        names = chosen[1] if chosen is not None else {}
+        by_model = {id(m): v for v, m in names.items()}
+        for m in models:
+            p = base
+            if len(models) > 1:
+                p += f".{by_model[id(m)]}" if id(m) in by_model else f" ({m.__name__})"
+            if p in seen:
+                continue
+            seen.add(p)
+            sub = describe_model(m, p)
+            into.append(as_markdown(sub, level))
+            _walk_nested(sub, min(level + 1, 6), into, seen)
+
+
+def mapping_page() -> str:
+    """The CSV mapping's reference as one Markdown page: its keys, then every section below them
+    (``needle explain mapping --format md`` prints the first part; ``--out`` writes it as ``mapping.md``)."""
+    top = explain(MAPPING)
+    parts = [as_markdown(top, 1)]
+    _walk_nested(top, 2, parts, set())
+    return "\n".join(parts)
 
 
 def undocumented() -> list[str]:

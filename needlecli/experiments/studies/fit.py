@@ -210,7 +210,7 @@ def fit_trials(
     # models are independent: all but the first go to child processes (forked, so nothing is pickled
     # but the results), the first runs here; the children report progress through a queue
     parallel = workers > 1 and len(names) > 1
-    with single_blas_thread() if parallel else contextlib.nullcontext(), kernels.using(cfg.simulation.kernels), \
+    with single_blas_thread() if parallel else contextlib.nullcontext(), \
             kernels.threads(1 if parallel else None):  # a process per model: one kernel thread each
         _run_models(names, workers, run, systems, out, progress)
     out.fits = {name: out.fits[name] for name in names}

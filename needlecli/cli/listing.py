@@ -29,23 +29,26 @@ def list_components(
                   ("controllers", CONTROLLERS), ("tables", TABLES), ("plots", PLOTS))
     for title, reg in registries:
         typer.echo(f"{title}: {', '.join(named(reg, n) for n in reg.names())}")
-    from needlecli import kernels  # what has a compiled path (imports neither numba nor a kernel)
+    from needlecli import kernels  # the table of compiled twins (imports neither numba nor a kernel)
 
-    typer.echo("")
-    for line in kernels.describe():
+    models = {}
+    for name in (MODELS.names() if details else []):
+        try:
+            models[name] = MODELS.get(name)
+        except Exception as e:  # noqa: BLE001 (a broken plug-in is reported below, not raised)
+            typer.echo(f"model {name}: cannot be loaded ({e})", err=True)
+    typer.echo("")  # the models with compiled equations: their own declaration (loaded with --details)
+    with_twin = [n for n, m in models.items() if m.compiled_equations] if details else None
+    for line in kernels.describe(models=with_twin):
         typer.echo(line)
     if not details:
         return
     typer.echo("")
-    for name in MODELS.names():
-        try:
-            m = MODELS.get(name)
-        except Exception as e:  # noqa: BLE001 (a broken plug-in is reported below, not raised)
-            typer.echo(f"model {name}: cannot be loaded ({e})", err=True)
-            continue
+    for name, m in models.items():
+        twin = f"compiled equations {m.compiled_equations}" if m.compiled_equations else "numpy only"
         typer.echo(
             f"model {name}: state ({', '.join(m.state_names)}); inputs ({', '.join(m.input_names)}); "
-            f"params ({', '.join(m.Params.model_fields)}); unit {m.length_unit}"
+            f"params ({', '.join(m.Params.model_fields)}); unit {m.length_unit}; {twin}"
         )
     broken = [e for _, reg in registries if reg is not MODELS for e in reg.load_all(plugins_only=True)]
     for e in broken:

@@ -281,13 +281,15 @@ def fit_em(
         nonfinite = ~np.isfinite(ll) | ~np.isfinite(res.sm.m).all((-1, -2)) | ~res.sm.all_finite()
         # ---- M-step
         with np.errstate(all="ignore"):
-            Qn = em_process_noise(res.sm, res.lin.A, res.lin.b, dm.dt, index=qi, state_angles=dm.angles)
+            Qn = em_process_noise(res.sm, res.lin.A, res.lin.b, dm.dt, index=qi, state_angles=dm.angles,
+                                  kernels=dm.kernels)
             Qn[blk], _ = floor_eigenvalues(Qn[blk], np.maximum(o.q_floor, o.rel_floor * _largest(Qn[blk])))
             if o.q_hold:  # held rows and columns: the initial guess (uncorrelated with the fitted states)
                 Qn = hold_rows(Qn, Q0_held[active], o.q_hold)
             Rn = []
             for j, mm in enumerate(meas_a):
-                r, count = em_measurement_noise(res.sm, mm.channel(R_a[j], res.lin.y[j]), res.lin.H[j], res.lin.d[j])
+                r, count = em_measurement_noise(res.sm, mm.channel(R_a[j], res.lin.y[j]), res.lin.H[j], res.lin.d[j],
+                                                kernels=dm.kernels)
                 r = np.where(count[:, None, None] > 0, r, R_a[j])
                 r, _ = floor_eigenvalues(r, rel_floors[j] * _largest(r))
                 if floors[j] is not None:

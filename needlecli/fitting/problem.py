@@ -94,7 +94,8 @@ def build_system(
                              f"with a tangent (model {model.registered_name!r})")
     sensor_states = [(f"{name}_offset", model.length_unit, 0.0 if o.tau is None else 1.0 / o.tau)
                      for name, o in offsets.items()]
-    dm = DiscreteModel(model, params, augment, grid_dt, ticks, inputs, setup.substeps, sensor_states)
+    dm = DiscreteModel(model, params, augment, grid_dt, ticks, inputs, setup.substeps, sensor_states,
+                       kernels=problem.kernels)
     meas, R, floors = [], [], []
     for name, ch, h in chans:
         tick = np.searchsorted(ticks, ch.index)
@@ -113,7 +114,8 @@ def build_system(
         mm = MeasurementModel(name, h, model.n, tick, ch.value, ch.valid, np.asarray(ch.angle, dtype=bool),
                               tuple(ch.names), tuple(ch.units), bool(ch.unit_vector), scale, frame,
                               model.tangent if frame == "needle" or name in offsets else None,
-                              offset_index=dm.names.index(f"{name}_offset") if name in offsets else None)
+                              offset_index=dm.names.index(f"{name}_offset") if name in offsets else None,
+                              kernels=problem.kernels)
         meas.append(mm)
         sigma = spec.sigma if spec is not None and spec.sigma is not None else ch.sigma
         sig = np.asarray(sigma, dtype=float)

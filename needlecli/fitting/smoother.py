@@ -85,7 +85,7 @@ def eks(dm, meas, m0, P0, Qc, R, progress=None) -> SmootherResult:
     """EKF then the RTS smoother on the EKF's Jacobians. The returned linearisation is the one the
     filter used (transition Jacobians at the filtered means, measurements at the predicted ones)."""
     fwd = ekf(dm, meas, m0, P0, Qc, R, progress=progress)
-    sm = rts_smoother(fwd, state_angles=dm.angles)
+    sm = rts_smoother(fwd, state_angles=dm.angles, kernels=dm.kernels)
     # the affine model of this pass, for the M-step: around the filter's own estimates
     fz, _ = _transition_means(dm, fwd.m_filt[:, :-1])
     b = fz - (fwd.A @ fwd.m_filt[:, :-1, :, None])[..., 0]
@@ -131,7 +131,7 @@ def affine_pass(
     A, b = lin.A, lin.b
     if not joseph:  # compiled: without the filter's covariances and the smoother's gains (EM reads neither)
         fwd, sm = kalman_filter_smoother(m0, P0, Qc, dm.dt, A, b, _channels(meas, R, lin.y), lin.H, lin.d,
-                                         state_angles=dm.angles)
+                                         state_angles=dm.angles, kernels=dm.kernels)
         return SmootherResult(fwd, sm, lin)
 
     def transition(k, m):
@@ -144,7 +144,7 @@ def affine_pass(
 
     fwd = kalman_forward(m0, P0, Qc, dm.dt, transition, measure, _channels(meas, R, lin.y),
                          state_angles=dm.angles, joseph=joseph)
-    sm = rts_smoother(fwd, state_angles=dm.angles)
+    sm = rts_smoother(fwd, state_angles=dm.angles, kernels=dm.kernels)
     return SmootherResult(fwd, sm, lin)
 
 
@@ -161,7 +161,7 @@ def affine_loglik(lin: Linearisation, dm: DiscreteModel, meas: Sequence[Measurem
     ``rows[r]`` of ``lin`` and ``meas`` (``m0, P0, Qc, R``: one row per point), the same numbers as
     :func:`take_linearisation` and ``take`` of those rows."""
     return kalman_loglik_affine(m0, P0, Qc, dm.dt, lin.A, lin.b, _channels(meas, R, lin.y), lin.H, lin.d,
-                                state_angles=dm.angles, rows=rows)
+                                state_angles=dm.angles, rows=rows, kernels=dm.kernels)
 
 
 @dataclass

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from needlecli import kernels
+from needlecli.kernels import twin
 from needlecli.models import Model, StateSelection
 from needlecli.numerics.kalman import Channel, finite_difference_h, rk4_with_jacobian
 from needlecli.numerics.needle_frame import needle_basis
@@ -58,6 +58,9 @@ class DiscreteModel:
         plane's offset along the needle, :class:`MeasurementModel`'s ``offset_index``), after the augmented
         constants: ``s' = -decay s`` (an Ornstein-Uhlenbeck process with its process noise; decay 1/tau in
         1/s; 0: a constant)
+    kernels : the kernels setting (``auto``, ``numba``, ``numpy``; :func:`needlecli.kernels.resolve`) of the
+        transitions and of the Kalman passes over this system (``simulation.kernels``, through
+        :class:`~needlecli.problem.EstimationProblem`)
     """
 
     def __init__(
@@ -70,8 +73,10 @@ class DiscreteModel:
         inputs: np.ndarray,
         substeps: int | None = None,
         sensor_states: Sequence[tuple[str, str, float]] = (),
+        kernels: str = "auto",
     ) -> None:
         self.model = model
+        self.kernels = kernels
         self._inputs = inputs
         self.augment = tuple(augment)
         self.sensor_states = tuple(s[0] for s in sensor_states)
@@ -155,10 +160,8 @@ class DiscreteModel:
     # ------------------------------------------------------------------ transitions
     def transition(self, k: int, z: np.ndarray, with_jacobian: bool = True):
         """Interval ``k`` for states ``z (N, n)``: ``(z_next, A (N, n, n))``."""
-        if with_jacobian and self._compiled_transitions():
-            from needlecli.kernels import kalman as compiled
-
-            z, A = compiled.transition_one(self, k, z)
+        if with_jacobian and (fast := self._compiled("transition_one")) is not None:
+            z, A = fast(self, k, z)
             return self._normalize(z), A
         A = np.broadcast_to(np.eye(self.n), (self.N, self.n, self.n)) if with_jacobian else None
         for j in range(self.sub_dt.shape[1]):
@@ -173,22 +176,23 @@ class DiscreteModel:
                 z = _rk4(lambda zz, u=u: self.f(zz, u), z, h)
         return self._normalize(z), A
 
-    def _compiled_transitions(self) -> bool:
-        """Whether the compiled RK4 with its Jacobian covers this system (sensor states: numpy)."""
-        if (self.sensor_states or not kernels.compiled()
-                or self.model.registered_name not in kernels.COMPILED["linearised"]):
-            return False
+    def _compiled(self, name: str):
+        """The compiled twin ``name`` (``transition_one``, ``transition_all``: RK4 with its Jacobian) where
+        the setting asks for it and it covers this system (sensor states: numpy), else None."""
+        if self.sensor_states or not self.model.compiled_equations:
+            return None
+        fast = twin(name, self.kernels)
+        if fast is None:
+            return None
         from needlecli.kernels import kalman as compiled
 
-        return compiled.transitions_supported(self)
+        return fast if compiled.transitions_supported(self) else None
 
     def transition_all(self, zbar: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Every interval at once from ``zbar (N, K, n)`` (the states at ticks ``0..K-1``):
         ``(f_k(zbar_k) (N, K, n), A (N, K, n, n))``."""
-        if self._compiled_transitions():
-            from needlecli.kernels import kalman as compiled
-
-            return compiled.transition_all(self, zbar)
+        if (fast := self._compiled("transition_all")) is not None:
+            return fast(self, zbar)
         z = zbar
         A = None
         for j in range(self.sub_dt.shape[1]):
@@ -316,6 +320,8 @@ class MeasurementModel:
     #: (N, M) robust weights of the samples (Student-t EM, :mod:`needlecli.fitting.robust`): a sample of
     #: weight ``w`` is used with noise ``R / w`` (``y``, ``h`` and ``H`` scaled by ``sqrt(w)``); None: all 1
     weight: np.ndarray | None = None
+    #: the kernels setting of :meth:`linearise` (:class:`DiscreteModel`'s ``kernels``)
+    kernels: str = "auto"
 
     @property
     def m(self) -> int:
@@ -338,7 +344,8 @@ class MeasurementModel:
         out = MeasurementModel(self.name, self.h, self.nx, self.tick, self.y[idx], self.valid[idx], self.angle,
                                self.names, self.units, self.unit_vector,
                                None if self.scale is None else self.scale[idx], self.frame, self.tangent_fn,
-                               self.frame_axis, self.offset_index, None if self.weight is None else self.weight[idx])
+                               self.frame_axis, self.offset_index, None if self.weight is None else self.weight[idx],
+                               self.kernels)
         if self.tangent:
             out._axis_cache = self._axis()
         return out
@@ -356,12 +363,11 @@ class MeasurementModel:
         (whitened by ``scale``: of every sample, or of sample ``sample`` when ``z`` is ``(N, n)``; weighted
         by ``weight`` likewise)."""
         if (self.scale is None and self.weight is None and self.frame == "world" and self.offset_index is None
-                and kernels.compiled() and z.ndim in (2, 3) and z.shape[0] == self.valid.shape[0]):
-            from needlecli.kernels import kalman as compiled  # (whitening, weights, the needle's frame and
-                                                              # offsets: the numpy path below)
-            kind = measurement_kind(self)
-            if kind is not None:
-                return compiled.linearise(self, kind, z, y)
+                and z.ndim in (2, 3) and z.shape[0] == self.valid.shape[0]):  # (whitening, weights, the needle's
+            kind = measurement_kind(self)                                     # frame and offsets: numpy below)
+            fast = twin("linearise", self.kernels) if kind is not None else None
+            if fast is not None:
+                return fast(self, kind, z, y)
         yh, H = finite_difference_h(self.h_aug, z)
         if y is None:
             y = np.where(self.valid[..., None], self.y, 0.0)
@@ -401,19 +407,24 @@ class MeasurementModel:
                        angle=None if self.tangent else self.angle)
 
 
+#: sensors whose ``h`` is the model's quantity of that name as it is (a unit vector where the model
+#: declares it one: :attr:`~needlecli.models.Model.unit_vectors`)
+_QUANTITY_OF = {"tangent": "tangent", "bfield": "field_direction"}
+
+
 def measurement_kind(mm):
     """``(kind, idx)`` of a channel's ``h`` that the compiled linearisation
-    (:func:`needlecli.kernels.kalman.fd_linearise`) covers, or None."""
+    (:func:`needlecli.kernels.kalman.fd_linearise`) covers, or None: kind 0 a selection of the states
+    ``idx``; kind 1 the states ``idx`` normalised, a unit vector the model declares
+    (:attr:`~needlecli.models.Model.unit_vectors`), measured as a direction (``mm.tangent``)."""
     h = mm.h
     if isinstance(h, StateSelection):
         return 0, np.asarray(h.index, dtype=np.int64)
     sensor = getattr(h, "__self__", None)
     model = getattr(sensor, "model", None)
-    if sensor is None or model is None or model.registered_name not in ("mnm", "binm") or not mm.tangent:
+    if sensor is None or model is None or not mm.tangent or getattr(h, "__name__", "") != "h":
         return None
-    name = getattr(h, "__name__", "")
-    if sensor.registered_name == "bfield" and name == "h":
-        return 1, np.array([6, 7, 8], dtype=np.int64)
-    if sensor.registered_name == "tangent" and name == "h":
-        return 1, np.array([3, 4, 5], dtype=np.int64)
-    return None
+    names = model.unit_vectors.get(_QUANTITY_OF.get(sensor.registered_name, ""))
+    if names is None or len(names) != 3:
+        return None
+    return 1, np.array([model.index(k) for k in names], dtype=np.int64)

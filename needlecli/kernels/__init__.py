@@ -1,54 +1,36 @@
 """Compiled kernels (numba) for the hot loops, beside the numpy implementation that stays the reference.
 
 This package is light: importing it imports neither numba nor any kernel. The kernel modules
-(``needlecli.kernels.models``, ``.truth``, ``.ukf``, ``.kalman``) are imported only when a run uses them.
+(``needlecli.kernels.models``, ``.truth``, ``.ukf``, ``.kalman``, ``.metrics``) are imported only when a run
+uses them, through :func:`twin`.
 
-Which path runs is chosen per run: ``simulation.kernels`` in a config (``auto``, the default: compiled
-where a component has a compiled path and numba is installed; ``numba``: the same, and an error when numba
-is missing; ``numpy``: the reference everywhere), overridden by the environment variable
-``NEEDLECLI_KERNELS`` (same values) for debugging without editing configs. A component without a
-compiled path (or a configuration its kernel does not cover) runs on the numpy path either way.
+The table of twins and the one choice between them and the numpy reference, from one explicit setting
+(``simulation.kernels``: ``auto``, ``numba``, ``numpy``; the environment variable ``NEEDLECLI_KERNELS``
+overrides it), are in :mod:`needlecli.kernels.dispatch`, re-exported here.
 """
 
 from __future__ import annotations
 
 import contextlib
-import functools
-import importlib.util
 import os
-from contextvars import ContextVar
 
-MODES = ("auto", "numba", "numpy")
-ENV = "NEEDLECLI_KERNELS"
+from needlecli.kernels.dispatch import (
+    ENV,
+    MODES,
+    TWINS,
+    KernelError,
+    Twin,
+    compiled,
+    describe,
+    markdown_table,
+    numba_available,
+    requested,
+    resolve,
+    twin,
+)
 
-#: what has a compiled path, for ``needle list`` (kept beside the kernels that implement it)
-COMPILED = {
-    "models": ("unicycle", "modified_unicycle", "so3", "mnm", "binm"),
-    "truth": "the truth simulation (open loop; closed loops step the numpy model)",
-    "observers": {
-        "ukf": "predict, multi-rate update with masks, gating, resets, constraint, predictions; "
-               "channels that select states (position, roll, curvature); others: numpy",
-        "eks": "the RTS smoother, the linearisation of mnm and binm, the affine filter with joseph: false",
-    },
-    "fitting": "fit-em: the affine filter and RTS passes of the iterated EKS over all trials at once, the "
-               "M-step sums, the linearisation of mnm and binm",
-    "linearised": ("mnm", "binm"),
-    "metrics": "the rotation error E_R of orientations given as Euler angles (needle evaluate, summary tables)",
-}
-
-
-_SETTING: ContextVar[str | None] = ContextVar("needlecli_kernels", default=None)
-
-
-@contextlib.contextmanager
-def using(setting: str | None):
-    """The kernels setting for pure array functions deep in a computation (the Kalman passes of EM), which
-    take no config: ``with kernels.using(cfg.simulation.kernels): ...``."""
-    token = _SETTING.set(setting)
-    try:
-        yield
-    finally:
-        _SETTING.reset(token)
+__all__ = ["ENV", "MODES", "TWINS", "KernelError", "Twin", "WarmUp", "cold", "compiled", "describe",
+           "markdown_table", "numba_available", "requested", "resolve", "threads", "twin", "warm_up"]
 
 
 @contextlib.contextmanager
@@ -65,68 +47,17 @@ def threads(n: int | None):
         _threads._FORCED[:] = before
 
 
-class KernelError(RuntimeError):
-    """``kernels: numba`` asked for and numba cannot be imported."""
-
-
-@functools.lru_cache(maxsize=1)
-def numba_available() -> bool:
-    return importlib.util.find_spec("numba") is not None
-
-
-def mode(setting: str | None = None) -> str:
-    """The requested mode: ``NEEDLECLI_KERNELS`` if set, else ``setting`` (a config's), else the one of
-    :func:`using`, else ``auto``."""
-    env = os.environ.get(ENV, "").strip().lower()
-    if env:
-        if env not in MODES:
-            raise KernelError(f"{ENV}={env!r}: expected one of {', '.join(MODES)}")
-        return env
-    return setting or _SETTING.get() or "auto"
-
-
-def compiled(setting: str | None = None) -> bool:
-    """Whether components with a compiled path should use it."""
-    m = mode(setting)
-    if m == "numpy":
+def cold(entries) -> bool:
+    """Whether the on-disk kernel cache lacks any of these compiled entry points, ``(module, function)``
+    pairs of :mod:`needlecli.kernels` (the observers' ``compiled_entry``; None entries are skipped), for the
+    kernel sources of this install. Imports numba (where there is an entry): call it only where the kernels
+    are used."""
+    wanted = {e for e in entries if e is not None}
+    if not wanted:
         return False
-    if numba_available():
-        return True
-    if m == "numba":
-        raise KernelError("compiled kernels requested (kernels: numba) but numba is not installed: pip install numba")
-    return False
-
-
-def has_model(name: str) -> bool:
-    """Whether model ``name`` has compiled equations."""
-    return name in COMPILED["models"]
-
-
-def describe() -> list[str]:
-    """Lines for ``needle list``: what has a compiled path and which path a run would take now."""
-    m = mode()
-    state = ("numba " + ("available" if numba_available() else "NOT installed: every run takes the numpy path"))
-    lines = [f"kernels: {m} ({ENV} or simulation.kernels: auto | numba | numpy); {state}",
-             f"  compiled models: {', '.join(COMPILED['models'])} (vector fields, RK4 steps)",
-             f"  compiled truth: {COMPILED['truth']}"]
-    for name, what in COMPILED["observers"].items():
-        lines.append(f"  compiled observer {name}: {what}")
-    lines.append(f"  compiled fitting: {COMPILED['fitting']}")
-    lines.append(f"  compiled metrics: {COMPILED['metrics']}")
-    return lines
-
-
-#: the kernel that compiles longest for each observer with a compiled path (module, function)
-_ENTRY = {"ukf": ("ukf", "run"), "eks": ("kalman", "filter_smoother")}
-
-
-def cold(observer_types) -> bool:
-    """Whether the on-disk kernel cache lacks the compiled code of any of these observers (for the kernel
-    sources of this install; imports numba). Observers without a compiled path do not count."""
     from needlecli.kernels import _jit
 
-    entries = {_ENTRY[t] for t in observer_types if t in _ENTRY}
-    return any(not any(_jit.CACHE_DIR.rglob(f"{m}.{f}-*.nbi")) for m, f in entries)
+    return any(not any(_jit.CACHE_DIR.rglob(f"{m}.{f}-*.nbi")) for m, f in wanted)
 
 
 class WarmUp:

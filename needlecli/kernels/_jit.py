@@ -1,4 +1,4 @@
-"""numba, configured once for needlecli's kernels: the on-disk cache and the decorators.
+"""numba, configured once for needlecli's kernels: the on-disk cache, numba's patches, the decorators.
 
 Imported only by the kernel modules (never by ``needle --help`` or a run on the numpy path). The
 compiled code is cached on disk (``cache=True``) in a directory named after a hash of the kernel
@@ -19,6 +19,11 @@ from pathlib import Path
 
 import numba
 from numba import njit, prange  # noqa: F401  (re-exported for the kernel modules)
+
+# numba, patched where it lacks what the kernels need, each patch in its own module saying which upstream
+# issue it works around and when to drop it: vector code (SLP, 512-bit vectors), locked cache saves, noalias
+from needlecli.kernels import _patch_cache_lock, _patch_vectorize  # noqa: F401  (applied on import)
+from needlecli.kernels._patch_noalias import NOALIAS
 
 HERE = Path(__file__).resolve().parent
 
@@ -42,59 +47,6 @@ def cache_root() -> Path:
 
 
 CACHE_DIR = cache_root() / source_hash()
-
-# LLVM's SLP vectoriser (off by default in numba): the kernels keep a few independent sums in registers
-# (lanes of the Kalman passes) that it turns into vector operations, twice the speed. It packs
-# operations, it does not reorder them (no fastmath): the same numbers. Process-wide, for compilations
-# from here on.
-numba.config.SLP_VECTORIZE = 1
-
-
-def _full_width_vectors() -> None:
-    """Let LLVM use 512-bit vectors where the CPU has them (AVX-512). LLVM's tuning for recent Intel cores
-    prefers 256-bit ones (a hedge against the clock drop of older AVX-512 parts); the kernels' loops over
-    8 or 16 lanes run 1.3-1.4x faster at full width here (benchmarks/bench_kernels.py). The same numbers:
-    vector width changes no operation. An explicit ``NUMBA_CPU_FEATURES`` (or ``NUMBA_DISABLE_AVX``) wins;
-    set before numba builds its code generator (the first compilation or cache load of the process)."""
-    if numba.config.CPU_FEATURES is not None or not numba.config.ENABLE_AVX:
-        return
-    try:
-        import llvmlite.binding as ll
-
-        features = ll.get_host_cpu_features()
-    except (RuntimeError, ImportError):  # pragma: no cover
-        return
-    if features.get("avx512f"):
-        numba.config.CPU_FEATURES = features.flatten() + ",-prefer-256-bit"
-
-
-_full_width_vectors()
-
-
-def _locked_cache_saves() -> None:
-    """numba saves a compiled function by reading its cache index, adding the entry and writing it back;
-    two processes compiling the same function at once (a first run that compiles in two processes,
-    :func:`needlecli.kernels.warm_up`) could then lose an entry or overwrite each other's data file. Each
-    save here holds an exclusive lock on a file beside the index (:func:`needlecli.platform.file_lock`:
-    ``flock`` where the platform has it), so saves of one function follow one another; loads are unchanged
-    (the index and data files are replaced atomically)."""
-    from numba.core import caching
-
-    from needlecli.platform import file_lock
-    cls = caching.IndexDataCacheFile
-    if getattr(cls.save, "_needlecli_locked", False):
-        return
-    plain = cls.save
-
-    def save(self, key, data):
-        with file_lock(self._index_path + ".lock"):
-            return plain(self, key, data)
-
-    save._needlecli_locked = True
-    cls.save = save
-
-
-_locked_cache_saves()
 
 
 @contextlib.contextmanager
@@ -125,26 +77,10 @@ def pjit(fn=None, **kw):
     return jit(fn, parallel=True, **kw)
 
 
-# ``noalias`` (a flag of numba's compiler that its decorators do not expose): the array arguments of a
-# function so marked never overlap, which is what lets LLVM pack the loops over lanes (runs) of the
-# kernels into vector operations; without it every store might change what the next load reads, and
-# the loops stay scalar. Only functions whose array arguments are distinct arrays by construction use it
-# (:func:`lanes`); where numba lacks the flag they are compiled without it (the same numbers, slower).
-try:
-    from numba.core import cpu as _cpu
-    from numba.core import options as _options
-
-    if not hasattr(_cpu.CPUTargetOptions, "noalias"):
-        _cpu.CPUTargetOptions.noalias = _options.TargetOptions.Mapping("noalias")
-    _NOALIAS = {"noalias": True}
-except (ImportError, AttributeError):  # pragma: no cover  (a numba without the flag)
-    _NOALIAS = {}
-
-
 def lanes(fn=None, **kw):
     """:func:`jit` for loops over the lanes of a block of runs: array arguments declared not to overlap
     (each must be a distinct array, never a view of another argument)."""
-    return jit(fn, **{**_NOALIAS, **kw})
+    return jit(fn, **{**NOALIAS, **kw})
 
 
 def inline(fn):

@@ -12,6 +12,7 @@ repairs (a matrix is repaired when its own Cholesky fails) differ.
 from __future__ import annotations
 
 import math
+from collections import namedtuple
 
 import numpy as np
 
@@ -88,6 +89,31 @@ def repair_pd_one(P, n, L):
 # so that the smoother does not gather each matrix back from eight trials' rows; EM's pass also makes the
 # M-step's process-noise sums there, instead of writing the cross-covariances and reading them back.
 LANES = 8
+
+# ---------------------------------------------------------------------------------------------- the records
+# What the passes are given, in a few records of arrays and numbers (numba takes named tuples as arguments;
+# defined here, at module level, so that the cached kernels find their types again). Every caller gives a
+# record's fields the same array types (unused ones empty): one compiled block serves them all.
+
+#: the affine model of a pass and its prior: m0 (N, n), P0 and Qc (N, n, n) per trial; dt (K,); A (Ns, K,
+#: n, n) and b (Ns, K, n) by row; src (N,) the row of A, b and the samples that trial r filters with;
+#: state_angles (n,) bool
+Affine = namedtuple("Affine", "m0 P0 Qc dt A b src state_angles")
+#: the channels' samples along one axis (:func:`_channels_concat`): slot (J, K+1) the sample of channel j
+#: at tick k (-1: none); m (J,) components; Y (Ns, M, mm), V (Ns, M), R (N, J, mm, mm), H (Ns, M, mm, n),
+#: D (Ns, M, mm); ang (J, mm) angles; hcnt (J, mm), hidx (J, mm, n) the sparse rows of each channel's H
+Samples = namedtuple("Samples", "slot m Y V R H D ang hcnt hidx")
+#: a block's means and covariances in the lanes' layout: mS, mfS (K+1, n, LANES) predicted and filtered
+#: means, PpS, PfS (K+1, n, n, LANES) their covariances, AS (K, n, n, LANES) the transitions
+Block = namedtuple("Block", "mS PpS mfS PfS AS")
+#: the filter's outputs (N, K+1, n[, n]) and per trial its log-likelihood and repairs (N,)
+Filtered = namedtuple("Filtered", "m_pred P_pred m_filt P_filt loglik repairs")
+#: the smoother's outputs, each written where its flag says: m (N, K+1, n), P (N, K+1, n, n); C and G (N,
+#: K, n, n) the cross-covariances and gains (keep_C, keep_G); q_sums (N, n, n) the M-step's process-noise
+#: sums (keep_Q); sd (N, K+1, n) the standard deviations and finite (N,) (keep_sd); r_sums (N, J, mm,
+#: mm) and r_count (N, J) the measurement-noise sums (keep_R); repairs (N,)
+Smoothed = namedtuple("Smoothed", "m P C G q_sums sd finite r_sums r_count repairs keep_C keep_G keep_Q keep_sd "
+                                  "keep_R")
 
 
 @jit
@@ -271,18 +297,20 @@ def _all(ok):
 
 @jit
 def _scratch(K1, n):
-    """A block's means and covariances in the lanes' layout: predicted, filtered, and the transitions."""
-    return (np.empty((K1, n, LANES)), np.empty((K1, n, n, LANES)), np.empty((K1, n, LANES)),
-            np.empty((K1, n, n, LANES)), np.empty((max(K1 - 1, 2), n, n, LANES)))
+    """A block's means and covariances in the lanes' layout (:data:`Block`)."""
+    return Block(np.empty((K1, n, LANES)), np.empty((K1, n, n, LANES)), np.empty((K1, n, LANES)),
+                 np.empty((K1, n, n, LANES)), np.empty((max(K1 - 1, 2), n, n, LANES)))
 
 
 # ---------------------------------------------------------------------------------------------- the filter
 @lanes
-def _forward_block(rl, m0, P0, Qc, dt, A, b, slot, ch_m, Y, V, R, H, D, ang_c, hcnt, hidx, src,
-                   state_angles, mS, PpS, mfS, PfS, AS, ll, rep):
-    """The affine filter on the trials ``rl`` (one per lane) into the block's layout: ``mS, PpS`` predicted,
-    ``mfS, PfS`` filtered (``(K+1, n[, n], LANES)``), ``AS`` the transitions; ``ll, rep`` the log-likelihood
-    and the repairs per lane."""
+def _forward_block(rl, aff, obs, blk, ll, rep):
+    """The affine filter (:data:`Affine`, :data:`Samples`) on the trials ``rl`` (one per lane) into the
+    block's layout (:data:`Block`); ``ll, rep`` the log-likelihood and the repairs per lane."""
+    m0, P0, Qc, dt, A, b, src, state_angles = aff.m0, aff.P0, aff.Qc, aff.dt, aff.A, aff.b, aff.src, aff.state_angles
+    slot, ch_m, Y, V, R, H, D = obs.slot, obs.m, obs.Y, obs.V, obs.R, obs.H, obs.D
+    ang_c, hcnt, hidx = obs.ang, obs.hcnt, obs.hidx
+    mS, PpS, mfS, PfS, AS = blk.mS, blk.PpS, blk.mfS, blk.PfS, blk.AS
     n = m0.shape[1]
     K1 = slot.shape[1]
     J = slot.shape[0]
@@ -457,28 +485,26 @@ def _forward_block(rl, m0, P0, Qc, dt, A, b, slot, ch_m, Y, V, R, H, D, ang_c, h
 
 
 @jit
-def forward_affine(lo, hi, m0, P0, Qc, dt, A, b, slot, ch_m, Y, V, R, H, D, ang_c, hcnt, hidx,
-                   m_pred, P_pred, m_filt, P_filt, loglik, repairs, state_angles, store, src):
-    """:func:`needlecli.numerics.kalman.kalman_forward_affine` for trials ``lo..hi-1`` (lanes of LANES);
-    with ``store`` False only the log-likelihood and the repairs (the means and covariances not written).
-
-    Channels concatenated along the sample axis: slot (J, K+1) the
-    sample of channel j at tick k (-1: none); ch_m (J,) components; Y (N, M, mm), V (N, M), R (N, J, mm, mm),
-    H (N, M, mm, n), D (N, M, mm); ang_c (J, mm); hcnt (J, mm), hidx (J, mm, n) the sparse rows of each
-    channel's H; src (N,) the row of A, b, Y, V, H, D that trial r filters with (its own noise, prior and
-    outputs: identifiability's evaluation points share their trial's linearisation without copies). Outputs
-    (N, K+1, ...) written in place. The gain uses the Cholesky factor of the
-    innovation covariance (numpy: LU; the same to rounding), which the log-likelihood needs anyway.
+def forward_affine(lo, hi, aff, obs, out, store):
+    """:func:`needlecli.numerics.kalman.kalman_forward_affine` for trials ``lo..hi-1`` (lanes of LANES) of
+    the model :data:`Affine` and the channels :data:`Samples` into :data:`Filtered` ``out`` (written in
+    place); with ``store`` False only the log-likelihood and the repairs (the means and covariances not
+    written). Trial r filters with row ``aff.src[r]`` of ``A, b, Y, V, H, D`` (its own noise, prior and
+    outputs: identifiability's evaluation points share their trial's linearisation without copies). The
+    gain uses the Cholesky factor of the innovation covariance (numpy: LU; the same to rounding), which the
+    log-likelihood needs anyway.
     """
-    n = m0.shape[1]
-    K1 = slot.shape[1]
-    mS, PpS, mfS, PfS, AS = _scratch(K1 if store else 2, n)  # not stored: two ticks of scratch, alternating
+    m_pred, P_pred, m_filt, P_filt, loglik, repairs = (out.m_pred, out.P_pred, out.m_filt, out.P_filt, out.loglik,
+                                                       out.repairs)
+    n = aff.m0.shape[1]
+    K1 = obs.slot.shape[1]
+    blk = _scratch(K1 if store else 2, n)  # not stored: two ticks of scratch, alternating
+    mS, PpS, mfS, PfS = blk.mS, blk.PpS, blk.mfS, blk.PfS
     ll = np.zeros(LANES)
     rep = np.zeros(LANES, dtype=np.int64)
     for r0 in range(lo, hi, LANES):
         rl = _lanes(lo, hi, r0)
-        _forward_block(rl, m0, P0, Qc, dt, A, b, slot, ch_m, Y, V, R, H, D, ang_c, hcnt, hidx, src,
-                       state_angles, mS, PpS, mfS, PfS, AS, ll, rep)
+        _forward_block(rl, aff, obs, blk, ll, rep)
         nl = min(LANES, hi - r0)
         for l in range(nl):
             loglik[rl[l]] = ll[l]
@@ -497,19 +523,23 @@ def forward_affine(lo, hi, m0, P0, Qc, dt, A, b, slot, ch_m, Y, V, R, H, D, ang_
 
 # ---------------------------------------------------------------------------------------------- the smoother
 @lanes
-def _backward_block(rl, nl, mS, PpS, mfS, PfS, AS, state_angles, m_s, P_s, C, G, keep_C, keep_G, b, dt, q_sums,
-                    keep_Q, sd, finite, keep_sd, slot, ch_m, Y, V, H, D, ang_c, hcnt, hidx, r_sums, r_count, keep_R,
-                    rep):
-    """The RTS smoother on a block in the lanes' layout (the filter's :func:`_forward_block`), lanes
-    ``0..nl-1`` written to the trials ``rl``: the gains from the Cholesky factor of the predicted
-    covariance (its check of positive definiteness computes it anyway), the backward recursion, the
-    smoothed means and covariances; the lag-one cross-covariances if ``keep_C``, the gains if ``keep_G``.
-    With ``keep_Q`` also the sums of :func:`process_noise_sums` (``b (N, K, n)``, ``dt (K,)``) into
-    ``q_sums (N, n, n)``, each interval's term as that kernel's (the sum over intervals in reverse). With
-    ``keep_sd`` the smoothed standard deviations ``sd (N, K+1, n)`` (``sqrt(max(diag P, 1e-300))``, NaN
-    kept, as numpy's) and whether every entry of each trial's covariances is finite (``finite (N,)``). With
-    ``keep_R`` the sums of :func:`measurement_noise_sums` of every channel (the forward pass's ``slot`` ...
-    ``hidx``) into ``r_sums (N, J, mm, mm)``, ``r_count (N, J)`` (the samples in reverse order)."""
+def _backward_block(rl, nl, blk, aff, obs, sm, rep):
+    """The RTS smoother on a block in the lanes' layout (:data:`Block`, the filter's
+    :func:`_forward_block`), lanes ``0..nl-1`` written to the trials ``rl`` of :data:`Smoothed` ``sm``: the
+    gains from the Cholesky factor of the predicted covariance (its check of positive definiteness
+    computes it anyway), the backward recursion, the smoothed means and covariances; the lag-one
+    cross-covariances if ``sm.keep_C``, the gains if ``sm.keep_G``. With ``keep_Q`` also the sums of
+    :func:`process_noise_sums` (``aff.b``, ``aff.dt``) into ``q_sums``, each interval's term as that
+    kernel's (the sum over intervals in reverse). With ``keep_sd`` the smoothed standard deviations ``sd``
+    (``sqrt(max(diag P, 1e-300))``, NaN kept, as numpy's) and whether every entry of each trial's
+    covariances is finite (``finite``). With ``keep_R`` the sums of :func:`measurement_noise_sums` of every
+    channel of ``obs`` (the forward pass's) into ``r_sums``, ``r_count`` (the samples in reverse order)."""
+    mS, PpS, mfS, PfS, AS = blk.mS, blk.PpS, blk.mfS, blk.PfS, blk.AS
+    state_angles, b, dt = aff.state_angles, aff.b, aff.dt
+    m_s, P_s, C, G, q_sums, sd, finite, r_sums, r_count = (sm.m, sm.P, sm.C, sm.G, sm.q_sums, sm.sd, sm.finite,
+                                                           sm.r_sums, sm.r_count)
+    keep_C, keep_G, keep_Q, keep_sd, keep_R = sm.keep_C, sm.keep_G, sm.keep_Q, sm.keep_sd, sm.keep_R
+    slot, ch_m, Y = obs.slot, obs.m, obs.Y
     K1 = mS.shape[0]
     n = mS.shape[1]
     K = K1 - 1
@@ -548,7 +578,7 @@ def _backward_block(rl, nl, mS, PpS, mfS, PfS, AS, state_angles, m_s, P_s, C, G,
                 PP[1, a, c, l] = PfS[K, a, c, l]
                 fz[l] += PfS[K, a, c, l] * 0.0
     if keep_R:
-        _r_sums(K, rl, ms, PP[1], slot, ch_m, Y, V, H, D, ang_c, hcnt, hidx, Ra, Rc, Hl, HP, rv, vm, acc)
+        _r_sums(K, rl, ms, PP[1], obs, Ra, Rc, Hl, HP, rv, vm, acc)
     for l in range(nl):
         r = rl[l]
         for a in range(n):
@@ -610,7 +640,7 @@ def _backward_block(rl, nl, mS, PpS, mfS, PfS, AS, state_angles, m_s, P_s, C, G,
                         Qa[a, c, l] += ((((e[a, l] * e[c, l] + Ps[a, c, l]) - Pp[c, a, l]) - Pp[a, c, l])
                                         + W1[a, c, l]) / h
         if keep_R:
-            _r_sums(k, rl, ms, Pn, slot, ch_m, Y, V, H, D, ang_c, hcnt, hidx, Ra, Rc, Hl, HP, rv, vm, acc)
+            _r_sums(k, rl, ms, Pn, obs, Ra, Rc, Hl, HP, rv, vm, acc)
         if keep_sd:
             for a in range(n):
                 for c in range(n):
@@ -653,10 +683,13 @@ def _backward_block(rl, nl, mS, PpS, mfS, PfS, AS, state_angles, m_s, P_s, C, G,
 
 
 @lanes
-def _r_sums(k, rl, m, P, slot, ch_m, Y, V, H, D, ang_c, hcnt, hidx, Ra, Rc, Hl, HP, rv, vm, acc):
-    """The terms of :func:`measurement_noise_sums` of the samples at tick ``k`` (smoothed ``m (n, LANES)``,
-    ``P (n, n, LANES)``), added to ``Ra (J, mm, mm, LANES)`` and counted in ``Rc (J, LANES)`` where valid:
-    ``r r^T + H P H^T``, ``r = y - H m - d`` (``H``'s structural zeros skipped, as that kernel's ``_mm``)."""
+def _r_sums(k, rl, m, P, obs, Ra, Rc, Hl, HP, rv, vm, acc):
+    """The terms of :func:`measurement_noise_sums` of the samples of ``obs`` (:data:`Samples`) at tick ``k``
+    (smoothed ``m (n, LANES)``, ``P (n, n, LANES)``), added to ``Ra (J, mm, mm, LANES)`` and counted in
+    ``Rc (J, LANES)`` where valid: ``r r^T + H P H^T``, ``r = y - H m - d`` (``H``'s structural zeros
+    skipped, as that kernel's ``_mm``)."""
+    slot, ch_m, Y, V, H, D = obs.slot, obs.m, obs.Y, obs.V, obs.H, obs.D
+    ang_c, hcnt, hidx = obs.ang, obs.hcnt, obs.hidx
     n = m.shape[0]
     for j in range(slot.shape[0]):
         i = slot[j, k]
@@ -717,18 +750,16 @@ def _sd(v):
 
 
 @jit
-def rts(lo, hi, A, m_pred, P_pred, m_filt, P_filt, state_angles, m_s, P_s, C, G, repairs):
+def rts(lo, hi, flt, aff, obs, sm):
     """:func:`needlecli.numerics.kalman.rts_smoother` for trials ``lo..hi-1`` (lanes of LANES): a filter's
-    output gathered into the lanes' layout, then :func:`_backward_block`."""
+    output (:data:`Filtered`, the transitions ``aff.A``) gathered into the lanes' layout, then
+    :func:`_backward_block` into ``sm``."""
+    A, m_pred, P_pred, m_filt, P_filt = aff.A, flt.m_pred, flt.P_pred, flt.m_filt, flt.P_filt
+    repairs = sm.repairs
     N, K1, n = m_filt.shape
-    mS, PpS, mfS, PfS, AS = _scratch(K1, n)
+    blk = _scratch(K1, n)
+    mS, PpS, mfS, PfS, AS = blk.mS, blk.PpS, blk.mfS, blk.PfS, blk.AS
     rep = np.zeros(LANES, dtype=np.int64)
-    no_b, no_dt, no_q = np.empty((0, 0, n)), np.empty(0), np.empty((0, n, n))  # no M-step sums here
-    no_sd, no_f = np.empty((0, 0, n)), np.empty(0, dtype=np.bool_)
-    no_slot, no_m, no_m2 = np.empty((0, K1), dtype=np.int64), np.empty(0, dtype=np.int64), np.empty((0, 1), dtype=np.int64)
-    no_Y, no_V, no_H, no_D = np.empty((0, 0, 1)), np.empty((0, 0), dtype=np.bool_), np.empty((0, 0, 1, n)), np.empty((0, 0, 1))
-    no_ang, no_idx = np.empty((0, 1), dtype=np.bool_), np.empty((0, 1, n), dtype=np.int64)
-    no_rs, no_rc = np.empty((0, 0, 1, 1)), np.empty((0, 0), dtype=np.int64)
     for r0 in range(lo, hi, LANES):
         rl = _lanes(lo, hi, r0)
         for l in range(LANES):
@@ -745,34 +776,30 @@ def rts(lo, hi, A, m_pred, P_pred, m_filt, P_filt, state_angles, m_s, P_s, C, G,
                         if k < K1 - 1:
                             AS[k, a, c, l] = A[r, k, a, c]
         nl = min(LANES, hi - r0)
-        _backward_block(rl, nl, mS, PpS, mfS, PfS, AS, state_angles, m_s, P_s, C, G, True, True, no_b, no_dt, no_q,
-                        False, no_sd, no_f, False, no_slot, no_m, no_Y, no_V, no_H, no_D, no_ang, no_m2, no_idx, no_rs,
-                        no_rc, False, rep)
+        _backward_block(rl, nl, blk, aff, obs, sm, rep)
         for l in range(nl):
             repairs[rl[l]] += rep[l]
 
 
 @jit
-def filter_smoother(lo, hi, m0, P0, Qc, dt, A, b, slot, ch_m, Y, V, R, H, D, ang_c, hcnt, hidx,
-                    state_angles, m_pred, m_filt, loglik, repairs_f, m_s, P_s, C, keep_C, q_sums, keep_Q, sd, finite,
-                    r_sums, r_count, keep_R, repairs_s):
+def filter_smoother(lo, hi, aff, obs, flt, sm):
     """:func:`forward_affine` then :func:`rts` on each block without leaving the lanes' layout in between
-    (the filter's covariances are not written out; nor the smoother's gains); with ``keep_Q`` the M-step's
-    sums of :func:`process_noise_sums` too, in the same pass (then the cross-covariances need not be
-    written: ``keep_C``)."""
-    n = m0.shape[1]
-    K1 = slot.shape[1]
-    mS, PpS, mfS, PfS, AS = _scratch(K1, n)
+    (the filter's covariances are not written out into ``flt``; nor the smoother's gains into ``sm``); with
+    ``sm.keep_Q`` the M-step's sums of :func:`process_noise_sums` too, in the same pass (then the
+    cross-covariances need not be written: ``keep_C``)."""
+    m_pred, m_filt, loglik, repairs_f = flt.m_pred, flt.m_filt, flt.loglik, flt.repairs
+    repairs_s = sm.repairs
+    n = aff.m0.shape[1]
+    K1 = obs.slot.shape[1]
+    blk = _scratch(K1, n)
+    mS, mfS = blk.mS, blk.mfS
     ll = np.zeros(LANES)
     rep = np.zeros(LANES, dtype=np.int64)
     rep_s = np.zeros(LANES, dtype=np.int64)
-    src = np.arange(m0.shape[0])
-    no_G = np.empty((0, 0, n, n))  # not written (array arguments of the blocks must not overlap)
     for r0 in range(lo, hi, LANES):
         rl = _lanes(lo, hi, r0)
         nl = min(LANES, hi - r0)
-        _forward_block(rl, m0, P0, Qc, dt, A, b, slot, ch_m, Y, V, R, H, D, ang_c, hcnt, hidx, src,
-                       state_angles, mS, PpS, mfS, PfS, AS, ll, rep)
+        _forward_block(rl, aff, obs, blk, ll, rep)
         for l in range(nl):
             loglik[rl[l]] = ll[l]
             repairs_f[rl[l]] += rep[l]
@@ -783,9 +810,7 @@ def filter_smoother(lo, hi, m0, P0, Qc, dt, A, b, slot, ch_m, Y, V, R, H, D, ang
                 for a in range(n):
                     m_pred[r, k, a] = mS[k, a, l]
                     m_filt[r, k, a] = mfS[k, a, l]
-        _backward_block(rl, nl, mS, PpS, mfS, PfS, AS, state_angles, m_s, P_s, C, no_G, keep_C, False, b, dt, q_sums,
-                        keep_Q, sd, finite, True, slot, ch_m, Y, V, H, D, ang_c, hcnt, hidx, r_sums, r_count, keep_R,
-                        rep_s)
+        _backward_block(rl, nl, blk, aff, obs, sm, rep_s)
         for l in range(nl):
             repairs_s[rl[l]] += rep_s[l]
 
@@ -1160,21 +1185,16 @@ def kalman_forward_affine(m0, P0, Qc, dt, A, b, channels, H, d, *, state_angles=
     if len(src) != N:
         raise ValueError(f"rows: {len(src)} rows for {N} trials")
     K = len(dt)
-    inputs, A, sa = _forward_inputs(m0, P0, Qc, dt, A, b, channels, H, d, state_angles, np.shape(A)[0])
+    aff, obs = _forward_inputs(m0, P0, Qc, dt, A, b, channels, H, d, state_angles, np.shape(A)[0], src)
     Ks = K + 1 if store else 0
-    m_pred = np.empty((N, Ks, n))
-    P_pred = np.empty((N, Ks, n, n))
-    m_filt = np.empty((N, Ks, n))
-    P_filt = np.empty((N, Ks, n, n))
-    loglik = np.zeros(N)
-    repairs = np.zeros(N, dtype=np.int64)
-    parallel_for(forward_affine, _lane_blocks(N), inputs + (m_pred, P_pred, m_filt, P_filt, loglik, repairs, sa,
-                                                            bool(store), src))
-    return m_pred, P_pred, m_filt, P_filt, A, loglik, repairs
+    out = Filtered(np.empty((N, Ks, n)), np.empty((N, Ks, n, n)), np.empty((N, Ks, n)), np.empty((N, Ks, n, n)),
+                   np.zeros(N), np.zeros(N, dtype=np.int64))
+    parallel_for(forward_affine, _lane_blocks(N), (aff, obs, out, bool(store)))
+    return out.m_pred, out.P_pred, out.m_filt, out.P_filt, aff.A, out.loglik, out.repairs
 
 
-def _forward_inputs(m0, P0, Qc, dt, A, b, channels, H, d, state_angles, Ns):
-    """The arguments of :func:`forward_affine` up to ``hidx``, contiguous; the transitions; the angles."""
+def _forward_inputs(m0, P0, Qc, dt, A, b, channels, H, d, state_angles, Ns, src):
+    """The records :data:`Affine` and :data:`Samples` of a pass, contiguous."""
     N, n = m0.shape
     K = len(dt)
     P0 = np.ascontiguousarray(np.broadcast_to(P0, (N, n, n)), dtype=float)
@@ -1188,9 +1208,20 @@ def _forward_inputs(m0, P0, Qc, dt, A, b, channels, H, d, state_angles, Ns):
         t = np.asarray(ch.tick)
         ok = (t >= 0) & (t < K + 1)
         slot[j, t[ok]] = offsets[j] + np.nonzero(ok)[0]
-    sa = np.zeros(n, dtype=np.bool_) if state_angles is None else np.ascontiguousarray(state_angles, dtype=np.bool_)
-    return ((m0, P0, Qc, np.ascontiguousarray(dt, dtype=float), A, b, slot, ch_m, Y, V, R, Hc, Dc, ang,
-             hcnt, hidx), A, sa)
+    return (Affine(m0, P0, Qc, np.ascontiguousarray(dt, dtype=float), A, b, src, _angles(state_angles, n)),
+            Samples(slot, ch_m, Y, V, R, Hc, Dc, ang, hcnt, hidx))
+
+
+def _angles(state_angles, n):
+    return np.zeros(n, dtype=np.bool_) if state_angles is None else np.ascontiguousarray(state_angles, dtype=np.bool_)
+
+
+def _no_samples(n, K1):
+    """:data:`Samples` of no channel (the smoother of a stored filter makes no M-step sums): the array types
+    of a pass's, empty."""
+    return Samples(np.empty((0, K1), dtype=np.int64), np.empty(0, dtype=np.int64), np.empty((0, 0, 1)),
+                   np.empty((0, 0), dtype=np.bool_), np.empty((0, 0, 1, 1)), np.empty((0, 0, 1, n)), np.empty((0, 0, 1)),
+                   np.empty((0, 1), dtype=np.bool_), np.empty((0, 1), dtype=np.int64), np.empty((0, 1, n), dtype=np.int64))
 
 
 def kalman_filter_smoother(m0, P0, Qc, dt, A, b, channels, H, d, *, state_angles=None, q_sums=False):
@@ -1205,27 +1236,20 @@ def kalman_filter_smoother(m0, P0, Qc, dt, A, b, channels, H, d, *, state_angles
     m0 = np.ascontiguousarray(m0, dtype=float)
     N, n = m0.shape
     K = len(dt)
-    inputs, A, sa = _forward_inputs(m0, P0, Qc, dt, A, b, channels, H, d, state_angles, N)
-    m_pred = np.empty((N, K + 1, n))
-    m_filt = np.empty((N, K + 1, n))
-    loglik = np.zeros(N)
-    rep_f = np.zeros(N, dtype=np.int64)
-    m_s = np.empty((N, K + 1, n))
-    P_s = np.empty((N, K + 1, n, n))
-    C = np.empty((N, 0 if q_sums else K, n, n))
-    Q = np.empty((N if q_sums else 0, n, n))
-    sd = np.empty((N, K + 1, n))
-    finite = np.zeros(N, dtype=np.bool_)
-    _, J, mm, _ = inputs[10].shape  # the channels' noise, (N, J, mm, mm)
-    r_sums = np.zeros((N if q_sums else 0, J, mm, mm))
-    r_count = np.zeros((N if q_sums else 0, J), dtype=np.int64)
-    rep_s = np.zeros(N, dtype=np.int64)
-    parallel_for(filter_smoother, _lane_blocks(N), inputs + (sa, m_pred, m_filt, loglik, rep_f, m_s, P_s, C, not q_sums,
-                                                            Q, bool(q_sums), sd, finite, r_sums, r_count, bool(q_sums),
-                                                            rep_s))
+    aff, obs = _forward_inputs(m0, P0, Qc, dt, A, b, channels, H, d, state_angles, N, np.arange(N, dtype=np.int64))
     none = np.empty((N, 0, n, n))
-    m_step = (Q, r_sums, r_count) if q_sums else None
-    return ((m_pred, none, m_filt, none, A, loglik, rep_f), (m_s, P_s, C, none, rep_s), m_step, sd, finite)
+    flt = Filtered(np.empty((N, K + 1, n)), none, np.empty((N, K + 1, n)), none, np.zeros(N), np.zeros(N, dtype=np.int64))
+    _, J, mm, _ = obs.R.shape  # the channels' noise, (N, J, mm, mm)
+    q = bool(q_sums)
+    sm = Smoothed(np.empty((N, K + 1, n)), np.empty((N, K + 1, n, n)), np.empty((N, 0 if q else K, n, n)),
+                  np.empty((0, 0, n, n)),  # the gains: not written (array arguments of the blocks must not overlap)
+                  np.empty((N if q else 0, n, n)), np.empty((N, K + 1, n)), np.zeros(N, dtype=np.bool_),
+                  np.zeros((N if q else 0, J, mm, mm)), np.zeros((N if q else 0, J), dtype=np.int64),
+                  np.zeros(N, dtype=np.int64), not q, False, q, True, q)
+    parallel_for(filter_smoother, _lane_blocks(N), (aff, obs, flt, sm))
+    m_step = (sm.q_sums, sm.r_sums, sm.r_count) if q else None
+    return ((flt.m_pred, none, flt.m_filt, none, aff.A, flt.loglik, flt.repairs), (sm.m, sm.P, sm.C, none, sm.repairs),
+            m_step, sm.sd, sm.finite)
 
 
 def rts_smoother(fwd, *, state_angles=None):
@@ -1233,16 +1257,15 @@ def rts_smoother(fwd, *, state_angles=None):
     (``m, P, C, G, repairs``)."""
     N, K1, n = fwd.m_filt.shape
     c = np.ascontiguousarray
-    sa = np.zeros(n, dtype=np.bool_) if state_angles is None else c(state_angles, dtype=np.bool_)
-    A = c(fwd.A, dtype=float)
-    m_s = np.empty((N, K1, n))
-    P_s = np.empty((N, K1, n, n))
-    C = np.empty((N, K1 - 1, n, n))
-    G = np.empty((N, K1 - 1, n, n))
-    repairs = np.zeros(N, dtype=np.int64)
-    parallel_for(rts, _lane_blocks(N), (A, c(fwd.m_pred, dtype=float), c(fwd.P_pred, dtype=float),
-                                   c(fwd.m_filt, dtype=float), c(fwd.P_filt, dtype=float), sa, m_s, P_s, C, G, repairs))
-    return m_s, P_s, C, G, repairs
+    flt = Filtered(c(fwd.m_pred, dtype=float), c(fwd.P_pred, dtype=float), c(fwd.m_filt, dtype=float),
+                   c(fwd.P_filt, dtype=float), np.zeros(0), np.zeros(0, dtype=np.int64))
+    aff = Affine(np.empty((0, n)), np.empty((0, n, n)), np.empty((0, n, n)), np.empty(0), c(fwd.A, dtype=float),
+                 np.empty((0, 0, n)), np.empty(0, dtype=np.int64), _angles(state_angles, n))  # no M-step sums here
+    sm = Smoothed(np.empty((N, K1, n)), np.empty((N, K1, n, n)), np.empty((N, K1 - 1, n, n)), np.empty((N, K1 - 1, n, n)),
+                  np.empty((0, n, n)), np.empty((0, 0, n)), np.empty(0, dtype=np.bool_), np.empty((0, 0, 1, 1)),
+                  np.empty((0, 0), dtype=np.int64), np.zeros(N, dtype=np.int64), True, True, False, False, False)
+    parallel_for(rts, _lane_blocks(N), (flt, aff, _no_samples(n, K1), sm))
+    return sm.m, sm.P, sm.C, sm.G, sm.repairs
 
 
 def em_process_noise(sm, A, b, dt, *, index=None, state_angles=None):
@@ -1253,7 +1276,7 @@ def em_process_noise(sm, A, b, dt, *, index=None, state_angles=None):
     if index is not None:
         keep[:] = False
         keep[np.asarray(index)] = True
-    sa = np.zeros(n, dtype=np.bool_) if state_angles is None else c(state_angles, dtype=np.bool_)
+    sa = _angles(state_angles, n)
     A = c(A, dtype=float)
     Q = np.empty((N, n, n))
     parallel_for(process_noise_sums, _lane_blocks(N), (c(sm.m, dtype=float), c(sm.P, dtype=float), c(sm.C, dtype=float),
@@ -1283,7 +1306,7 @@ def transition_all(dm, zbar):
     A = np.empty((N, K, n, n))
     c = np.ascontiguousarray
     parallel_for(transitions, _trials(N), (c(zbar, dtype=float), c(dm.sub_dt, dtype=float), c(dm.sub_u, dtype=float),
-                                           int(dm.nx), dm.model.registered_name == "binm", z, A))
+                                           int(dm.nx), dm.model.compiled_equations == "binm", z, A))
     return z, A
 
 
@@ -1296,12 +1319,19 @@ def transition_one(dm, k, z):
     c = np.ascontiguousarray
     parallel_for(transitions, _trials(N, N * n * n), (c(z[:, None], dtype=float), c(dm.sub_dt[k : k + 1], dtype=float),
                                                       c(dm.sub_u[:, k : k + 1], dtype=float), int(dm.nx),
-                                                      dm.model.registered_name == "binm", z_out, A))
+                                                      dm.model.compiled_equations == "binm", z_out, A))
     return z_out[:, 0], A[:, 0]
 
 
+#: the compiled equations (:data:`needlecli.kernels.models.MODEL_IDS`) whose RK4 Jacobian
+#: :func:`transitions` has (their curvature parameter augmented)
+LINEARISED = ("mnm", "binm")
+
+
 def transitions_supported(dm) -> bool:
-    return (dm.model.registered_name in ("mnm", "binm") and len(dm.augment) == 1
+    """Whether :func:`transitions` covers the system ``dm``: a model with equations it linearises, their
+    curvature parameter (and nothing else) augmented."""
+    return (dm.model.compiled_equations in LINEARISED and len(dm.augment) == 1
             and dm.augment[0] == dm.model.curvature_param and dm.nx == 9)
 
 

@@ -7,7 +7,8 @@ inner loops run over lanes with straight-line code, which LLVM vectorises (the s
 order (``needlecli/models/*.py``, :func:`needlecli.numerics.rk4_step`): the two agree to the rounding of
 sin and cos (1 ulp at the angles the models see).
 
-Model ids (:data:`MODEL_IDS`) select the equations; parameters are in the order of the model's
+Model ids (:data:`MODEL_IDS`, by the name a model declares as its ``compiled_equations``) select the
+equations; parameters are in the order of the model's
 ``Params`` schema (``unicycle``: kappa, speed_scale; ``modified_unicycle``: kappa, beta_cut, speed_scale;
 the others their one parameter).
 """
@@ -20,9 +21,26 @@ import numpy as np
 
 from needlecli.kernels._jit import inline, jit
 from needlecli.kernels.core import SINCOS_MAX, sincos
+from needlecli.kernels.dispatch import KernelError
 
 UNICYCLE, MODIFIED_UNICYCLE, SO3, MNM, BINM = 0, 1, 2, 3, 4
+#: the equations compiled here, by the name a model declares (:attr:`needlecli.models.Model.compiled_equations`)
 MODEL_IDS = {"unicycle": UNICYCLE, "modified_unicycle": MODIFIED_UNICYCLE, "so3": SO3, "mnm": MNM, "binm": BINM}
+
+
+def equation_id(model) -> int:
+    """The id of the compiled equations ``model`` declares (``compiled_equations``).
+
+    Raises
+    ------
+    KernelError
+        A name the kernels do not know (a plug-in's declaration).
+    """
+    name = model.compiled_equations
+    if name not in MODEL_IDS:
+        raise KernelError(f"model {model.registered_name!r}: compiled_equations {name!r} is none of the kernels' "
+                          f"({', '.join(MODEL_IDS)})")
+    return MODEL_IDS[name]
 
 
 @jit

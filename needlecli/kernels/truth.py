@@ -9,32 +9,55 @@ drawn by the caller from the same generator in the same order as the numpy path 
 from __future__ import annotations
 
 import math
+from collections import namedtuple
 
 import numpy as np
 
 from needlecli.kernels._jit import jit
 from needlecli.kernels._threads import blocks, parallel_for
-from needlecli.kernels.models import BINM, MODIFIED_UNICYCLE, UNICYCLE, step_fast
+from needlecli.kernels.dispatch import KernelError
+from needlecli.kernels.models import equation_id, step_fast
 
 BLOCK = 32
 OK, DIVERGED, SINGULAR = 0, 1, 2
+MARGINS = {None: 0, "cos": 1, "perpendicular": 2}  # kinds of singularity (Model.compiled_margin)
 
 
-def margin_kind(mid: int) -> int:
-    """0: no singularity; 1: cos(beta) (unicycles); 2: |cos| of the angle between B and h (BiNM)."""
-    return 1 if mid in (UNICYCLE, MODIFIED_UNICYCLE) else 2 if mid == BINM else 0
+def margin(model) -> tuple[int, np.ndarray]:
+    """``(kind, states)`` of the model's declared singularity (:attr:`Model.compiled_margin`): kind 0 none,
+    1 the cosine of ``states[0]``, 2 the |cos| of the angle between ``states[0:3]`` and ``states[3:6]``
+    (and a step across their perpendicularity)."""
+    decl = model.compiled_margin
+    if decl is None:
+        return 0, np.zeros(1, dtype=np.int64)
+    kind, names = decl
+    if kind not in MARGINS or len(names) != (1 if kind == "cos" else 6):
+        raise KernelError(f"model {model.registered_name!r}: compiled_margin {decl!r} is none the kernels know: "
+                          "('cos', (state,)) or ('perpendicular', (3 states, 3 states))")
+    return MARGINS[kind], np.array([model.index(k) for k in names], dtype=np.int64)
+
+
+#: the simulation's constants (numba takes a named tuple as an argument; defined at module level for the
+#: cache): mid the compiled equations; u (1 or N, T, m); p_run (N, P); p_t (T,) the parameter
+#: ``p_t_index`` along time (-1: none); sync_index the state that carries parameter ``sync_param`` (-1:
+#: none); q (n,) noise std per step; dt; kind, margin the singularity and its states (:func:`margin`),
+#: sing_thr, near_thr its thresholds
+Stepper = namedtuple("Stepper", "mid u p_run p_t p_t_index sync_index sync_param q dt kind margin sing_thr near_thr")
+#: what :func:`advance` updates: states (N, T, n); alive (N,) bool; status (N,) int; event (N,) the grid
+#: index a run stopped at (-1: it did not)
+Runs = namedtuple("Runs", "states alive status event")
 
 
 @jit
-def advance(lo, hi, mid, states, k0, k1, u, p_run, p_t, p_t_index, sync_index, sync_param, q, noise, dt,
-            alive, status, event, kind, sing_thr, near_thr):
-    """Fill ``states[lo:hi, k0 + 1 : k1 + 1]`` from ``states[lo:hi, k0]`` (runs in lanes of :data:`BLOCK`).
-
-    u (1 or N, T, m); p_run (N, P); p_t (T,) the parameter ``p_t_index`` along time (-1: none);
-    sync_index: the state that carries parameter ``sync_param`` (-1: none); q (n,) noise std per step;
-    noise (k1 - k0, N, n) standard normal draws (shape (0, 0, 0): no process noise); alive (N,) bool,
-    status (N,) int, event (N,) grid index a run stopped at (-1: it did not): updated. Releases the GIL.
+def advance(lo, hi, st, runs, k0, k1, noise):
+    """Fill ``runs.states[lo:hi, k0 + 1 : k1 + 1]`` from ``runs.states[lo:hi, k0]`` (runs in lanes of
+    :data:`BLOCK`) with the :data:`Stepper` ``st``; ``noise (k1 - k0, N, n)`` standard normal draws (shape
+    (0, 0, 0): no process noise). Releases the GIL.
     """
+    mid, u, p_run, p_t, p_t_index, dt = st.mid, st.u, st.p_run, st.p_t, st.p_t_index, st.dt
+    sync_index, sync_param, q = st.sync_index, st.sync_param, st.q
+    kind, mi, sing_thr, near_thr = st.kind, st.margin, st.sing_thr, st.near_thr
+    states, alive, status, event = runs.states, runs.alive, runs.status, runs.event
     n = states.shape[2]
     m = u.shape[2]
     P = p_run.shape[1]
@@ -76,13 +99,13 @@ def advance(lo, hi, mid, states, k0, k1, u, p_run, p_t, p_t_index, sync_index, s
                     sing = False
                     near = False
                     if kind == 1:
-                        sing = not math.cos(X[4, i]) > sing_thr
-                        near = not math.cos(X0[4, i]) > near_thr
+                        sing = not math.cos(X[mi[0], i]) > sing_thr
+                        near = not math.cos(X0[mi[0], i]) > near_thr
                     elif kind == 2:
-                        sing = not _bh_margin(X, i) > sing_thr
-                        near = not _bh_margin(X0, i) > near_thr
-                        d0 = X0[3, i] * X0[6, i] + X0[4, i] * X0[7, i] + X0[5, i] * X0[8, i]
-                        d1 = X[3, i] * X[6, i] + X[4, i] * X[7, i] + X[5, i] * X[8, i]
+                        sing = not _bh_margin(X, i, mi) > sing_thr
+                        near = not _bh_margin(X0, i, mi) > near_thr
+                        d0 = X0[mi[0], i] * X0[mi[3], i] + X0[mi[1], i] * X0[mi[4], i] + X0[mi[2], i] * X0[mi[5], i]
+                        d1 = X[mi[0], i] * X[mi[3], i] + X[mi[1], i] * X[mi[4], i] + X[mi[2], i] * X[mi[5], i]
                         if d0 * d1 < 0.0:
                             sing = True
                     if sing or not finite:
@@ -97,15 +120,14 @@ def advance(lo, hi, mid, states, k0, k1, u, p_run, p_t, p_t_index, sync_index, s
 
 
 @jit
-def _bh_margin(X, i):
-    h0, h1, h2 = X[3, i], X[4, i], X[5, i]
-    b0, b1, b2 = X[6, i], X[7, i], X[8, i]
+def _bh_margin(X, i, mi):
+    h0, h1, h2 = X[mi[0], i], X[mi[1], i], X[mi[2], i]
+    b0, b1, b2 = X[mi[3], i], X[mi[4], i], X[mi[5], i]
     d = h0 * b0 + h1 * b1 + h2 * b2
     return abs(d) / (math.sqrt(h0 * h0 + h1 * h1 + h2 * h2) * math.sqrt(b0 * b0 + b1 * b1 + b2 * b2))
 
 
 # ---------------------------------------------------------------------------------------------- the seam
-_SYNC = {MODIFIED_UNICYCLE: (6, "kappa")}  # models that carry a parameter as a state: (state, parameter)
 _CHUNK_ELEMENTS = 4_000_000  # noise drawn per chunk: at most this many numbers (32 MB)
 
 
@@ -114,32 +136,34 @@ class TruthKernel:
     :func:`advance`, writing into its arrays exactly what its numpy loop writes."""
 
     def __init__(self, sim) -> None:
-        from needlecli.kernels.models import MODEL_IDS
-
         model = sim.model
-        self.mid = MODEL_IDS[model.registered_name]
         N, T = sim.n_runs, sim.T
         names = list(model.param_arrays())
-        self.p_run = np.empty((N, max(len(names), 1)))
-        self.p_t = np.zeros(T)
-        self.p_t_index = -1
+        p_run = np.empty((N, max(len(names), 1)))
+        p_t = np.zeros(T)
+        p_t_index = -1
         for j, k in enumerate(names):
             a = sim.params_t[k]
             if a.ndim == 2:  # along time: the tissue schedule, the same for every run
                 if a.strides[0] != 0 and not (a == a[:1]).all():
                     raise ValueError("a parameter that differs between runs along time")
-                self.p_t = np.ascontiguousarray(a[0], dtype=float)
-                self.p_t_index = j
-                self.p_run[:, j] = a[:, 0]
+                p_t = np.ascontiguousarray(a[0], dtype=float)
+                p_t_index = j
+                p_run[:, j] = a[:, 0]
             else:
-                self.p_run[:, j] = np.broadcast_to(a, (N,))
-        si, sp = _SYNC.get(self.mid, (-1, None))
-        self.sync_index = si
-        self.sync_param = names.index(sp) if sp is not None else -1
+                p_run[:, j] = np.broadcast_to(a, (N,))
+        carried = list(model.param_states.items())  # a parameter the model carries as a state (one at most)
+        if len(carried) > 1:
+            raise KernelError(f"model {model.registered_name!r}: param_states: the compiled truth syncs one parameter "
+                              "state at most")
         u = sim.u
-        self.u = np.ascontiguousarray(u[:1] if u.strides[0] == 0 else u, dtype=float)
-        self.q = np.ascontiguousarray(sim.q, dtype=float)
-        self.kind = margin_kind(self.mid)
+        kind, mi = margin(model)
+        u3 = np.ascontiguousarray(u[:1] if u.strides[0] == 0 else u, dtype=float)
+        sync_index = model.index(carried[0][1]) if carried else -1
+        sync_param = names.index(carried[0][0]) if carried else -1
+        self.stepper = Stepper(equation_id(model), u3, p_run, p_t, p_t_index, sync_index, sync_param,
+                               np.ascontiguousarray(sim.q, dtype=float), float(sim.dt), kind, mi,
+                               float(model.singular_threshold), float(model.near_singular_threshold))
         self.code = np.zeros(N, dtype=np.int64)
         self.event_k = np.full(N, -1, dtype=np.int64)
 
@@ -156,10 +180,8 @@ class TruthKernel:
             k0 = sim.k
             k1 = min(k, k0 + chunk)
             noise = sim.rng_q.standard_normal(out=buf[: k1 - k0]) if sim.use_q else empty
-            parallel_for(advance, blocks(N, per_thread=2, minimum=BLOCK), (
-                self.mid, sim.states, k0, k1, self.u, self.p_run, self.p_t, self.p_t_index, self.sync_index,
-                self.sync_param, self.q, noise, sim.dt, sim.alive, self.code, self.event_k, self.kind,
-                float(model.singular_threshold), float(model.near_singular_threshold)))
+            parallel_for(advance, blocks(N, per_thread=2, minimum=BLOCK),
+                         (self.stepper, Runs(sim.states, sim.alive, self.code, self.event_k), k0, k1, noise))
             sim.k = k1
             sim.acted = k1 - 1
             if sim.progress is not None:

@@ -30,7 +30,8 @@ import numpy as np
 from needlecli.kernels._jit import inline, jit, lanes
 from needlecli.kernels._threads import blocks, parallel_for
 from needlecli.kernels.core import PI, repaired_root, solve_into, wrap_if_needed, wrap_inline
-from needlecli.kernels.models import BINM, MODEL_IDS, MODIFIED_UNICYCLE, UNICYCLE, step_fast
+from needlecli.kernels.models import equation_id, step_fast
+from needlecli.kernels.truth import margin
 
 OK, DIVERGED, SINGULAR = 0, 1, 2
 MODE_NONE, MODE_SCALAR, MODE_SELECT = 0, 1, 2
@@ -41,10 +42,38 @@ MAX_CHANNELS = 4
 
 
 def supports(model, chans) -> bool:
-    """Whether the kernel covers this filter: a model with compiled equations and at most
-    :data:`MAX_CHANNELS` channels, each selecting states."""
-    return (model.registered_name in MODEL_IDS and len(chans) <= MAX_CHANNELS
+    """Whether the kernel covers this filter: a model with compiled equations
+    (:attr:`~needlecli.models.Model.compiled_equations`) and at most :data:`MAX_CHANNELS` channels, each
+    selecting states."""
+    return (model.compiled_equations is not None and len(chans) <= MAX_CHANNELS
             and all(c["select"] is not None for c in chans))
+
+
+# ---------------------------------------------------------------------------------------------- the records
+# What :func:`run` is given, in four records of arrays and numbers (numba takes named tuples as
+# arguments; defined here, at module level, so that the cached kernel finds their types again).
+
+#: the filter and its model: mid the compiled equations; x0 (N, n), P0 (n, n); ticks (nt,) grid indices;
+#: inputs (1 or N, T, m); params (p,); dt the grid step; angles (n,) bool; order (n,) the states in the
+#: translation order, n_act the states through the model, tmask (n,) the translation states; wm, wc
+#: (2n+1,) weights, sq_scale; Q (n, n) per tick; kappa_i the curvature state (-1: none), kappa_max (NaN:
+#: no constraint), reset_target (-1: no reset); interfaces (1 or N, K), depth (1 or N, T); max_trace;
+#: kind, margin the singularity and its states (:func:`needlecli.kernels.truth.margin`), sing_thr
+Filter = namedtuple("Filter", "mid x0 P0 ticks inputs params dt angles order n_act tmask wm wc sq_scale Q kappa_i "
+                              "kappa_max reset_target interfaces depth max_trace kind margin sing_thr")
+#: the channels (C of them, padded to MAX_CHANNELS where a tuple): vals, valids tuples of (N, M_c, m_c)
+#: and (N, M_c); m (C,) components; sel, ang, sig2 (C, mm) the states they select, angles, variances;
+#: gate (C,) chi-square thresholds (NaN: none); growth (C,) bool with ga, gd (C,), gtr (C, 3) and pos (C,
+#: mm) (the axis of each position component, -1: none) of the noise growing with distance
+Channels = namedtuple("Channels", "vals valids m sel ang sig2 gate growth ga gd gtr pos")
+#: per tick its events (ev_ptr (nt+1,) into ev_chan, ev_sptr, ev_any; ev_sptr into ev_samp: the samples
+#: of an event), tick_mode (nt,) MODE_*, pred_count (nt,) predictions started by each tick
+Schedule = namedtuple("Schedule", "ev_ptr ev_chan ev_sptr ev_samp ev_any tick_mode pred_count")
+#: written in place: states (N, T, n), cov_full or cov_diag as layout (every stride-th step); status,
+#: event, repairs, hits, resets (N,); used, gated (N, C); nis tuple of (N, M_c); roll (N, D, n);
+#: progress (N,) ticks done
+Outputs = namedtuple("Outputs", "states cov_full cov_diag layout stride status event repairs hits resets used gated "
+                                "nis roll progress")
 
 
 # ---------------------------------------------------------------------------------------------- the kernel
@@ -55,15 +84,19 @@ LANES = 8
 
 
 @jit
-def run(lo, hi, mid, x0, P0, ticks, inputs, params, dt, angles, order, n_act, tmask, wm, wc, sq_scale, Q,
-        kappa_i, kappa_max, reset_target, interfaces, depth, max_trace, kind, sing_thr,
-        vals, valids, ch_m, ch_sel, ch_ang, ch_sig2, ch_gate, ch_growth, ch_ga, ch_gd, ch_gtr, ch_pos,
-        ev_ptr, ev_chan, ev_sptr, ev_samp, ev_any, tick_mode, pred_count,
-        states, cov_full, cov_diag, layout, stride,
-        status, event, repairs, hits, resets, used, gated, nisv, roll, progress):
-    """The whole filter for runs ``lo..hi-1``, in blocks of :data:`LANES` runs. Arguments as prepared by
-    :func:`filter_runs` (one array per quantity: the kernel knows no Python objects); outputs are written
-    in place. Releases the GIL."""
+def run(lo, hi, f, ch, sc, out):
+    """The whole filter for runs ``lo..hi-1``, in blocks of :data:`LANES` runs: the records
+    :data:`Filter`, :data:`Channels`, :data:`Schedule` and :data:`Outputs` as prepared by
+    :func:`filter_runs` (arrays and numbers: the kernel knows no Python objects); outputs are written in
+    place. Releases the GIL."""
+    mid, x0, P0, ticks, inputs, params, dt = f.mid, f.x0, f.P0, f.ticks, f.inputs, f.params, f.dt
+    angles, order, n_act, tmask, wm, wc, sq_scale, Q = f.angles, f.order, f.n_act, f.tmask, f.wm, f.wc, f.sq_scale, f.Q
+    kappa_i, kappa_max, reset_target, interfaces, depth = f.kappa_i, f.kappa_max, f.reset_target, f.interfaces, f.depth
+    vals, valids, ch_m, ch_sel, ch_ang, ch_sig2 = ch.vals, ch.valids, ch.m, ch.sel, ch.ang, ch.sig2
+    ev_ptr, ev_chan, ev_sptr, ev_samp, tick_mode, pred_count = (sc.ev_ptr, sc.ev_chan, sc.ev_sptr, sc.ev_samp,
+                                                                 sc.tick_mode, sc.pred_count)
+    status, event, repairs, hits, resets, used = out.status, out.event, out.repairs, out.hits, out.resets, out.used
+    nisv, roll, progress = out.nis, out.roll, out.progress
     B = LANES
     n = x0.shape[1]
     nt = ticks.shape[0]
@@ -127,7 +160,7 @@ def run(lo, hi, mid, x0, P0, ticks, inputs, params, dt, angles, order, n_act, tm
                 for l in range(B):
                     XL[a, (S + q) * B + l] = x[a, l]
         for l in range(nb):
-            _emit(states, cov_full, cov_diag, layout, stride, rr[l], 0, x, P, l)
+            _emit(out, rr[l], 0, x, P, l)
         for it in range(1, nt):
             k0 = ticks[it - 1]
             k1 = ticks[it]
@@ -202,9 +235,7 @@ def run(lo, hi, mid, x0, P0, ticks, inputs, params, dt, angles, order, n_act, tm
                 for l in range(nb):
                     if alive[l]:
                         _get_lane(x, P, l, x1, P1)
-                        _update_select(rr[l], it, x1, P1, vals, valids, ch_m, ch_sel, ch_ang, ch_sig2, ch_gate,
-                                       ch_growth, ch_ga, ch_gd, ch_gtr, ch_pos, ev_ptr, ev_chan, ev_sptr, ev_samp,
-                                       ev_any, used, gated, nisv, ws)
+                        _update_select(rr[l], it, x1, P1, ch, sc, out, ws)
                         _set_lane(x1, P1, l, x, P)
             if mode != MODE_NONE:
                 _wrap_lanes(x, angles)
@@ -219,7 +250,7 @@ def run(lo, hi, mid, x0, P0, ticks, inputs, params, dt, angles, order, n_act, tm
                     if kk < 0.0 or kk > kappa_max:
                         x[kappa_i, l] = xs[kappa_i, l]
                         hits[r] += 1
-                code = _check_lane(x, xs, P, l, kind, sing_thr, max_trace)
+                code = _check_lane(x, xs, P, l, f.kind, f.margin, f.sing_thr, f.max_trace)
                 if code != OK:
                     alive[l] = False
                     status[r] = code
@@ -231,8 +262,8 @@ def run(lo, hi, mid, x0, P0, ticks, inputs, params, dt, angles, order, n_act, tm
             for l in range(nb):
                 r = rr[l]
                 for k in range(k0 + 1, k1):
-                    _emit(states, cov_full, cov_diag, layout, stride, r, k, xs, Ps, l)
-                _emit(states, cov_full, cov_diag, layout, stride, r, k1, x, P, l)
+                    _emit(out, r, k, xs, Ps, l)
+                _emit(out, r, k1, x, P, l)
                 progress[r] = it
             for q in range(pred_count[it - 1], pred_count[it]):  # predictions that start now
                 for a in range(n):
@@ -480,12 +511,16 @@ def _work(n, M):
 
 
 @jit
-def _update_select(r, it, x, P, vals, valids, ch_m, ch_sel, ch_ang, ch_sig2, ch_gate, ch_growth, ch_ga, ch_gd, ch_gtr,
-                   ch_pos, ev_ptr, ev_chan, ev_sptr, ev_samp, ev_any, used, gated, nisv, ws):
-    """Joint update with every channel of this tick, each selecting states (the numpy path's ``_update``
-    with ``X = None``): the latest valid sample of a channel wins, missing channels are masked out, noise
-    reset by distance where configured, chi-square gates per channel; the normalised innovation squared of
-    each channel's sample used (its own block of ``S``) goes to ``nisv``."""
+def _update_select(r, it, x, P, ch, sc, out, ws):
+    """Joint update of run ``r`` at tick ``it`` (``x (n,)``, ``P (n, n)``) with every channel of this tick,
+    each selecting states (the numpy path's ``_update`` with ``X = None``): the latest valid sample of a
+    channel wins, missing channels are masked out, noise reset by distance where configured, chi-square
+    gates per channel; the normalised innovation squared of each channel's sample used (its own block of
+    ``S``) goes to ``out.nis``."""
+    vals, valids, ch_m, ch_sel, ch_ang, ch_sig2 = ch.vals, ch.valids, ch.m, ch.sel, ch.ang, ch.sig2
+    ch_gate, ch_growth, ch_ga, ch_gd, ch_gtr, ch_pos = ch.gate, ch.growth, ch.ga, ch.gd, ch.gtr, ch.pos
+    ev_ptr, ev_chan, ev_sptr, ev_samp, ev_any = sc.ev_ptr, sc.ev_chan, sc.ev_sptr, sc.ev_samp, sc.ev_any
+    used, gated, nisv = out.used, out.gated, out.nis
     n = x.shape[0]
     yv, msk, Rv, sel, ang, nu = ws.yv, ws.msk, ws.Rv, ws.sel, ws.ang, ws.nu
     Pyy, Pxy = ws.Pyy, ws.Pxy
@@ -618,9 +653,10 @@ def _update_select(r, it, x, P, vals, valids, ch_m, ch_sel, ch_ang, ch_sig2, ch_
 
 
 @jit
-def _check_lane(x, xs, P, l, kind, sing_thr, max_trace):
+def _check_lane(x, xs, P, l, kind, mi, sing_thr, max_trace):
     """Divergence (non-finite estimate or covariance, trace beyond ``max_trace``) and the model's
-    singularity (left the domain, or jumped over it since ``xs``) of lane ``l``: the run's status code."""
+    singularity (left the domain, or jumped over it since ``xs``; ``kind`` and its states ``mi``:
+    :func:`needlecli.kernels.truth.margin`) of lane ``l``: the run's status code."""
     n = x.shape[0]
     tr = 0.0
     for a in range(n):
@@ -631,13 +667,13 @@ def _check_lane(x, xs, P, l, kind, sing_thr, max_trace):
             finite = False
     sing = False
     if kind == 1:
-        sing = not math.cos(x[4, l]) > sing_thr
+        sing = not math.cos(x[mi[0], l]) > sing_thr
     elif kind == 2:
-        h0, h1, h2 = x[3, l], x[4, l], x[5, l]
-        b0, b1, b2 = x[6, l], x[7, l], x[8, l]
+        h0, h1, h2 = x[mi[0], l], x[mi[1], l], x[mi[2], l]
+        b0, b1, b2 = x[mi[3], l], x[mi[4], l], x[mi[5], l]
         dd = h0 * b0 + h1 * b1 + h2 * b2
         mg = abs(dd) / (math.sqrt(h0 * h0 + h1 * h1 + h2 * h2) * math.sqrt(b0 * b0 + b1 * b1 + b2 * b2))
-        d0 = xs[3, l] * xs[6, l] + xs[4, l] * xs[7, l] + xs[5, l] * xs[8, l]
+        d0 = xs[mi[0], l] * xs[mi[3], l] + xs[mi[1], l] * xs[mi[4], l] + xs[mi[2], l] * xs[mi[5], l]
         sing = (not mg > sing_thr) or d0 * dd < 0.0
     if (not finite) or tr > max_trace or sing:
         return SINGULAR if (sing and finite) else DIVERGED
@@ -645,7 +681,9 @@ def _check_lane(x, xs, P, l, kind, sing_thr, max_trace):
 
 
 @jit
-def _emit(states, cov_full, cov_diag, layout, stride, r, k, x, P, l):
+def _emit(out, r, k, x, P, l):
+    """Lane ``l``'s estimate as run ``r``'s at grid step ``k`` (and its covariance where kept)."""
+    states, cov_full, cov_diag, layout, stride = out.states, out.cov_full, out.cov_diag, out.layout, out.stride
     n = x.shape[0]
     for a in range(n):
         states[r, k, a] = x[a, l]
@@ -670,7 +708,7 @@ def filter_runs(model, params, problem, s, chans, ticks, inputs, x0, P0, Q, kapp
     T = len(problem.time)
     nt = len(ticks)
     dt_grid = float(problem.time[1] - problem.time[0]) if T > 1 else 1.0
-    mid = MODEL_IDS[model.registered_name]
+    mid = equation_id(model)
     angles = np.ascontiguousarray(model.angle_mask, dtype=np.bool_)
     tmask = np.zeros(n, dtype=np.bool_)
     if order is None:
@@ -784,17 +822,19 @@ def filter_runs(model, params, problem, s, chans, ticks, inputs, x0, P0, Q, kapp
     gated = np.zeros((N, max(C, 1)), dtype=np.int64)
     roll = np.full((N, D, n), np.nan)
     prog = np.zeros(N, dtype=np.int64)
-    kind = 1 if mid in (UNICYCLE, MODIFIED_UNICYCLE) else 2 if mid == BINM else 0
+    kind, mi = margin(model)
     kmax = float(s.kappa_max) if s.kappa_max is not None else np.nan
-    args = (mid, np.ascontiguousarray(x0, dtype=float), np.ascontiguousarray(P0, dtype=float),
-            np.ascontiguousarray(ticks, dtype=np.int64), u3, p_arr, dt_grid, angles, order_a, int(n_act), tmask,
-            np.ascontiguousarray(weights.wm), np.ascontiguousarray(weights.wc), float(np.sqrt(weights.scale)),
-            np.ascontiguousarray(Q, dtype=float), -1 if kappa_i is None else int(kappa_i), kmax, reset_target,
-            itf2 if itf2.shape[1] else np.zeros((1, 0)), depth2, float(s.max_cov_trace), kind,
-            float(model.singular_threshold),
-            vals, valids, ch_m if C else np.zeros(1, dtype=np.int64), ch_sel, ch_ang, ch_sig2, ch_gate, ch_growth,
-            ch_ga, ch_gd, ch_gtr, ch_pos, ev_ptr, ev_chan_a, ev_sptr_a, ev_samp_a, ev_any_a, mode, pred_count,
-            states, cov_full, cov_diag, layout, stride, status, event, repairs, hits, resets, used, gated, nisv, roll, prog)
+    args = (Filter(mid, np.ascontiguousarray(x0, dtype=float), np.ascontiguousarray(P0, dtype=float),
+                   np.ascontiguousarray(ticks, dtype=np.int64), u3, p_arr, dt_grid, angles, order_a, int(n_act), tmask,
+                   np.ascontiguousarray(weights.wm), np.ascontiguousarray(weights.wc), float(np.sqrt(weights.scale)),
+                   np.ascontiguousarray(Q, dtype=float), -1 if kappa_i is None else int(kappa_i), kmax, reset_target,
+                   itf2 if itf2.shape[1] else np.zeros((1, 0)), depth2, float(s.max_cov_trace), kind, mi,
+                   float(model.singular_threshold)),
+            Channels(vals, valids, ch_m if C else np.zeros(1, dtype=np.int64), ch_sel, ch_ang, ch_sig2, ch_gate,
+                     ch_growth, ch_ga, ch_gd, ch_gtr, ch_pos),
+            Schedule(ev_ptr, ev_chan_a, ev_sptr_a, ev_samp_a, ev_any_a, mode, pred_count),
+            Outputs(states, cov_full, cov_diag, layout, stride, status, event, repairs, hits, resets, used, gated, nisv,
+                    roll, prog))
     total = N * max(nt - 1, 1)
     poll = None if progress is None else (lambda: progress(int(prog.sum()) * (nt - 1) // total, nt - 1))
     parallel_for(run, blocks(N, minimum=LANES), args, poll)

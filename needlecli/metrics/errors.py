@@ -18,8 +18,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from needlecli import kernels
 from needlecli.io.results import Group
+from needlecli.kernels import twin
 from needlecli.numerics import angle_diff, euler_xyz_to_matrix, rotation_angle
 
 _LENGTH_TO_MM = {"mm": 1.0, "m": 1000.0, "cm": 10.0}
@@ -76,11 +76,24 @@ def _rotation(names: list[str], state: np.ndarray) -> np.ndarray | None:
     return None
 
 
-def _compiled_errors(t_names, e_names, t_angles, e_angles, pos_t, scale, t_state, est, keep) -> dict[str, np.ndarray]:
+def recorded_kernels(res: Group) -> str:
+    """The kernels setting a results file was made with: ``simulation.kernels`` of the config it records
+    (``auto``, the default, where it records no config or the config names none)."""
+    text = str(res.attrs.get("config", "") or "")
+    if not text.strip():
+        return "auto"
+    from needlecli.io.yamlfile import parse_yaml
+
+    sim = parse_yaml(text, "the results file's config").get("simulation")
+    return str(sim.get("kernels", "auto")) if isinstance(sim, dict) else "auto"
+
+
+def _compiled_errors(state_errors, t_names, e_names, t_angles, e_angles, pos_t, scale, t_state, est,
+                     keep) -> dict[str, np.ndarray]:
     """The position norm and the per-state errors that :func:`compute_errors` computes from states (not
-    from truth parameters), by :func:`needlecli.kernels.metrics.state_errors` in one pass: the same
-    numbers, without the column copies and temporaries."""
-    from needlecli.kernels.metrics import ABS, ANGLE, NORM, state_errors
+    from truth parameters), by ``state_errors`` (the compiled twin, :func:`needlecli.kernels.metrics.state_errors`)
+    in one pass: the same numbers, without the column copies and temporaries."""
+    from needlecli.kernels.metrics import ABS, ANGLE, NORM
 
     plan: list[tuple[str, tuple]] = []
     if pos_t and all(a in e_names for a in pos_t):
@@ -97,8 +110,16 @@ def _compiled_errors(t_names, e_names, t_angles, e_angles, pos_t, scale, t_state
     return {name: out[i] for i, (name, _) in enumerate(plan)}
 
 
-def compute_errors(res: Group) -> dict[str, ErrorSet]:
-    """Errors of every observer in a results file against its truth."""
+def compute_errors(res: Group, *, kernels: str | None = None) -> dict[str, ErrorSet]:
+    """Errors of every observer in a results file against its truth.
+
+    ``kernels``: the kernels setting (``auto``, ``numba``, ``numpy``; :func:`needlecli.kernels.resolve`) of
+    the compiled twins ``state_errors`` and ``rotation_error``; default: the one the results file's config
+    records (:func:`recorded_kernels`), so that ``needle evaluate`` computes as the run did.
+    """
+    setting = recorded_kernels(res) if kernels is None else kernels
+    state_errors = twin("state_errors", setting)  # the errors straight from the state arrays, or None: numpy
+    rotation_error = twin("rotation_error", setting)  # (needlecli.kernels.metrics)
     truth = res.data["truth"]
     t_names = list(truth.attrs["names"])
     t_units = list(truth.attrs["units"])
@@ -125,8 +146,8 @@ def compute_errors(res: Group) -> dict[str, ErrorSet]:
                 es.excluded[f"estimate {st}"] = int(((grp.data["status"] == st) & t_ok).sum())
         ts, xs = (t_state, est) if keep.size == n_runs else (t_state[keep], est[keep])  # no copy when all are kept
         pos_t = next((ax for ax in (("x", "y", "z"), ("px", "py", "pz")) if all(a in t_names for a in ax)), None)
-        fast = kernels.compiled()  # the errors straight from the state arrays (needlecli.kernels.metrics)
-        pre = _compiled_errors(t_names, e_names, t_angles, e_angles, pos_t, scale, t_state, est, keep) if fast else {}
+        pre = ({} if state_errors is None else
+               _compiled_errors(state_errors, t_names, e_names, t_angles, e_angles, pos_t, scale, t_state, est, keep))
 
         def col(names, arr, k):
             return arr[..., names.index(k)]
@@ -141,10 +162,9 @@ def compute_errors(res: Group) -> dict[str, ErrorSet]:
             es.quantities["E_xyz"] = QuantityError("E_xyz", "mm", err, keep)
             used.update(pos_t)
         euler = ("alpha", "beta", "gamma")
-        if all(a in t_names for a in euler) and all(a in e_names for a in euler) and fast:
-            from needlecli.kernels.metrics import rotation_error  # without the (N, T, 3, 3) matrices
-
-            err = rotation_error(t_state, est, keep, [t_names.index(a) for a in euler], [e_names.index(a) for a in euler])
+        if all(a in t_names for a in euler) and all(a in e_names for a in euler) and rotation_error is not None:
+            err = rotation_error(t_state, est, keep, [t_names.index(a) for a in euler],  # without the (N, T, 3, 3)
+                                 [e_names.index(a) for a in euler])  # matrices
             es.quantities["E_R"] = QuantityError("E_R", "deg", np.rad2deg(err, out=err), keep)
             used.update(_R)
         elif (r_t := _rotation(t_names, ts)) is not None and (r_e := _rotation(e_names, xs)) is not None:

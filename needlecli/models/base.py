@@ -92,6 +92,21 @@ class Model:
     translation_states: ClassVar[tuple[str, ...]] = ()
     #: measured quantities (method names below) that are plain states, e.g. ``{"roll": ("gamma",)}``
     selections: ClassVar[dict[str, tuple[str, ...]]] = {}
+    #: measured quantities (method names below) that are a block of states normalised to unit length, e.g.
+    #: ``{"tangent": ("hx", "hy", "hz")}`` (the compiled linearisation of EM reads them)
+    unit_vectors: ClassVar[dict[str, tuple[str, ...]]] = {}
+    #: parameters the model carries as states, parameter -> state (:meth:`sync_params` writes them)
+    param_states: ClassVar[dict[str, str]] = {}
+    #: the compiled twin of the equations (the names of :data:`needlecli.kernels.models.MODEL_IDS`:
+    #: ``unicycle``, ``modified_unicycle``, ``so3``, ``mnm``, ``binm``), or None: the numpy path only. A
+    #: model that names one has those equations' states, inputs and parameters in their order (a subclass
+    #: that changes only what sensors measure keeps its parent's)
+    compiled_equations: ClassVar[str | None] = None
+    #: the singularity as the compiled kernels check it (:meth:`singularity_margin`), or None (none):
+    #: ``("cos", (s,))`` the cosine of state ``s``; ``("perpendicular", (h1, h2, h3, b1, b2, b3))`` the |cos|
+    #: of the angle between two vectors of states, and a step across their perpendicularity (the sign of
+    #: their dot product, :meth:`crossed_singularity`)
+    compiled_margin: ClassVar[tuple[str, tuple[str, ...]] | None] = None
     registered_name: ClassVar[str] = ""
 
     def __init__(self, params: ModelParams | None = None) -> None:
@@ -174,7 +189,13 @@ class Model:
         return x
 
     def sync_params(self, x: np.ndarray, p: Params) -> np.ndarray:
-        """Write parameters that the model carries as states (e.g. curvature) into ``x``. Identity here."""
+        """Write the parameters that the model carries as states (:attr:`param_states`, e.g. the
+        curvature) into a copy of ``x``; ``x`` itself where there are none."""
+        if not self.param_states:
+            return x
+        x = x.copy()
+        for name, state in self.param_states.items():
+            x[..., self.index(state)] = p[name]
         return x
 
     def initial_state(self, p: Params) -> np.ndarray:

@@ -55,6 +55,7 @@ class _MagneticBase(Model):
     length_unit = "m"
     translation_states = ("px", "py", "pz")
     selections = {"tip_position": ("px", "py", "pz")}
+    unit_vectors = {"tangent": ("hx", "hy", "hz"), "field_direction": ("Bx", "By", "Bz")}
 
     def _turn(self, h, b, v, p):
         raise NotImplementedError
@@ -126,6 +127,7 @@ class MagneticNeedleModel(_MagneticBase):
 
     curvature_param = "c"
     Params = MNMParams
+    compiled_equations = "mnm"
 
     def _turn(self, h, b, v, p):
         return (p["c"] * v)[..., None] * _cross(_cross(h, b), h)
@@ -152,6 +154,8 @@ class BicycleNeedleModel(_MagneticBase):
 
     curvature_param = "l_inv"
     Params = BiNMParams
+    compiled_equations = "binm"
+    compiled_margin = ("perpendicular", ("hx", "hy", "hz", "Bx", "By", "Bz"))
     singular_reason = "B . h -> 0: the bicycle model is singular when the field is perpendicular to the tip"
 
     def _turn(self, h, b, v, p):

@@ -32,6 +32,7 @@ class RotationSO3(Model):
     input_units = {"v": "mm/s", "u": "rad/s"}
     curvature_param = "kappa"
     Params = SO3Params
+    compiled_equations = "so3"
 
     @staticmethod
     def as_matrix(x: np.ndarray) -> np.ndarray:

@@ -56,6 +56,8 @@ class Unicycle(Model):
     selections = {"tip_position": ("x", "y", "z"), "roll": ("gamma",)}
     singular_reason = "cos(beta) -> 0: the generalized-coordinate unicycle is undefined at beta = +-pi/2"
     curvature_roll_state = "gamma"
+    compiled_equations = "unicycle"
+    compiled_margin = ("cos", ("beta",))
 
     component_major = True
 
@@ -124,6 +126,8 @@ class ModifiedUnicycle(Unicycle):
     state_units = Unicycle.state_units + ("1/mm",)
     Params = ModifiedUnicycleParams
     curvature_roll_state = None  # the cutting angle's terms change sign with the roll: no such symmetry
+    param_states = {"kappa": "kappa"}
+    compiled_equations = "modified_unicycle"
 
     def f_components(self, x, u, p: Params):
         # written into the output rows in place: this is the UKF's hot path (15 sigma points per run)
@@ -155,8 +159,3 @@ class ModifiedUnicycle(Unicycle):
         x0 = np.zeros(7)
         x0[6] = float(np.mean(p["kappa"]))
         return x0
-
-    def sync_params(self, x, p):
-        x = x.copy()
-        x[..., 6] = p["kappa"]
-        return x

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from needlecli import kernels
+from needlecli.kernels import twin
 from needlecli.numerics.angles import wrap_angle
 
 LOG_2PI = float(np.log(2.0 * np.pi))
@@ -344,6 +344,7 @@ def kalman_forward_affine(
     d: Sequence[np.ndarray],
     *,
     state_angles: np.ndarray | None = None,
+    kernels: str | None,
 ) -> ForwardResult:
     r"""The Kalman filter of the affine model ``x_{k+1} = A_k x_k + b_k + w_k``, ``y_j = H_j x + d_j + v_j``
     (one pass of the iterated smoother). Same result as :func:`kalman_forward` with affine callbacks and
@@ -354,11 +355,12 @@ def kalman_forward_affine(
     Parameters
     ----------
     A : (N, K, n, n), b : (N, K, n); H[j] : (N, M_j, m_j, n), d[j] : (N, M_j, m_j) per channel
+    kernels : the kernels setting (``auto``, ``numba``, ``numpy``: :func:`needlecli.kernels.resolve`); the
+        compiled twin ``kalman_forward_affine`` where it resolves to numba
     """
-    if kernels.compiled():
-        from needlecli.kernels import kalman as compiled
-
-        return ForwardResult(*compiled.kalman_forward_affine(m0, P0, Qc, dt, A, b, channels, H, d, state_angles=state_angles))
+    fast = twin("kalman_forward_affine", kernels)
+    if fast is not None:
+        return ForwardResult(*fast(m0, P0, Qc, dt, A, b, channels, H, d, state_angles=state_angles))
     m = np.array(m0, dtype=float)
     N, n = m.shape
     K = len(dt)
@@ -457,21 +459,21 @@ def kalman_forward_affine(
 
 
 def kalman_loglik_affine(*args: np.ndarray | Sequence, state_angles: np.ndarray | None = None,
-                         rows: np.ndarray | None = None) -> np.ndarray:
+                         rows: np.ndarray | None = None, kernels: str | None) -> np.ndarray:
     """The log-likelihood ``(N,)`` of :func:`kalman_forward_affine` (the same arguments ``m0, P0, Qc, dt, A,
-    b, channels, H, d``), the same numbers, without keeping its means and covariances (the compiled pass
-    does not write them: many evaluation points at a time). ``rows (N,)``: point r is filtered on row
-    ``rows[r]`` of ``A, b, H, d`` and of the channels' samples (with its own ``m0, P0, Qc`` and channel
-    noise ``R``): many points on one trial's linearisation, which the compiled pass reads without copies."""
-    if kernels.compiled():
-        from needlecli.kernels import kalman as compiled
-
-        return compiled.kalman_forward_affine(*args, state_angles=state_angles, store=False, rows=rows)[5]
+    b, channels, H, d``, and ``kernels``), the same numbers, without keeping its means and covariances (the
+    compiled pass does not write them: many evaluation points at a time). ``rows (N,)``: point r is
+    filtered on row ``rows[r]`` of ``A, b, H, d`` and of the channels' samples (with its own ``m0, P0, Qc``
+    and channel noise ``R``): many points on one trial's linearisation, which the compiled pass reads
+    without copies."""
+    fast = twin("kalman_loglik_affine", kernels)
+    if fast is not None:
+        return fast(*args, state_angles=state_angles, store=False, rows=rows)[5]
     if rows is not None:
         m0, P0, Qc, dt, A, b, channels, H, d = args
         channels = [Channel(ch.tick, ch.y[rows], ch.valid[rows], ch.R, ch.angle) for ch in channels]
         args = (m0, P0, Qc, dt, A[rows], b[rows], channels, [h[rows] for h in H], [x[rows] for x in d])
-    return kalman_forward_affine(*args, state_angles=state_angles).loglik
+    return kalman_forward_affine(*args, state_angles=state_angles, kernels=kernels).loglik
 
 
 def kalman_filter_smoother(
@@ -486,6 +488,7 @@ def kalman_filter_smoother(
     d: Sequence[np.ndarray],
     *,
     state_angles: np.ndarray | None = None,
+    kernels: str | None,
 ) -> tuple[ForwardResult, SmoothResult]:
     """:func:`kalman_forward_affine` then :func:`rts_smoother` (one pass of the iterated smoother). The
     compiled path runs both on each block of trials in turn and writes neither the filter's covariances
@@ -493,21 +496,20 @@ def kalman_filter_smoother(
     makes the sums of :func:`em_process_noise` in the same pass instead of writing the cross-covariances
     (``C`` empty; ``q_sums``, read by :func:`em_process_noise` for this ``A, b, dt``), and those of
     :func:`em_measurement_noise` for each channel (``r_sums``, read for the same channel, ``H`` and ``d``);
-    every other field is the two functions' own."""
-    if kernels.compiled():
-        from needlecli.kernels import kalman as compiled
-
-        f, s, (q, r, count), sd, finite = compiled.kalman_filter_smoother(m0, P0, Qc, dt, A, b, channels, H, d,
-                                                                          state_angles=state_angles, q_sums=True)
+    every other field is the two functions' own. ``kernels``: the setting (:func:`kalman_forward_affine`)."""
+    fast = twin("kalman_filter_smoother", kernels)
+    if fast is not None:
+        f, s, (q, r, count), sd, finite = fast(m0, P0, Qc, dt, A, b, channels, H, d, state_angles=state_angles,
+                                               q_sums=True)
         r_from = [(ch.tick, ch.y, ch.valid, Hj, dj, ch.angle) for ch, Hj, dj in zip(channels, H, d)]
         return ForwardResult(*f), SmoothResult(*s, q_sums=q, q_from=(A, b, dt, state_angles), r_sums=r, r_count=count,
                                                r_from=r_from, sd=sd, finite=finite)
-    fwd = kalman_forward_affine(m0, P0, Qc, dt, A, b, channels, H, d, state_angles=state_angles)
-    return fwd, rts_smoother(fwd, state_angles=state_angles)
+    fwd = kalman_forward_affine(m0, P0, Qc, dt, A, b, channels, H, d, state_angles=state_angles, kernels=kernels)
+    return fwd, rts_smoother(fwd, state_angles=state_angles, kernels=kernels)
 
 
 # ---------------------------------------------------------------------------------------------- smoother
-def rts_smoother(fwd: ForwardResult, *, state_angles: np.ndarray | None = None) -> SmoothResult:
+def rts_smoother(fwd: ForwardResult, *, state_angles: np.ndarray | None = None, kernels: str | None) -> SmoothResult:
     r"""Rauch-Tung-Striebel smoother on the filter's own linearisation.
 
     .. math::
@@ -516,12 +518,12 @@ def rts_smoother(fwd: ForwardResult, *, state_angles: np.ndarray | None = None) 
         P_{k|K} = P_{k|k} + G_k (P_{k+1|K} - P_{k+1|k}) G_k^T
 
     and the lag-one cross-covariance ``Cov(x_{k+1}, x_k | all) = P_{k+1|K} G_k^T``. The gains are
-    computed for all ticks at once; only the recursion loops over time.
+    computed for all ticks at once; only the recursion loops over time. ``kernels``: the setting
+    (:func:`kalman_forward_affine`).
     """
-    if kernels.compiled():
-        from needlecli.kernels import kalman as compiled
-
-        m_s, P_s, C, G, repairs = compiled.rts_smoother(fwd, state_angles=state_angles)
+    fast = twin("rts_smoother", kernels)
+    if fast is not None:
+        m_s, P_s, C, G, repairs = fast(fwd, state_angles=state_angles)
         return SmoothResult(m=m_s, P=P_s, C=C, G=G, repairs=repairs)
     N, K1, n = fwd.m_filt.shape
     K = K1 - 1
@@ -562,6 +564,7 @@ def em_process_noise(
     *,
     index: np.ndarray | None = None,
     state_angles: np.ndarray | None = None,
+    kernels: str | None,
 ) -> np.ndarray:
     r"""Closed-form M-step for the process noise per second, ``Q_c``, of the affine model
     ``x_{k+1} = A_k x_k + b_k + w_k``, ``w_k ~ N(0, Q_c dt_k)``:
@@ -577,6 +580,7 @@ def em_process_noise(
     sm : the smoother's output; A : (N, K, n, n); b : (N, K, n); dt : (K,)
     index : states that have process noise; the rows and columns of the others are zero (the
         maximiser of the likelihood of ``w`` restricted to those states). All states if None.
+    kernels : the kernels setting (:func:`kalman_forward_affine`)
 
     Returns
     -------
@@ -587,10 +591,8 @@ def em_process_noise(
     elif sm.C.shape[1] == 0 and sm.m.shape[1] > 1:
         raise ValueError("em_process_noise: this pass kept no cross-covariances (its sums were made for "
                          "another A, b, dt)")
-    elif kernels.compiled():
-        from needlecli.kernels import kalman as compiled
-
-        return compiled.em_process_noise(sm, A, b, dt, index=index, state_angles=state_angles)
+    elif (fast := twin("em_process_noise", kernels)) is not None:
+        return fast(sm, A, b, dt, index=index, state_angles=state_angles)
     else:
         Qc = _process_noise_numpy(sm, A, b, dt, state_angles)
     if index is not None:
@@ -628,6 +630,8 @@ def em_measurement_noise(
     channel: Channel,
     H: np.ndarray,
     d: np.ndarray,
+    *,
+    kernels: str | None,
 ) -> tuple[np.ndarray, np.ndarray]:
     r"""Closed-form M-step for one channel's noise covariance, linearised ``y ~ H x + d``:
 
@@ -638,6 +642,7 @@ def em_measurement_noise(
     Parameters
     ----------
     H : (N, M, m, n), d : (N, M, m) the linearisation at each sample
+    kernels : the kernels setting (:func:`kalman_forward_affine`)
 
     Returns
     -------
@@ -649,10 +654,9 @@ def em_measurement_noise(
             if _same_inputs(src, key):
                 m = channel.y.shape[-1]
                 return sm.r_sums[:, j, :m, :m].copy(), sm.r_count[:, j].copy()
-    if kernels.compiled():
-        from needlecli.kernels import kalman as compiled
-
-        return compiled.em_measurement_noise(sm, channel, H, d)
+    fast = twin("em_measurement_noise", kernels)
+    if fast is not None:
+        return fast(sm, channel, H, d)
     tick = np.asarray(channel.tick)
     m_k = sm.m[:, tick]
     P_k = sm.P[:, tick]

@@ -120,6 +120,9 @@ class Observer:
     takes_common_start: ClassVar[bool] = False
     #: whether the estimate at time t uses the samples available up to t only (False: a smoother)
     causal: ClassVar[bool] = True
+    #: the compiled kernel that takes longest to compile, ``(module of needlecli.kernels, function)``, which a
+    #: first run's warm-up compiles in a second process (:func:`needlecli.kernels.warm_up`); None: no kernel
+    compiled_entry: ClassVar[tuple[str, str] | None] = None
     #: whether, with its derived settings, it gives the common start of a comparison whose config's
     #: observers give none (built-in types are tried before plug-ins, each in name order)
     default_reference: ClassVar[bool] = False

@@ -21,7 +21,6 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from needlecli import kernels
 from needlecli.fitting.problem import build_system, check_setup, own_model
 from needlecli.fitting.settings import KalmanSetup
 from needlecli.fitting.smoother import ekf, eks, ieks
@@ -100,7 +99,7 @@ class _Kalman(Observer):
         Q = np.broadcast_to(S.Qc, (N, n, n))
         R = [np.broadcast_to(r, (N,) + r.shape) for r in S.R]
         extras: dict[str, np.ndarray] = {}
-        with np.errstate(all="ignore"), kernels.using(problem.kernels):  # compiled passes where they exist
+        with np.errstate(all="ignore"):  # compiled passes where they exist and problem.kernels asks (S.dm.kernels)
             if not self.smoother:
                 fwd = ekf(dm, S.meas, S.m0, S.P0, Q, R, progress=progress)
                 z, P, ll, rep = fwd.m_filt, fwd.P_filt, fwd.loglik, fwd.repairs
@@ -156,4 +155,5 @@ class ExtendedKalmanSmoother(_Kalman):
 
     Settings = EKSSettings
     smoother = True
+    compiled_entry = ("kalman", "filter_smoother")  # the kernel that compiles longest (the warm-up's)
     causal = False

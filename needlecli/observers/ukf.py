@@ -212,6 +212,7 @@ class UnscentedKalmanFilter(Observer):
 
     Settings = UKFSettings
     takes_common_start = True
+    compiled_entry = ("ukf", "run")  # the kernel that compiles longest (the warm-up's)
     default_reference = True  # a comparison whose config gives no start starts from this, derived settings
     fit_takes = FitTakes(q="per_tick", measurements=True, sensor_states=False)
 
@@ -334,13 +335,14 @@ class UnscentedKalmanFilter(Observer):
 
         from needlecli import kernels  # the compiled tick loop, where it covers this filter
 
-        if kernels.compiled(problem.kernels) and kernels.has_model(model.registered_name):
+        fast = kernels.twin("ukf", problem.kernels) if model.compiled_equations else None
+        if fast is not None:
             from needlecli.kernels import ukf as compiled
 
             # a channel in the needle's frame (a full R at the predicted tangent) or a one-sided channel
             # (a truncated update): the numpy path below
             if compiled.supports(model, chans) and all(c["frame"] == "world" for c in chans) and not bounds:
-                return self._from_kernel(compiled.filter_runs(
+                return self._from_kernel(fast(
                     model, params, problem, s, chans, ticks, inputs, x, P0, Q, kappa_i, interfaces, depths, w, order,
                     n_act, progress), problem, model, chans, stride, dt_grid, depths)
 

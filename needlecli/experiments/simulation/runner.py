@@ -18,7 +18,7 @@ from needlecli.experiments.simulation.components import build_sensors
 from needlecli.experiments.simulation.replay import replay_truth
 from needlecli.experiments.simulation.truth import Truth, simulate_truth, stream
 from needlecli.io.results import Group, root_attrs, write_atomic
-from needlecli.observers import Channel, EstimationProblem, Posterior
+from needlecli.observers import OBSERVERS, Channel, EstimationProblem, Posterior
 from needlecli.observers.base import cov_steps
 from needlecli.sensors import MeasurementStream
 from needlecli.sensors.base import inequality_function, measurement_function
@@ -143,8 +143,10 @@ def warm_up_observers(cfg: ExperimentConfig) -> kernels.WarmUp:
     of the kernels), compile the observers' kernels in a second process while this one compiles and runs the
     truth simulation: the child runs the observers on a short copy of the experiment (one run, 2 s, its
     truth and sensors on the numpy path), which compiles them for the same argument types."""
-    if (cfg.source is not None or not cfg.observers or not kernels.compiled(cfg.simulation.kernels)
-            or not kernels.cold(o.type for o in cfg.observers)):  # (recorded trials: no truth to simulate briefly)
+    if cfg.source is not None or not cfg.observers or not kernels.compiled(cfg.simulation.kernels):
+        return kernels.WarmUp()  # recorded trials: no truth to simulate briefly; numpy: numba not even imported
+    entries = [OBSERVERS.get(o.type).compiled_entry for o in cfg.observers]  # (the observers'
+    if not kernels.cold(entries):  # declarations: the kernel each compiles longest)
         return kernels.WarmUp()
     tiny = cfg.model_copy(update={"runs": cfg.runs.model_copy(update={"count": 1}), "stop": Stop(time=2.0)})
     return kernels.warm_up(_observe_briefly, tiny)

@@ -223,7 +223,7 @@ class TruthSimulator:
         from needlecli import kernels
 
         # the compiled stepper (needlecli.kernels.truth) serves runs without a before_step
-        self._compiled = kernels.compiled(cfg.simulation.kernels) and kernels.has_model(model.registered_name)
+        self._twin = kernels.twin("truth", cfg.simulation.kernels) if model.compiled_equations else None
         self._kernel = None
 
     def p_at(self, k: int) -> dict[str, np.ndarray]:
@@ -256,11 +256,9 @@ class TruthSimulator:
     def advance_to(self, k: int) -> None:
         """Simulate until ``states[:, : k + 1]`` are filled (nothing when they already are)."""
         k = min(int(k), self.T - 1)
-        if self._compiled and self.before_step is None:
+        if self._twin is not None and self.before_step is None:
             if self._kernel is None:
-                from needlecli.kernels.truth import TruthKernel
-
-                self._kernel = TruthKernel(self)
+                self._kernel = self._twin(self)
             self._kernel.advance_to(self, k)
             return
         model, time, dt, u = self.model, self.time, self.dt, self.u

@@ -208,7 +208,7 @@ def fit_trials(
     # but the results), the first runs here; the children report progress through a queue. Where
     # processes cannot be forked (macOS, Windows) the models run here one after another, on every core
     parallel = workers > 1 and len(names) > 1 and platform.fork_available()
-    with platform.single_blas_thread() if parallel else contextlib.nullcontext(), kernels.using(cfg.simulation.kernels), \
+    with platform.single_blas_thread() if parallel else contextlib.nullcontext(), \
             kernels.threads(1 if parallel else None):  # a process per model: one kernel thread each
         _run_models(names, workers if parallel else 1, run, systems, out, progress)
     out.fits = {name: out.fits[name] for name in names}

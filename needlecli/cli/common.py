@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 import typer
 
 from needlecli.errors import ComponentError, Interrupted, NeedleError
+from needlecli.guard import wrapped_interrupt
 
 if TYPE_CHECKING:
     from needlecli.experiments.config.types import ExperimentConfig
@@ -64,24 +65,13 @@ def user_errors(fn: Callable) -> Callable:
                 JOURNAL.remove_inflight()
                 fail(f"{_os_error(e)}; {JOURNAL.summary()}")
             except Exception as e:  # a library that wrapped the signal's exception in its own (RuntimeError)
-                sig = _wrapped_interrupt(e) or raised_signal()
+                sig = wrapped_interrupt(e, Interrupted) or raised_signal()
                 if sig is None:
                     raise
                 hold_signals()
                 _interrupted(sig)
 
     return wrapper
-
-
-def _wrapped_interrupt(e: BaseException) -> Interrupted | None:
-    """The :class:`Interrupted` a library turned into another exception (its cause or context), if any."""
-    seen = set()
-    while e is not None and id(e) not in seen:
-        if isinstance(e, Interrupted):
-            return e
-        seen.add(id(e))
-        e = e.__cause__ or e.__context__
-    return None
 
 
 def _interrupted(sig: Interrupted) -> None:

@@ -1,0 +1,161 @@
+"""Tests of the particle filters (``needlecli.observers.pf``: ``pf``; ``needlecli.observers.rbpf``: ``rbpf``).
+
+References are independent of the code under test: on a linear-Gaussian model (``tests/linear_model.py``)
+the Kalman filter of ``tests/test_ukf.py`` (written from scratch) is the exact posterior, which a particle
+filter with many particles must match within its Monte-Carlo error; the random-number generator against
+the normal and uniform distributions (Kolmogorov-Smirnov); systematic resampling against its definition.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import linear_model
+import numpy as np
+import pytest
+from linear_model import linear_system, rk4_transition
+
+from needlecli.models import MODELS
+from needlecli.observers.base import EstimationProblem
+from needlecli.observers.pf import ParticleFilter, PFSettings, _count_below, normals, stream_base, uniforms
+from needlecli.observers.rbpf import RaoBlackwellisedParticleFilter, RBPFSettings
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from test_ukf import _channel, kalman_reference  # noqa: E402
+
+STATES = ("x", "y", "z", "vx", "vy", "vz")
+DT = 0.01
+Q = np.array([0.03, 0.03, 0.03, 0.05, 0.05, 0.05])  # std per tick
+P0 = np.array([0.09, 0.09, 0.09, 0.04, 0.04, 0.04])  # variances
+SIGMA = {"pos": 0.3, "vel": 0.05}  # as kalman_reference of test_ukf has them (SIGMA_LIN)
+RB_NAME = "linear_test_model_translation"
+
+
+class _Translation(linear_model.LinearTestModel):
+    """The linear test model with its positions declared translation states (its vector field does not
+    depend on them): the Rao-Blackwellised filter's case."""
+
+    translation_states = ("x", "y", "z")
+
+
+if RB_NAME not in MODELS:
+    MODELS.register(RB_NAME)(_Translation)
+
+
+def linear_problem(model_name=linear_model.NAME, seed=0, n_runs=3, n_steps=60, dropout=0.2):
+    """A linear-Gaussian truth whose initial state is drawn from the filters' prior ``N(x0, diag(P0))`` and
+    whose noise is the filters' ``Q`` per step; ``pos`` (x, y, z) every 5 steps and ``vel`` (vx) every 2
+    steps, 13 ms late; ``dropout`` of the samples lost."""
+    rng = np.random.default_rng(seed)
+    model = MODELS.get(model_name)()
+    p = model.param_arrays()
+    A, B = linear_system(float(p["damping"]), float(p["omega"]))
+    phi, gam = rk4_transition(A, B, DT)
+    T = n_steps + 1
+    time = DT * np.arange(T)
+    u = np.zeros((n_runs, T, 4))
+    u[..., 0] = 1.0
+    u[..., 1:] = np.sin(time[None, :, None] * np.array([1.0, 2.0, 3.0]) + rng.uniform(0, 6, (n_runs, 1, 3)))
+    x0 = np.array([1.0, -2.0, 0.5, 0.3, -0.1, 0.2]) + np.zeros((n_runs, 6))
+    x = x0 + np.sqrt(P0) * rng.standard_normal((n_runs, 6))
+    truth = [x]
+    for k in range(T - 1):
+        x = x @ phi.T + u[:, k] @ gam.T + Q * rng.standard_normal((n_runs, 6))
+        truth.append(x)
+    truth = np.stack(truth, 1)
+
+    def samples(cols, every, sigma):
+        idx = np.arange(0, T, every)
+        val = truth[:, idx][..., cols] + sigma * rng.standard_normal((n_runs, len(idx), len(cols)))
+        valid = rng.random((n_runs, len(idx))) >= dropout
+        return idx, np.where(valid[..., None], val, np.nan), valid
+
+    pi, pv, pm = samples([0, 1, 2], 5, SIGMA["pos"])
+    vi, vv, vm = samples([3], 2, SIGMA["vel"])
+    channels = {"pos": _channel("pos", [0, 1, 2], pi, 0.0, pv, pm, time, SIGMA["pos"], selection=True),
+                "vel": _channel("vel", [3], vi, 0.013, vv, vm, time, SIGMA["vel"], selection=True)}
+    return EstimationProblem(time=time, inputs=u, input_names=model.input_names,
+                             depth=np.cumsum(u[..., 0], axis=1) * DT, channels=channels, model=model, params=p,
+                             interfaces=np.zeros(0), initial_truth=x0), truth
+
+
+def particle_filter(problem, particles, *, rb=False, seed=1, **extra):
+    cls, settings = (RaoBlackwellisedParticleFilter, RBPFSettings) if rb else (ParticleFilter, PFSettings)
+    s = settings.model_validate({
+        "type": "rbpf" if rb else "pf", "particles": particles,
+        "q": dict(zip(STATES, map(float, Q))), "p0": dict(zip(STATES, map(float, P0))),
+        "measurements": {c: {"sigma": SIGMA[c]} for c in problem.channels}, "init": {"from": "truth"}, **extra})
+    return cls(s).run(problem, np.random.default_rng(seed))
+
+
+# ============================================================================ 1. the Kalman filter's limit
+@pytest.mark.parametrize("rb", [False, True], ids=["pf", "rbpf"])
+def test_many_particles_match_the_kalman_filter(rb):
+    """On a linear-Gaussian model the posterior is the Kalman filter's. A weighted mean of particles
+    carries Monte-Carlo error of about ``sigma / sqrt(ESS)`` at one step (``sigma`` the posterior std, ESS
+    the effective sample size), a variance ``sigma^2 sqrt(2 / ESS)``; the errors of earlier steps carry
+    over (through resampling, for about the time the model takes to forget them), which we allow for
+    with a factor 2 on the std (4 on the variance of the error). With ``P = 20000`` particles and the
+    filter's smallest ESS over the run (reported by the filter itself, per run) at 6 such errors: the mean
+    within ``12 sigma / sqrt(ESS_min)`` of the Kalman filter's at every step, each variance within ``12
+    sqrt(2 / ESS_min)`` relatively, each correlation within ``12 / sqrt(ESS_min)``. A wrong likelihood,
+    noise or resampling is off by tenths of sigma or more (e.g. 1.4 sigma for a likelihood std of 0.1
+    instead of 0.05); these bounds are 0.2 to 0.5 sigma. (The Rao-Blackwellised filter carries the
+    positions exactly given the velocities: its error is smaller.)"""
+    problem, _ = linear_problem(RB_NAME if rb else linear_model.NAME)
+    ref_x, ref_p = kalman_reference(problem, q=Q, p0=P0)
+    post = particle_filter(problem, 20000, rb=rb)
+    assert (post.status == "ok").all()
+    ess_min = post.extras["ess"].min(axis=1)  # (N,)
+    assert (ess_min > 500).all()  # the case is one a bootstrap filter handles (no collapse)
+    tol = 12.0 / np.sqrt(ess_min)
+    sd = np.sqrt(np.diagonal(ref_p, axis1=-2, axis2=-1))
+    z = np.abs(post.state - ref_x) / sd
+    assert (z.max(axis=(1, 2)) <= tol).all(), z.max(axis=(1, 2)) / tol
+    var = np.diagonal(post.cov, axis1=-2, axis2=-1) / sd**2
+    assert (np.abs(var - 1).max(axis=(1, 2)) <= tol * np.sqrt(2.0)).all(), np.abs(var - 1).max(axis=(1, 2)) / tol
+    corr = (post.cov - ref_p) / (sd[..., :, None] * sd[..., None, :])
+    assert (np.abs(corr).max(axis=(1, 2, 3)) <= tol).all(), np.abs(corr).max(axis=(1, 2, 3)) / tol
+    # the counters: every valid sample arriving after t = 0 is used once (one channel sample per tick)
+    for name in ("pos", "vel"):
+        ch = problem.channels[name]
+        arrives = np.ceil(ch.t_available / DT - 1e-9)
+        in_time = (arrives > 0) & (arrives <= len(problem.time) - 1)
+        np.testing.assert_array_equal(post.extras[f"used/{name}"], (ch.valid & in_time).sum(1))
+
+
+# ============================================================================ 2. the pieces
+def test_counter_based_draws_are_standard_and_independent():
+    """Normals and uniforms of the counter-based generator against their distributions (Kolmogorov-Smirnov
+    at 1e-3 on 2e5 draws of each of four runs); draws of another tick, purpose or key are uncorrelated
+    (|r| < 5 / sqrt(M)); the same key gives the same draws."""
+    from scipy import stats
+
+    runs = np.arange(4, dtype=np.uint64)
+    z = normals(stream_base(99, 1, runs, 7), 200_000)
+    u = uniforms(stream_base(99, 1, runs, 7), 200_000)
+    for i in range(4):
+        assert stats.kstest(z[i], "norm").pvalue > 1e-3
+        assert stats.kstest(u[i], "uniform").pvalue > 1e-3
+    M = 200_000
+    for other in (stream_base(99, 1, runs, 8), stream_base(99, 2, runs, 7), stream_base(98, 1, runs, 7)):
+        assert abs(np.corrcoef(z[0], normals(other, M)[0])[0, 1]) < 5 / np.sqrt(M)
+    assert abs(np.corrcoef(z[0], z[1])[0, 1]) < 5 / np.sqrt(M)
+    np.testing.assert_array_equal(normals(stream_base(99, 1, runs, 7), 10), z[:, :10])
+
+
+def test_systematic_resampling_counts():
+    """``_count_below`` is the merge of the cumulative weights and the systematic points: per row the
+    number of cumulative weights ``<= (u + i) / P``, as ``np.searchsorted(c, pos, side='right')`` gives it,
+    ties included."""
+    rng = np.random.default_rng(4)
+    w = rng.random((5, 50)) ** 4
+    w[2, 10:] = 0.0  # a run with few particles of weight
+    c = np.cumsum(w / w.sum(1, keepdims=True), axis=1)
+    c[:, -1] = 1.0
+    pos = (rng.random((5, 1)) + np.arange(50)) / 50
+    pos[3] = c[3]  # ties: a point on a cumulative weight counts it
+    got = _count_below(c, pos)
+    for r in range(5):
+        np.testing.assert_array_equal(got[r], np.searchsorted(c[r], pos[r], side="right"))

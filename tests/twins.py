@@ -567,3 +567,55 @@ def _rotation(setting):
         return fn(t, e)
     rt, re = euler_xyz_to_matrix(*np.moveaxis(t, -1, 0)), euler_xyz_to_matrix(*np.moveaxis(e, -1, 0))
     return rotation_angle(np.swapaxes(rt, -1, -2) @ re)
+
+
+# ---- the particle filters
+def pf_config(seed: int) -> str:
+    """A random small particle-filter experiment on :func:`ukf_config`'s insertions: the bootstrap or the
+    Rao-Blackwellised filter, Gaussian or Student-t ultrasound, roughening or not, resampling often; the
+    magnetic models with their field direction (a unit vector of states) and the BiNM's dead particles."""
+    rng = np.random.default_rng(100 + seed)
+    text = ukf_config(seed, "time: 0.3" if seed % 4 >= 2 else "depth: 0.45")  # 30 ticks
+    start = text.index("observers:")
+    end = text.index("runs:")
+    model = ("modified_unicycle", "unicycle", "mnm", "binm")[seed % 4]
+    kind = ("pf", "rbpf")[(seed // 4) % 2]
+    rough = float(rng.choice([0.0, 0.2]))
+    if model in ("mnm", "binm"):
+        sensors = "  - {name: coils, type: bfield, rate: 50.0, sigma: 1.0e-2}\n"
+        text = text.replace("sensors:\n", "sensors:\n" + sensors, 1)
+        start = text.index("observers:")
+        end = text.index("runs:")
+        meas = "{camera: {sigma: 5.2e-5, gate: 0.999}, coils: {sigma: 1.0e-2}}"
+        obs = f"""observers:
+  - name: pf
+    type: {kind}
+    particles: 64
+    resample_below: 0.9
+    roughening: {rough}
+    q: {{px: 1.0e-6, py: 1.0e-6, pz: 1.0e-7, hx: 1.0e-3, hy: 1.0e-3, hz: 1.0e-4, Bx: 1.0e-3, By: 1.0e-3, Bz: 1.0e-4}}
+    p0: {{px: 1.0e-8, py: 1.0e-8, pz: 1.0e-10, hx: 1.0e-4, hy: 1.0e-4, hz: 1.0e-4, Bx: 1.0e-4, By: 1.0e-4, Bz: 1.0e-4}}
+    measurements: {meas}
+    init: {{from: truth, std: {{hx: 0.01}}, first_measurement: {{px: camera.x, py: camera.y}}}}
+"""
+    else:
+        modified = model == "modified_unicycle"
+        lik = "likelihood: student_t, dof: 3.0" if kind == "pf" and seed % 2 else "gate: 0.99"
+        q = "{x: 2.0e-3, y: 2.0e-3, z: 2.0e-3, alpha: 2.0e-3, beta: 2.0e-3, gamma: 5.0e-3" + (", kappa: 2.0e-6}" if modified else "}")
+        p0 = "{x: 1.0, y: 1.0, z: 1.0, alpha: 5.0e-3, beta: 5.0e-3, gamma: 0.01" + (", kappa: 2.0e-6}" if modified else "}")
+        obs = f"""observers:
+  - name: pf
+    type: {kind}
+    particles: 64
+    resample_below: 0.9
+    roughening: {rough}
+    q: {q}
+    p0: {p0}
+    measurements: {{us: {{sigma: 0.3, growth: {{transducer: [0, 0, 90], a: 1.0, d_max: 80.0}}, {lik}}}, robot: {{sigma: 0.0035}}{', swe: {sigma: 0.001}' if modified else ''}}}
+    init: {{from: truth, std: {{alpha: 0.05, beta: 0.05}}, first_measurement: {{x: us.x, y: us.y, z: us.z}}}}
+"""
+    return text[:start] + obs + text[end:]
+
+
+for _seed in range(8):  # each model with the bootstrap filter and the Rao-Blackwellised one
+    case("pf", f"seed{_seed}", check=assert_posteriors_agree)(functools.partial(run_observer, pf_config(_seed)))

@@ -100,6 +100,12 @@ TWINS: dict[str, Twin] = {t.name: t for t in (
          "curvature reset and constraint, status, predictions; numpy: channels with a nonlinear h (tangent, "
          "field direction), in the needle's frame or one-sided, more than 4 channels, models without "
          "compiled equations"),
+    Twin("pf", "observers", "needlecli.observers.pf:ParticleFilter._filter", _K + "pf:filter_runs",
+         "the particle filters (pf, rbpf) whole: prediction with process noise from the same counter-based draws, "
+         "dead particles, the updates (Gaussian, Student-t, gates, noise growing with distance, the Kalman "
+         "update of the rbpf's positions), ESS, systematic resampling and roughening, the estimate; numpy: "
+         "one-sided channels, h other than a selection or a unit vector of states, more than 4 channels, models "
+         "without compiled equations"),
     Twin("kalman_forward_affine", "fitting", _NK + "kalman_forward_affine", _K + "kalman:kalman_forward_affine",
          "the affine Kalman filter of an iterated-EKS pass (joseph: false)"),
     Twin("kalman_loglik_affine", "fitting", _NK + "kalman_loglik_affine", _K + "kalman:kalman_forward_affine",

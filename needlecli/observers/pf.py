@@ -503,11 +503,11 @@ class ParticleFilter(Observer):
 
     def _update(self, f: _Setup, X, Pp, logw, w, arrived, bounds, alive, counts):
         """The log-weights ``(N, P)`` after the samples that arrived at this tick, and the particles and
-        position covariances after the Kalman updates of marginal channels. Gates and NIS from the
-        predicted cloud (weights ``w (N, P)``), channel by channel."""
+        position covariances after the Kalman updates of marginal channels; channel by channel, in order
+        (a marginal channel's likelihood and update use the positions as the channels before it left
+        them); gates and NIS against the cloud of the predicted weights ``w (N, P)``."""
         N = X.shape[0]
         post = logw
-        kf = []
         for c, samples in arrived:
             y = np.zeros((N, c["m"]))
             v = np.zeros(N, dtype=bool)
@@ -527,19 +527,19 @@ class ParticleFilter(Observer):
             nu = y[:, None, :] - Hx
             if c["angle"].any():
                 nu[..., c["angle"]] = _wrap_needed_values(nu[..., c["angle"]])
-            nub = np.einsum("np,npi->ni", w, nu)
+            nub = np.matmul(w[:, None, :], nu)[:, 0]
             du = nu - nub[:, None, :]
-            S = np.einsum("np,npi,npj->nij", w, du, du)
+            S = np.matmul(np.swapaxes(du * w[..., None], 1, 2), du)
             if c["marginal"]:  # the Kalman filter's innovation covariance, shared by the particles of a run
                 pi = _positions_in(f.marg, c["idx"])
                 Sk = Pp[:, pi][:, :, pi] + _diag(r)
                 S = S + Sk
                 Sk_inv = np.linalg.inv(Sk)
-                d2 = np.einsum("npi,nij,npj->np", nu, Sk_inv, nu)
+                d2 = np.einsum("npi,npi->np", np.matmul(nu, Sk_inv), nu)
                 ll = -0.5 * d2 - 0.5 * (c["m"] * _LOG_2PI + np.linalg.slogdet(Sk)[1])[:, None]
             else:
                 S = S + _diag(r)
-                d2 = np.einsum("npi,ni->np", nu * nu, 1.0 / r)
+                d2 = np.matmul(nu * nu, (1.0 / r)[..., None])[..., 0]
                 logdet = np.sum(np.log(r), axis=-1)
                 if c["student"]:
                     ll = (c["const"] - 0.5 * logdet)[:, None] - 0.5 * (c["dof"] + c["m"]) * np.log1p(d2 / c["dof"])
@@ -554,14 +554,11 @@ class ParticleFilter(Observer):
             counts["used"][c["name"]] += on
             counts["nis"][c["name"]][on, jsel[on]] = nis[on]
             post = post + np.where(on[:, None], ll, 0.0)
-            if c["marginal"]:
-                kf.append((c, on, nu, pi, Sk_inv))
-        if kf:  # the Kalman updates of the positions (after every likelihood: they use the predicted p_i)
-            X = X.copy()
-            for _c, on, nu, pi, Sk_inv in kf:
-                G = np.einsum("nai,nij->naj", Pp[:, :, pi], Sk_inv) * on[:, None, None]  # (N, 3, m) gain
-                X[..., f.marg] += np.einsum("naj,npj->npa", G, nu)
-                Pp = symmetrize(Pp - np.einsum("naj,nbj->nab", G, Pp[:, :, pi]))
+            if c["marginal"] and on.any():  # the Kalman update of the positions (from the predicted p_i)
+                G = np.matmul(Pp[:, :, pi], Sk_inv) * on[:, None, None]  # (N, 3, m) gain
+                X = X.copy()
+                X[..., f.marg] += np.matmul(nu, np.swapaxes(G, 1, 2))
+                Pp = symmetrize(Pp - np.matmul(G, np.swapaxes(Pp[:, :, pi], 1, 2)))
         for b, samples in bounds:  # one-sided channels: the probit of each sample's bound
             for j in samples:
                 post = self._update_bound(X, post, w, b, j, alive, counts)

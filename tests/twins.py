@@ -580,7 +580,7 @@ def pf_config(seed: int) -> str:
     end = text.index("runs:")
     model = ("modified_unicycle", "unicycle", "mnm", "binm")[seed % 4]
     kind = ("pf", "rbpf")[(seed // 4) % 2]
-    rough = float(rng.choice([0.0, 0.2]))
+    rough = float(rng.choice([0.0, 0.1]))
     if model in ("mnm", "binm"):
         sensors = "  - {name: coils, type: bfield, rate: 50.0, sigma: 1.0e-2}\n"
         text = text.replace("sensors:\n", "sensors:\n" + sensors, 1)

@@ -15,7 +15,7 @@ needed, the model's projection), dead particles (the model's declared singularit
 the updates channel by channel with the latest valid sample of each (Gaussian or Student-t, noise grown
 with distance, chi-square gates against the cloud, NIS; a marginal channel's Kalman update), the
 weights, the ESS, the estimate (circular means of angles), the status, and systematic resampling with
-roughening. The differences are the order of a few sums (BLAS against loops) and the last bit of
+Liu and West's jitter. The differences are the order of a few sums (BLAS against loops) and the last bit of
 ``log``, ``tan`` and the models' sines (1 ulp), so results agree with the numpy path to that rounding
 (``tests/twins.py``).
 
@@ -33,7 +33,7 @@ import numpy as np
 
 from needlecli.kernels._jit import inline, jit
 from needlecli.kernels._threads import blocks, parallel_for
-from needlecli.kernels.core import PI, solve_into, wrap_inline
+from needlecli.kernels.core import PI, cholesky_into, repaired_root, solve_into, wrap_inline
 from needlecli.kernels.models import equation_id, normalize, step_fast
 from needlecli.kernels.truth import margin
 
@@ -167,7 +167,8 @@ def run(lo, hi, f, ch, sc, out):
     C = np.empty((n, n))
     Ch = np.empty((n, n))
     Pp = np.empty((max(nt, 1), max(nt, 1)))
-    spread = np.empty(n)
+    Cd = np.empty((max(k_dr, 1), max(k_dr, 1)))
+    Ld = np.empty((max(k_dr, 1), max(k_dr, 1)))
     xm = np.empty((n, 1))
     # small dense work of an update
     y = np.empty(mmax)
@@ -425,7 +426,7 @@ def run(lo, hi, f, ch, sc, out):
                 for i in range(P):
                     lw[i] = -math.log(P)
                 if f.rough > 0.0:
-                    _roughen(f, X, x, spread, r, it, P, k_dr)
+                    _jitter(f, X, x, C, Cd, Ld, zb, r, it, P, k_dr)
         out.loglik[r] = loglik
 
 
@@ -557,25 +558,30 @@ def _resample(f, X, Xn, w, cum, idx, r, it, P):
 
 
 @jit
-def _roughen(f, X, x, spread, r, it, P, k_dr):
-    """Each drawn state of every particle jittered by ``rough P^(-1/k)`` times its spread about ``x``."""
-    n = X.shape[0]
-    for a in range(n):
-        lo_ = np.inf
-        hi_ = -np.inf
-        for i in range(P):
-            v = X[a, i] - x[a]
-            if f.angles[a]:
-                v = _wrap_needed(v)
-            lo_ = min(lo_, v)
-            hi_ = max(hi_, v)
-        spread[a] = hi_ - lo_
-    c0 = f.rough * P ** (-1.0 / k_dr)
+def _jitter(f, X, x, C, Cd, Ld, zb, r, it, P, k_dr):
+    """Liu and West's kernel smoothing of the drawn states (:meth:`ParticleFilter._jitter
+    <needlecli.observers.pf.ParticleFilter._jitter>`): ``x + a (X - x) + h L z``, ``L`` the Cholesky factor
+    of the drawn states' block of the cloud's covariance ``C``."""
+    h = f.rough
+    a_ = math.sqrt(1.0 - h * h)
+    for j in range(k_dr):
+        for l in range(k_dr):
+            Cd[j, l] = C[f.drawn[j], f.drawn[l]]
+    if not cholesky_into(Cd, Ld, k_dr):
+        repaired_root(Cd, Ld, k_dr, 1e-12)
     base = stream_base(f.key, ROUGHEN, r, it)
     for i in range(P):
         for j in range(k_dr):
+            zb[j] = normal(base, i * k_dr + j)
+        for j in range(k_dr):
             a = f.drawn[j]
-            X[a, i] = X[a, i] + c0 * spread[a] * normal(base, i * k_dr + j)
+            d = X[a, i] - x[a]
+            if f.angles[a]:
+                d = _wrap_needed(d)
+            s_ = 0.0
+            for l in range(k_dr):
+                s_ += zb[l] * Ld[j, l]
+            X[a, i] = (x[a] + a_ * d) + h * s_
     _wrap_angles(X, f.angles, P)
     normalize(f.mid, X, P)
 

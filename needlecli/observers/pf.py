@@ -21,11 +21,15 @@ latest valid one of each channel):
    model's ``normalize`` on it: a rotation's mean is brought back onto SO(3)) and the covariance about it,
    angle residuals wrapped;
 4. **resample** (systematic) where the effective sample size ``ESS = 1 / sum w_i^2`` fell below
-   ``resample_below * P``; optionally **roughened** (Gordon, Salmond and Smith 1993): each state of the
-   resampled particles jittered by ``roughening * E * P^(-1/d)``, ``E`` the spread of that state over the
-   particles, ``d`` the number of particle states -- for process noise too small to refresh a cloud of
-   copies (off by default: the filter is then the plain bootstrap filter, whose limit is the Bayes
-   posterior of the model as configured).
+   ``resample_below * P``; optionally **jittered** (``roughening: h``): the resampled particle states
+   ``x_i`` become ``x_bar + a (x_i - x_bar) + h L z_i``, ``a = sqrt(1 - h^2)``, ``L L^T`` the weighted
+   covariance of the cloud before resampling, ``z_i`` standard normals -- the kernel smoothing of Liu
+   and West (2001), which refreshes a cloud of copies where the process noise is too small to (seed 003's
+   orientation noise is 2e-5 rad per tick) while keeping its mean and covariance. Gordon, Salmond and
+   Smith's roughening (a jitter proportional to the spread, added at every resampling) inflates the
+   cloud instead: resampling at the roll encoder's 100 Hz, it made seed 003's curvature and yaw diverge
+   within seconds. Off by default: the filter is then the plain bootstrap filter, whose limit is the Bayes
+   posterior of the model as configured.
 
 Per tick the ESS (before resampling) and whether the run resampled are kept (``ess``, ``resampled``
 ``(N, K)`` at the grid steps ``ticks (K,)``), and the log-likelihood of each run's samples (``loglik``).
@@ -161,9 +165,9 @@ class PFSettings(ObserverSettings):
     particles: int = Field(1000, ge=2, le=10_000_000, description="particles per run")
     resample_below: Probability = Field(0.5, description="systematic resampling when the effective sample "
                                                          "size falls below this fraction of the particles")
-    roughening: NonNeg = Field(0.0, description="jitter after resampling: each state by this times its spread "
-                                                "over the particles times P^(-1/d) (Gordon et al.'s K, e.g. "
-                                                "0.2); 0: none")
+    roughening: Probability = Field(0.0, description="jitter after resampling, h of Liu and West's kernel "
+                                                     "smoothing: x_bar + sqrt(1 - h^2) (x_i - x_bar) + h L z with L L^T "
+                                                     "the cloud's covariance (mean and covariance kept), e.g. 0.1; 0: none")
     q: dict[str, NonNeg] = Field(default_factory=dict, description="process noise std per state per tick")
     p0: dict[str, NonNeg] = Field(default_factory=dict, description="initial variance per state")
     measurements: dict[str, ParticleMeasurementSpec] = Field(
@@ -475,7 +479,7 @@ class ParticleFilter(Observer):
                 due = (ess[:, i] < f.below * P) & rec.alive
                 resampled[:, i] = due
                 if due.any():
-                    X, logw = self._resample(f, X, logw, w, x, due, runs, i)
+                    X, logw = self._resample(f, X, logw, w, x, C, due, runs, i)
         return self._posterior(rec, f, ess, resampled, loglik)
 
     def _initial_particles(self, f: _Setup, runs: np.ndarray) -> np.ndarray:
@@ -600,7 +604,7 @@ class ParticleFilter(Observer):
             C[:, f.marg[:, None], f.marg[None, :]] += Pp
         return x, symmetrize(C)
 
-    def _resample(self, f: _Setup, X, logw, w, x, due, runs, tick):
+    def _resample(self, f: _Setup, X, logw, w, x, C, due, runs, tick):
         """Systematic resampling of the runs ``due (N,)``: particle ``i`` becomes the one whose cumulative
         weight interval holds ``(u + i) / P``, ``u`` one uniform per run; then roughening."""
         N, P, n = X.shape
@@ -613,17 +617,27 @@ class ParticleFilter(Observer):
         X = np.take_along_axis(X, idx[..., None], axis=1)
         logw = np.where(due[:, None], -math.log(P), logw)
         if f.rough > 0:
-            d = X - x[:, None, :]
-            if f.angles.any():
-                d[..., f.angles] = _wrap_needed_values(d[..., f.angles])
-            spread = d.max(axis=1) - d.min(axis=1)  # (N, n)
-            k = f.drawn.size
-            z = normals(stream_base(f.key, ROUGHEN, runs, tick), P * k).reshape(N, P, k)
-            jit = (f.rough * P ** (-1.0 / k)) * spread[:, None, f.drawn] * z
-            X = X.copy()
-            X[..., f.drawn] += np.where(due[:, None, None], jit, 0.0)
-            X = f.model.normalize(_wrap_needed(X, f.angles))
+            X = self._jitter(f, X, x, C, due, runs, tick)
         return X, logw
+
+    def _jitter(self, f: _Setup, X, x, C, due, runs, tick):
+        """Liu and West's kernel smoothing of the drawn states of the runs ``due``: ``x + a (X - x) + h L z``
+        with ``a = sqrt(1 - h^2)``, ``L`` the lower Cholesky factor of their block of ``C (N, n, n)`` (the
+        cloud's covariance before resampling), angle residuals wrapped."""
+        N, P, n = X.shape
+        h, dr = f.rough, f.drawn
+        a = math.sqrt(1.0 - h * h)
+        L = robust_cholesky(C[due][:, dr[:, None], dr[None, :]])[0]  # (D, k, k)
+        z = normals(stream_base(f.key, ROUGHEN, runs[due], tick), P * dr.size).reshape(-1, P, dr.size)
+        Xd = X[due]
+        d = Xd[..., dr] - x[due][:, None, dr]
+        ang = f.angles[dr]
+        if ang.any():
+            d[..., ang] = _wrap_needed_values(d[..., ang])
+        Xd[..., dr] = x[due][:, None, dr] + a * d + h * np.matmul(z, np.swapaxes(L, 1, 2))
+        X = X.copy()
+        X[due] = f.model.normalize(_wrap_needed(Xd, f.angles))
+        return X
 
     # ------------------------------------------------------------------ results
     @staticmethod

@@ -3,7 +3,7 @@ PY ?= python
 
 STUDIES := results/studies
 
-.PHONY: help install demo test bench lint docs clean seed000 seed001 seed003 seed004 datasets regress real real-tau real-plane owndata faults
+.PHONY: help install demo test bench lint docs clean seed000 seed001 seed003 seed004 datasets regress real real-tau real-plane owndata faults particles
 
 help:
 	@echo "make install  - install needlecli with test extras (editable)"
@@ -23,6 +23,7 @@ help:
 	@echo "make real-plane - after make real: the image plane's bound with margins 0-8 mm and lost frames only (tip error against the tracker)"
 	@echo "make seed004  - seed 004's synthetic study and T2prelim: EM fits, Tables 1-3, Figs. 5, 10 (in $(STUDIES))"
 	@echo "make owndata  - a lab's exports made by needlecli, imported by a mapping, fitted with and without the slip (in $(OWN))"
+	@echo "make particles - the particle filters against the UKF, EKF (Table 1, T2prelim, outliers, resultsOrig) -> docs/guide/particle-filters.md"
 	@echo "make clean    - remove results/ and caches"
 
 install:
@@ -187,3 +188,10 @@ owndata:
 	needle evaluate $(OWN)/fit.h5 --out $(OWN)/tables --quiet
 	needle evaluate $(OWN)/fit_no_scale.h5 --out $(OWN)/tables --quiet
 	@echo "tables: $(OWN)/tables; what the import read and dropped: $(OWN)/lab_info.txt"
+
+# The particle filters (issue 29, docs/guide/particle-filters.md): needle compare of each config in
+# configs/particles/ (seed 003's Table 1 with 100 to 3000 particles, seed 004's T2prelim with the bicycle
+# model, Table 1 with gross ultrasound errors, the recorded resultsOrig after `make real`), their tables
+# written on the page. About 30 minutes on 2 cores. PARTICLES_ARGS: e.g. --runs 10, --only table1, --render.
+particles:
+	$(PY) tools/particles_page.py $(PARTICLES_ARGS)

@@ -262,17 +262,20 @@ class ParticleFilter(Observer):
     fit_takes = FitTakes(q="per_tick", measurements=True, sensor_states=False)
     #: particles for the positions (False) or Kalman filters per particle (True: the RBPF)
     marginal = False
-    #: particles per run in a comparison's derived settings
+    #: particles per run, and the jitter after resampling, of a comparison's derived settings
     COMPARE_PARTICLES = 500
+    COMPARE_JITTER = 0.1
 
     @classmethod
     def derived_settings(cls, ctx):
         """The UKF's (:func:`~needlecli.observers.defaults.filter_settings`: the sensors' nominal sigmas
         with their growth, the start, ``q`` per tick from the truth's process noise), Gaussian likelihoods,
-        :attr:`COMPARE_PARTICLES` particles, no prediction (the filter has none)."""
+        :attr:`COMPARE_PARTICLES` particles, Liu and West's jitter :attr:`COMPARE_JITTER` after resampling
+        (the needle models' orientation noise per tick is too small to refresh a resampled cloud), no
+        prediction (the filter has none)."""
         s = filter_settings(ctx)
         s.pop("predict_at_depths", None)
-        return {"particles": cls.COMPARE_PARTICLES, **s}
+        return {"particles": cls.COMPARE_PARTICLES, "roughening": cls.COMPARE_JITTER, **s}
 
     # ------------------------------------------------------------------ configuration checks
     @classmethod

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from needlecli.models.base import NotMeasurable, StateSelection
 from needlecli.numerics import wrap_angle
@@ -27,6 +27,13 @@ from needlecli.sensors import PIPELINES, SENSORS  # noqa: F401  (the registries,
 if TYPE_CHECKING:
     from needlecli.experiments.simulation.truth import Truth
     from needlecli.models import Model
+
+
+class Outliers(Strict):
+    """Gross errors of a sensor: each sample, with ``probability``, has ``scale`` times the noise std."""
+
+    probability: Probability = Field(description="share of the samples that are gross errors")
+    scale: Positive = Field(10.0, description="their noise std, in multiples of the sensor's sigma")
 
 
 class SensorSettings(Strict):
@@ -39,6 +46,15 @@ class SensorSettings(Strict):
     latency: NonNeg = Field(0.0, description="delay between acquisition and availability, s")
     dropout: Probability = Field(0.0, description="probability that a sample is lost")
     pipeline: str = Field("gaussian", description="how measurements are made: gaussian, or an image pipeline")
+    outliers: Outliers | None = Field(None, description="gross errors (pipeline gaussian): a share of the samples "
+                                                        "with scale times the noise std, a heavy-tailed (contaminated "
+                                                        "Gaussian) sensor; default: none")
+
+    @model_validator(mode="after")
+    def _outliers(self):
+        if self.outliers is not None and self.pipeline != "gaussian":
+            raise ValueError("outliers are made by the gaussian pipeline; an image pipeline makes its own")
+        return self
 
 
 @dataclass(frozen=True)
@@ -252,12 +268,17 @@ class Pipeline:
 
 @PIPELINES.register("gaussian")
 class GaussianPipeline(Pipeline):
-    """The statistical pipeline: ``h(truth) + N(0, sigma^2)`` per channel."""
+    """The statistical pipeline: ``h(truth) + N(0, sigma^2)`` per channel; with ``outliers``, a share of the
+    samples ``h(truth) + N(0, (scale sigma)^2)`` instead (gross errors: a contaminated Gaussian)."""
 
     def measure(self, sensor, truth, idx, rng):
         ideal = sensor.ideal(truth, idx)
         sigma = np.broadcast_to(sensor.sigma(truth, idx), ideal.shape)
         value = sensor.perturb(ideal, sigma, rng)
+        o = getattr(sensor.settings, "outliers", None)
+        if o is not None:  # drawn after the ordinary noise: the same noise as without them
+            gross = rng.random(ideal.shape[:2]) < o.probability
+            value = np.where(gross[..., None], sensor.perturb(ideal, sigma * o.scale, rng), value)
         valid = np.ones(ideal.shape[:2], dtype=bool)
         return value, valid, np.ascontiguousarray(sigma)
 

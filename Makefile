@@ -190,7 +190,7 @@ owndata:
 	@echo "tables: $(OWN)/tables; what the import read and dropped: $(OWN)/lab_info.txt"
 
 # The particle filters (issue 29, docs/guide/particle-filters.md): needle compare of each config in
-# configs/particles/ (seed 003's Table 1 with 100 to 3000 particles, seed 004's T2prelim with the bicycle
+# configs/particles/ (seed 003's Table 1 with 100 to 1000 particles, seed 004's T2prelim with the bicycle
 # model, Table 1 with gross ultrasound errors, the recorded resultsOrig after `make real`), their tables
 # written on the page. About 30 minutes on 2 cores. PARTICLES_ARGS: e.g. --runs 10, --only table1, --render.
 particles:

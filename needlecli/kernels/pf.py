@@ -101,19 +101,20 @@ def uniform(base, e):
     return float(z >> _S11) * _TWO_53
 
 
-@inline
-def normal(base, e):
-    """Draw ``e`` of :func:`needlecli.observers.pf.normals` (Box-Muller on uniforms ``2j, 2j + 1``)."""
-    j = e // 2
-    u1 = uniform(base, 2 * j)
-    u2 = uniform(base, 2 * j + 1)
-    rho = math.sqrt(-2.0 * math.log1p(-u1))
-    t = math.tan(((2.0 * PI) * u2) * 0.5)
-    t2 = t * t
-    r = 1.0 / (t2 + 1.0)
-    if e % 2 == 0:
-        return rho * ((1.0 - t2) * r)
-    return rho * ((t + t) * r)
+@jit
+def fill_normals(base, count, out):
+    """``out[:count]`` = draws ``0..count-1`` of :func:`needlecli.observers.pf.normals` (each Box-Muller pair
+    computed once)."""
+    for j in range((count + 1) // 2):
+        u1 = uniform(base, 2 * j)
+        u2 = uniform(base, 2 * j + 1)
+        rho = math.sqrt(-2.0 * math.log1p(-u1))
+        t = math.tan(((2.0 * PI) * u2) * 0.5)
+        t2 = t * t
+        r = 1.0 / (t2 + 1.0)
+        out[2 * j] = rho * ((1.0 - t2) * r)
+        if 2 * j + 1 < count:
+            out[2 * j + 1] = rho * ((t + t) * r)
 
 
 @inline
@@ -185,19 +186,17 @@ def run(lo, hi, f, ch, sc, out):
     Gk = np.empty((max(nt, 1), mmax))
     Lk = np.empty((mmax, mmax))
     Pt = np.empty((max(nt, 1), max(nt, 1)))
-    zb = np.empty(max(k_dr, 1))
+    Z = np.empty(P * max(n, 1))
     for r in range(lo, hi):
         ri = min(r, f.inputs.shape[0] - 1)
         alive = True
         # ---- the initial particles: x0 + B0 z
-        base = stream_base(f.key, INIT, r, 0)
+        fill_normals(stream_base(f.key, INIT, r, 0), P * k_dr, Z)
         for i in range(P):
-            for j in range(k_dr):
-                zb[j] = normal(base, i * k_dr + j)
             for a in range(n):
                 s_ = 0.0
                 for j in range(k_dr):
-                    s_ += f.B0[a, j] * zb[j]
+                    s_ += f.B0[a, j] * Z[i * k_dr + j]
                 X[a, i] = f.x0[r, a] + s_
         _wrap_angles(X, f.angles, P)
         normalize(f.mid, X, P)
@@ -229,11 +228,11 @@ def run(lo, hi, f, ch, sc, out):
                         U[c, i] = u
                 step_fast(f.mid, X, U, Pm, f.dt, P, W)
             if nq:
-                base = stream_base(f.key, PROCESS, r, it)
+                fill_normals(stream_base(f.key, PROCESS, r, it), P * nq, Z)
                 for i in range(P):
                     for j in range(nq):
                         a = f.noisy[j]
-                        X[a, i] = X[a, i] + f.q[a] * normal(base, i * nq + j)
+                        X[a, i] = X[a, i] + f.q[a] * Z[i * nq + j]
             _wrap_angles(X, f.angles, P)
             normalize(f.mid, X, P)
             for a in range(nt):
@@ -426,7 +425,7 @@ def run(lo, hi, f, ch, sc, out):
                 for i in range(P):
                     lw[i] = -math.log(P)
                 if f.rough > 0.0:
-                    _jitter(f, X, x, C, Cd, Ld, zb, r, it, P, k_dr)
+                    _jitter(f, X, x, C, Cd, Ld, Z, r, it, P, k_dr)
         out.loglik[r] = loglik
 
 
@@ -558,7 +557,7 @@ def _resample(f, X, Xn, w, cum, idx, r, it, P):
 
 
 @jit
-def _jitter(f, X, x, C, Cd, Ld, zb, r, it, P, k_dr):
+def _jitter(f, X, x, C, Cd, Ld, Z, r, it, P, k_dr):
     """Liu and West's kernel smoothing of the drawn states (:meth:`ParticleFilter._jitter
     <needlecli.observers.pf.ParticleFilter._jitter>`): ``x + a (X - x) + h L z``, ``L`` the Cholesky factor
     of the drawn states' block of the cloud's covariance ``C``."""
@@ -569,10 +568,8 @@ def _jitter(f, X, x, C, Cd, Ld, zb, r, it, P, k_dr):
             Cd[j, l] = C[f.drawn[j], f.drawn[l]]
     if not cholesky_into(Cd, Ld, k_dr):
         repaired_root(Cd, Ld, k_dr, 1e-12)
-    base = stream_base(f.key, ROUGHEN, r, it)
+    fill_normals(stream_base(f.key, ROUGHEN, r, it), P * k_dr, Z)
     for i in range(P):
-        for j in range(k_dr):
-            zb[j] = normal(base, i * k_dr + j)
         for j in range(k_dr):
             a = f.drawn[j]
             d = X[a, i] - x[a]
@@ -580,7 +577,7 @@ def _jitter(f, X, x, C, Cd, Ld, zb, r, it, P, k_dr):
                 d = _wrap_needed(d)
             s_ = 0.0
             for l in range(k_dr):
-                s_ += zb[l] * Ld[j, l]
+                s_ += Z[i * k_dr + l] * Ld[j, l]
             X[a, i] = (x[a] + a_ * d) + h * s_
     _wrap_angles(X, f.angles, P)
     normalize(f.mid, X, P)

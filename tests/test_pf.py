@@ -8,6 +8,7 @@ the normal and uniform distributions (Kolmogorov-Smirnov); systematic resampling
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -159,3 +160,122 @@ def test_systematic_resampling_counts():
     got = _count_below(c, pos)
     for r in range(5):
         np.testing.assert_array_equal(got[r], np.searchsorted(c[r], pos[r], side="right"))
+
+
+# ============================================================================ 3. in experiments
+def _unicycle(observer: str, runs: int = 3, extra_sensor: str = "") -> str:
+    return f"""\
+name: pf_case
+model: {{type: unicycle, params: {{kappa: 0.005}}, initial_state: {{beta: 1.45}}}}
+inputs: {{v: 1.5, u: 0.0}}
+sensors:
+  - {{name: us, type: position, rate: 10.0, sigma: 0.3}}
+  - {{name: robot, type: encoder, rate: 100.0, channels: [roll], sigma: 0.0035}}{extra_sensor}
+observers:
+  - {observer}
+runs: {{count: {runs}, seed: 1}}
+stop: {{time: 0.5}}
+"""
+
+
+def _run(text: str, setting: str = "numpy", seed: int | None = None):
+    from needlecli.experiments.config.load import load_config
+    from needlecli.experiments.simulation.runner import build_problem, simulate_and_measure
+    from needlecli.experiments.simulation.truth import stream
+    from needlecli.observers import OBSERVERS
+    from needlecli.observers.contract import check_posterior
+
+    cfg, _ = load_config(text=text, overrides=["simulation.kernels=numpy"])
+    truth, sensors, streams, _ = simulate_and_measure(cfg)
+    problem = dataclasses.replace(build_problem(cfg, truth, sensors, streams), kernels=setting)
+    o = cfg.observers[0]
+    post = OBSERVERS.get(o.type)(o).run(problem, stream(cfg.runs.seed if seed is None else seed, "observer/pf"))
+    assert check_posterior(post, problem) is None  # the results contract, as every observer's
+    return post
+
+
+SETTINGS = ["numpy", pytest.param("numba", marks=pytest.mark.skipif(
+    __import__("importlib").util.find_spec("numba") is None, reason="numba not installed"))]
+
+
+@pytest.mark.parametrize("setting", SETTINGS)
+def test_particles_that_leave_the_domain_die_and_the_run_goes_on(setting):
+    """The unicycle is undefined at beta = pi/2. Particles drawn about beta = 1.45 with std 0.2 (27 % beyond
+    pi/2) die at the first tick: the ESS falls to about 0.73 P and the run goes on; particles all beyond
+    pi/2 stop the run 'singular' at the first tick, with the reason."""
+    obs = ("{name: pf, type: pf, particles: 400, q: {x: 1.0e-3, y: 1.0e-3, z: 1.0e-3, alpha: 1.0e-4, beta: 1.0e-4, "
+           "gamma: 1.0e-3}, p0: {beta: BETA_VAR}, init: {from: truth, values: {beta: BETA}}}")
+    post = _run(_unicycle(obs.replace("BETA_VAR", "0.04").replace("BETA", "1.45")), setting)
+    assert (post.status == "ok").all()
+    share = post.extras["ess"][:, 1] / 400  # after the first tick (no sample yet: the survivors' weights equal)
+    np.testing.assert_allclose(share, 0.73, atol=4 * np.sqrt(0.27 * 0.73 / 400))
+    post = _run(_unicycle(obs.replace("BETA_VAR", "1.0e-6").replace("BETA", "1.6")), setting)
+    assert (post.status == "singular").all()
+    assert all(r.startswith("every particle left the model's domain: cos(beta)") and "t = 0.01 s" in r
+               for r in post.reason)
+
+
+@pytest.mark.parametrize("setting", SETTINGS)
+def test_same_seed_same_particles(setting):
+    """The particles come from the run's stream: the same seed gives the same estimates, another seed others;
+    the ESS and resampling flags are per run and tick ``(N, K)``."""
+    obs = ("{name: pf, type: pf, particles: 200, q: {x: 1.0e-3, y: 1.0e-3, z: 1.0e-3, alpha: 1.0e-3, beta: 1.0e-3, "
+           "gamma: 1.0e-3}, p0: {alpha: 0.01, beta: 0.01, gamma: 0.01}, init: {from: truth}}")
+    a, b, c = (_run(_unicycle(obs), setting), _run(_unicycle(obs), setting), _run(_unicycle(obs), setting, seed=2))
+    np.testing.assert_array_equal(a.state, b.state)
+    assert np.abs(a.state - c.state).max() > 1e-6
+    K = len(a.extras["ticks"])
+    assert a.extras["ess"].shape == a.extras["resampled"].shape == (3, K) and a.extras["resampled"].any()
+
+
+def test_rbpf_refuses_what_is_not_conditionally_linear():
+    """The Rao-Blackwellised filter says why where it does not apply: a model without translation states,
+    a Student-t likelihood on a position channel, a one-sided channel."""
+    from needlecli.errors import ConfigError
+    from needlecli.experiments.config.load import load_config
+
+    so3 = """\
+name: so3_case
+model: {type: so3}
+inputs: {v: 1.5, u: 0.5}
+sensors: [{name: tan, type: tangent, rate: 10.0, sigma: 0.01}]
+observers: [{name: rb, type: rbpf}]
+stop: {time: 1.0}
+"""
+    with pytest.raises(ConfigError, match="no positions that its motion does not depend on"):
+        load_config(text=so3)
+    with pytest.raises(ConfigError, match=r"measurements -> us -> likelihood.*Gaussian likelihood only"):
+        load_config(text=_unicycle("{name: rb, type: rbpf, measurements: {us: {sigma: 0.3, likelihood: student_t}}}"))
+    load_config(text=_unicycle("{name: rb, type: pf, measurements: {us: {sigma: 0.3, likelihood: student_t}}}"))
+    load_config(text=_unicycle("{name: rb, type: rbpf, measurements: {robot: {sigma: 0.01, likelihood: student_t}}}"))
+    with pytest.raises(ConfigError, match="dof is for likelihood: student_t"):
+        load_config(text=_unicycle("{name: p, type: pf, measurements: {us: {sigma: 0.3, dof: 3.0}}}"))
+
+
+def test_outliers_of_a_sensor():
+    """``outliers``: a share of the samples with ``scale`` times the noise; the other samples keep the noise
+    they have without the setting (drawn first from the same stream). Per axis, a gross error (std 6 mm)
+    is beyond 1.8 mm (6 sigma of the ordinary noise) with probability 2 (1 - Phi(0.3)) = 0.764."""
+    from scipy.stats import norm
+
+    from needlecli.experiments.config.load import load_config
+    from needlecli.experiments.simulation.runner import simulate_and_measure
+
+    def us(extra):
+        text = _unicycle("{name: o, type: open_loop}", runs=40).replace(
+            "{name: us, type: position, rate: 10.0, sigma: 0.3}", "{name: us, type: position, rate: 10.0, sigma: 0.3"
+            + extra + "}").replace("time: 0.5", "time: 20.0")
+        cfg, _ = load_config(text=text)
+        truth, _, streams, _ = simulate_and_measure(cfg)
+        s = streams["us"] if isinstance(streams, dict) else next(x for x in streams if x is not None and x.value.shape[-1] == 3)
+        return s.value - truth.states[:, s.index, :3]
+
+    plain, wild = us(""), us(", outliers: {probability: 0.2, scale: 20.0}")
+    same = np.all(wild == plain, axis=-1)
+    share = 1 - same.mean()
+    n = same.size
+    assert abs(share - 0.2) < 4 * np.sqrt(0.2 * 0.8 / n)  # the gross ones differ (all: continuous draws)
+    beyond = np.abs(wild[~same]) > 1.8
+    p = 2 * (1 - norm.cdf(0.3))
+    assert abs(beyond.mean() - p) < 4 * np.sqrt(p * (1 - p) / beyond.size)
+    assert np.abs(plain).max() < 1.8

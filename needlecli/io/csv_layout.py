@@ -207,7 +207,8 @@ def _meta_mapping(path: Path, text: str) -> dict[str, MetaValue]:
     out = {}
     for k, v in data.items():
         if not isinstance(v, (str, int, float, bool)):
-            kind = "a list" if isinstance(v, list) else "a mapping" if isinstance(v, dict) else "empty"
+            kind = ("a list" if isinstance(v, list) else "a mapping" if isinstance(v, dict) else "empty" if v is None
+                    else f"a {type(v).__name__} ({v})")
             raise DataError(f"{path}: [{k}] is {kind}: a command file (YAML/JSON mapping) gives each name a number, "
                             "a text or true/false")
         out[str(k)] = v if not isinstance(v, str) else parse_value(v)

@@ -31,7 +31,12 @@ Verdicts, per quantity and trial (and pooled):
                         rises by more than ``nats`` over the decade: the estimate is where EM stopped
                         moving or a floor held it, not the likelihood's maximum);
 ``not identified``      the information in that direction is not positive (a flat or non-concave
-                        likelihood at the estimate).
+                        likelihood at the estimate);
+``outside its bounds``  the estimate lies outside the bounds the quantity declares (a constant: its
+                        model's parameter schema, e.g. ``speed_scale`` in (0, 2], ``kappa >= 0``; a
+                        noise level: ``tr >= 0``): whatever the likelihood's curvature, such a value is
+                        not a measurement of the model's constant but a sign that the model does not fit
+                        the data (a path recorded in another frame), never "identified".
 
 A stopping rule on relative change can stop in a flat direction: the EM's ``ok`` means the parameters
 stopped moving, not that the data determine them; this is what says which do.
@@ -51,6 +56,7 @@ from needlecli.models.base import state_blocks
 IDENTIFIED = "identified"
 WEAK = "weakly identified"
 NOT_IDENTIFIED = "not identified"
+OUTSIDE = "outside its bounds"
 
 
 @dataclass(frozen=True)
@@ -75,6 +81,49 @@ class Quantity:
     kind: str
     index: object
     unit: str
+    bounds: Bounds | None = None
+
+
+@dataclass(frozen=True)
+class Bounds:
+    """The values a quantity may take: ``low`` to ``high``, each end open (excluded) or not."""
+
+    low: float = -np.inf
+    high: float = np.inf
+    low_open: bool = False
+    high_open: bool = False
+
+    def outside(self, v: np.ndarray) -> np.ndarray:
+        """Where finite values ``v`` (any shape) are outside (NaN is not)."""
+        v = np.asarray(v, dtype=float)
+        with np.errstate(invalid="ignore"):
+            below = (v <= self.low) if self.low_open else (v < self.low)
+            above = (v >= self.high) if self.high_open else (v > self.high)
+        return np.isfinite(v) & (below | above)
+
+    def __str__(self) -> str:
+        lo = f"{'(' if self.low_open else '['}{self.low:g}" if np.isfinite(self.low) else "(-inf"
+        hi = f"{self.high:g}{')' if self.high_open else ']'}" if np.isfinite(self.high) else "inf)"
+        return f"{lo}, {hi}"
+
+
+#: a noise level (the trace of a block of Q, of R_j): never negative
+NOISE_BOUNDS = Bounds(low=0.0)
+
+
+def parameter_bounds(model_cls, name: str) -> Bounds | None:
+    """The bounds a model's parameter ``name`` declares in its schema (``Field(gt=0, le=2)``: (0, 2]), or
+    None when it declares none."""
+    f = model_cls.Params.model_fields.get(name)
+    if f is None:
+        return None
+    b = {}
+    for m in f.metadata:
+        for key, side, is_open in (("gt", "low", True), ("ge", "low", False), ("lt", "high", True), ("le", "high", False)):
+            v = getattr(m, key, None)
+            if v is not None:
+                b[side], b[f"{side}_open"] = float(v), is_open
+    return Bounds(**b) if b else None
 
 
 @dataclass
@@ -114,21 +163,22 @@ def fit_quantities(dm: DiscreteModel, meas: Sequence[MeasurementModel], Q: np.nd
                    held: Sequence[str] = ()) -> list[Quantity]:
     """The quantities of a fit: constants, the Q blocks with process noise (in any trial), each R_j;
     not those ``held`` at their initial guess (constants by name, a Q block when all its states are)."""
-    out = [Quantity(c, "constant", dm.nx + i, dm.units[dm.nx + i]) for i, c in enumerate(dm.augment) if c not in held]
+    out = [Quantity(c, "constant", dm.nx + i, dm.units[dm.nx + i], parameter_bounds(type(dm.model), c))
+           for i, c in enumerate(dm.augment) if c not in held]
     for b, idx in state_blocks(dm.names, skip=dm.augment).items():
         if all(dm.names[i] in held for i in idx):
             continue
         if np.any(Q[:, idx][:, :, idx]):
             unit = dm.units[idx[0]]
-            out.append(Quantity(f"tr(Q_{b})", "Q", idx, f"{unit}^2/s" if unit not in ("", "1") else "1/s"))
+            out.append(Quantity(f"tr(Q_{b})", "Q", idx, f"{unit}^2/s" if unit not in ("", "1") else "1/s", NOISE_BOUNDS))
     for j, mm in enumerate(meas):
         unit = mm.units[0] if getattr(mm, "units", None) else ""
         unit = f"{unit}^2" if unit not in ("", "1") else "1"
         if getattr(mm, "frame", "world") == "needle":  # along and across the needle: what the sensor's geometry separates
-            out.append(Quantity(f"tr(R_{mm.name}_along)", "R", (j, [0]), unit))
-            out.append(Quantity(f"tr(R_{mm.name}_across)", "R", (j, [1, 2]), unit))
+            out.append(Quantity(f"tr(R_{mm.name}_along)", "R", (j, [0]), unit, NOISE_BOUNDS))
+            out.append(Quantity(f"tr(R_{mm.name}_across)", "R", (j, [1, 2]), unit, NOISE_BOUNDS))
         else:
-            out.append(Quantity(f"tr(R_{mm.name})", "R", j, unit))
+            out.append(Quantity(f"tr(R_{mm.name})", "R", j, unit, NOISE_BOUNDS))
     return out
 
 
@@ -272,6 +322,7 @@ def identify(
     with np.errstate(all="ignore"):
         rse = np.abs(se / est)
     verdict, reason = _verdicts(qs, rse, decade, bad, o)
+    _mark_outside(qs, est, verdict, reason)
     verdict[~ok], reason[~ok] = "", "trial not assessed (the fit failed)"
     used = ok & np.isfinite(H).all((-1, -2))
     pse, prse, pverdict, preason = _pooled(qs, est, H, decade, used, o)
@@ -289,7 +340,20 @@ def _pooled(qs, est, H, decade, used, o: IdentifyOptions):
         prse = np.abs(pse / pest)
     pdec = np.nansum(np.where(used[:, None, None], decade, 0.0), axis=0)[None] if used.any() else np.full((1, d, 2), np.nan)
     pverdict, preason = _verdicts(qs, prse[None], pdec, pbad, o)
+    _mark_outside(qs, pest[None], pverdict, preason)
     return pse, prse, pverdict[0], preason[0]
+
+
+def _mark_outside(qs: list[Quantity], est: np.ndarray, verdict: np.ndarray, reason: np.ndarray) -> None:
+    """The estimates ``est (M, d)`` outside their quantity's bounds get the verdict :data:`OUTSIDE` (in place,
+    whatever the likelihood says), with the value and the bounds as the reason."""
+    for k, q in enumerate(qs):
+        if q.bounds is None:
+            continue
+        for m in np.flatnonzero(q.bounds.outside(est[:, k])):
+            verdict[m, k] = OUTSIDE
+            reason[m, k] = (f"{q.name} = {est[m, k]:.4g} is outside its bounds {q.bounds}: not a value of the "
+                            "model's constant (does the model fit these data? a path recorded in another frame?)")
 
 
 def take_trials(idf: Identifiability, idx: np.ndarray, options: IdentifyOptions = IdentifyOptions()) -> Identifiability:

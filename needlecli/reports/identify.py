@@ -12,6 +12,7 @@ from needlecli.reports import TABLES
 from needlecli.reports.tables import count_cell
 
 IDENTIFIED = "identified"
+OUTSIDE = "outside its bounds"  # needlecli.fitting.identify.OUTSIDE: a value the quantity cannot take
 MARK = "†"
 
 
@@ -59,8 +60,9 @@ def weak_note(weak_by_model: dict[str, dict[str, str]]) -> str:
 def identifiability_table(res: Group, errors=None) -> pd.DataFrame:
     """What the data identify, per fitted model and quantity: the median estimate over the assessed trials,
     its standard error from the trials' summed observed information (pooled) and the median of the
-    per-trial ones, the relative SE, the pooled verdict (identified / weakly identified / not identified)
-    with its reason, and in how many trials each verdict holds. Traces are not divided by their dimension."""
+    per-trial ones, the relative SE, the pooled verdict (identified / weakly identified / not identified /
+    outside its bounds: a value the quantity cannot take, counted with the not identified) with its reason,
+    and in how many trials each verdict holds. Traces are not divided by their dimension."""
     rows = []
     fit = res.data.get("fit")
     for model in (fit.data if isinstance(fit, Group) else {}):
@@ -88,7 +90,7 @@ def identifiability_table(res: Group, errors=None) -> pd.DataFrame:
                 "Verdict": pv[k],
                 "Identified": count_cell((v == IDENTIFIED).sum(), n),
                 "Weakly": count_cell((v == "weakly identified").sum(), n),
-                "Not": count_cell((v == "not identified").sum(), n),
+                "Not": count_cell(np.isin(v, ("not identified", OUTSIDE)).sum(), n),  # outside: never identified
                 "Reason": pr[k],
             })
     df = pd.DataFrame(rows)

@@ -9,6 +9,7 @@ files are refused with a message that says what to do. Everything after that poi
 from __future__ import annotations
 
 import contextlib
+import logging
 import multiprocessing as mp
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -37,6 +38,8 @@ from needlecli.numerics.needle_frame import AXES
 
 if TYPE_CHECKING:
     from needlecli.experiments.config.types import ExperimentConfig
+
+log = logging.getLogger("needlecli")
 
 CONFIG_SUFFIXES = (".yaml", ".yml")
 
@@ -191,6 +194,8 @@ def fit_trials(
             raise DataError(f"{trials.source}: [fit] {e}") from None
         S = systems[name]  # a state held at zero process noise has none (not a block of Q that EM fits)
         S.q_index = tuple(i for i in S.q_index if not (S.names[i] in fit.hold and S.Qc[i, i] == 0.0))
+        for line in axis_warnings(problem, S, name, trials.truth.trial_ids):
+            log.warning("warning: %s", line)
 
     def run(name, cb):
         S = systems[name]
@@ -214,6 +219,59 @@ def fit_trials(
     out.fits = {name: out.fits[name] for name in names}
     for mf in out.fits.values():
         add_data_hints(mf.result, problem)
+        for line in outside_warnings(mf, trials.truth.trial_ids):
+            log.warning("warning: %s", line)
+    return out
+
+
+def _trial_name(ids, i: int) -> str:
+    return str(ids[i]) if ids is not None else f"run {i}"
+
+
+def axis_warnings(problem, S: System, model: str, ids=None) -> list[str]:
+    """One line per trial and position channel (x, y, z) whose recorded path starts more than
+    :data:`~needlecli.io.frames.AXIS_WARNING_DEG` from the model's insertion axis at the fit's start (the
+    tangent of each trial's initial state ``S.m0``), all trials at once."""
+    from needlecli.io.frames import AXIS_WARNING_DEG, axis_angles, initial_directions
+
+    dm = S.dm
+    if not type(dm.model).provides("tangent"):
+        return []
+    with np.errstate(all="ignore"):
+        axis = dm.model.tangent(np.asarray(S.m0, dtype=float)[:, : dm.model.n])  # (N, 3)
+    out = []
+    for ch in problem.channels.values():
+        if ch.sensor_type != "position" or not {"x", "y", "z"} <= set(ch.names):
+            continue
+        pos = ch.value[..., [list(ch.names).index(a) for a in "xyz"]]
+        ang = axis_angles(initial_directions(pos, ch.valid), axis)
+        for i in np.flatnonzero(ang > AXIS_WARNING_DEG):
+            out.append(f"{model}: trial {_trial_name(ids, i)}: the path of {ch.name} starts {ang[i]:.0f} deg from the "
+                       f"model's insertion axis at the fit's start (more than {AXIS_WARNING_DEG:g} deg): the data are "
+                       "not in the model's frame; what EM fits is not the needle's (express the trial in its own frame)")
+    return out
+
+
+def outside_warnings(mf: ModelFit, ids=None) -> list[str]:
+    """One line per fitted constant whose value lies outside the bounds its model declares
+    (:func:`needlecli.fitting.identify.parameter_bounds`; the verdict ``outside its bounds`` of the trials
+    assessed), in the trials whose fit did not fail (those that stopped at the iteration limit too)."""
+    from needlecli.fitting.em import STATUS_DIVERGED, STATUS_SINGULAR
+    from needlecli.fitting.identify import parameter_bounds
+
+    r, dm = mf.result, mf.system.dm
+    use = ~np.isin(np.asarray(r.status).astype(str), (STATUS_SINGULAR, STATUS_DIVERGED))
+    out = []
+    for i, c in enumerate(dm.augment):
+        b = parameter_bounds(type(dm.model), c)
+        if b is None:
+            continue
+        v = r.x0[:, dm.nx + i]
+        bad = np.flatnonzero(use & b.outside(v))
+        if bad.size:
+            trials = ", ".join(f"{_trial_name(ids, j)} ({v[j]:.4g})" for j in bad[:5])
+            out.append(f"{mf.name}: {c} is outside its bounds {b} in {bad.size} of {len(v)} trial(s): {trials}"
+                       f"{', ...' if bad.size > 5 else ''}; never identified (not a value of the model's constant)")
     return out
 
 

@@ -3,7 +3,7 @@ PY ?= python
 
 STUDIES := results/studies
 
-.PHONY: help install demo test bench lint docs clean seed000 seed001 seed003 seed004 datasets regress real real-tau real-plane owndata faults
+.PHONY: help install demo test bench lint docs clean seed000 seed001 seed003 seed004 datasets regress real real-tau real-plane real-poses owndata faults
 
 help:
 	@echo "make install  - install needlecli with test extras (editable)"
@@ -21,6 +21,7 @@ help:
 	@echo "make real     - import the recorded ultrasteer insertions (../shared/real-data) and make their tables in $(REAL)"
 	@echo "make real-tau - after make real: the ultrasound's likelihood against the image plane offset's time constant"
 	@echo "make real-plane - after make real: the image plane's bound with margins 0-8 mm and lost frames only (tip error against the tracker)"
+	@echo "make real-poses - after make real: the held-out tracker trials predicted from the start and from their own pose at 0-60 mm"
 	@echo "make seed004  - seed 004's synthetic study and T2prelim: EM fits, Tables 1-3, Figs. 5, 10 (in $(STUDIES))"
 	@echo "make owndata  - a lab's exports made by needlecli, imported by a mapping, fitted with and without the slip (in $(OWN))"
 	@echo "make clean    - remove results/ and caches"
@@ -166,6 +167,16 @@ real-plane:
 	  --set observers.5.measurements.plane.margin=0.0 > /dev/null
 	@needle evaluate $(REAL)/plane/short.h5 --out $(REAL)/plane/short --tables real_error_along_across --no-plots --quiet
 	@echo "lost frames only:"; grep -E '^\| (ukf_em_plane|ukf_em_white_plane_m5) ' $(REAL)/plane/short/*along_across.md | cut -d'|' -f2-7
+
+# The two parts of the held-out error on the tracker trials (docs/real-data.md (d), issue 30): leave one out
+# within the day as make real's crossval, each held-out trial also predicted from its own pose at 0-60 mm,
+# the recorded one and the one a smoother tuned by the fold's EM gives (configs/real/em_tracker_poses.yaml;
+# needs make real's log; about as long as make real's crossval, most of it EM). Tables in $(REAL)/crossval_poses.
+real-poses:
+	needle crossval configs/real/em_tracker_poses.yaml --observer open_loop --observer eks --leave-one-out \
+	  --group-by 'id~^[^-]+' --within --from-depths 0,10,20,30,40,60 --pose-from truth --pose-from eks_em \
+	  --out $(REAL)/crossval_poses --quiet > /dev/null
+	@echo "tables: $(REAL)/crossval_poses (crossval_from_pose: the start's part and the model's)"
 
 # Bringing your own recorded data (issue 18, docs/tutorials/own-data.md): a synthetic study in
 # the shape of a lab's exports (step-indexed tracker poses with quaternions, zero rows, per-sample rms, a

@@ -3,7 +3,7 @@ PY ?= python
 
 STUDIES := results/studies
 
-.PHONY: help install demo test bench lint docs clean seed000 seed001 seed003 seed004 datasets regress real real-tau real-plane real-poses owndata faults
+.PHONY: help install demo test bench lint docs clean seed000 seed001 seed003 seed004 datasets regress real real-tau real-plane real-poses owndata faults papers seed000-numbers seed001-numbers seed003-numbers seed004-numbers
 
 help:
 	@echo "make install  - install needlecli with test extras (editable)"
@@ -15,6 +15,7 @@ help:
 	@echo "make seed000  - seed 000's simulation and experiment-like studies: Table I, the sweep of theta (in $(STUDIES))"
 	@echo "make seed001  - seed 001's helix studies: convergence, half turns, Fig. 3, the alternative reading (in $(STUDIES))"
 	@echo "make seed003  - seed 003's simulation study: Table 1 (and its variant), Figs. 6-8 (results and tables in $(STUDIES))"
+	@echo "make papers   - every number each paper states beside needlecli's over three seeds, into its page (seed00x-numbers: one paper)"
 	@echo "make datasets - rebuild the synthetic logs in datasets/ from configs/datasets/"
 	@echo "make regress  - replay every bundled data set and check its tables against datasets/baselines/"
 	@echo "make faults   - kill needle simulate and needle sweep at 20 random points each and check what is on disk"
@@ -76,6 +77,16 @@ seed004:
 	  needle fit-em configs/seed004/$$c.yaml --model both --out $(STUDIES)/seed004_$$c.h5 && \
 	  needle evaluate $(STUDIES)/seed004_$$c.h5 --out $(STUDIES)/seed004 || exit 1; \
 	done
+
+# Every number a paper states beside needlecli's over three seeds (--set runs.seed=S), with a verdict: the
+# studies of docs/papers/numbers/PAPER.yaml run once per seed into results/papers/PAPER, the values collected
+# into docs/papers/numbers/PAPER_values.yaml, the table written into the paper's page (tools/paper_numbers.py;
+# PAPER_ARGS=--reuse keeps results files already there, --render only rewrites the page). Times on the shared
+# 2-core machine: docs/papers/numbers/PAPER_values.yaml, made_with.seconds.
+seed000-numbers seed001-numbers seed003-numbers seed004-numbers:
+	$(PY) tools/paper_numbers.py $(@:-numbers=) $(PAPER_ARGS)
+
+papers: seed000-numbers seed001-numbers seed003-numbers seed004-numbers
 
 DSTMP := results/datasets
 

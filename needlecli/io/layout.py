@@ -142,6 +142,18 @@ RESULTS = G(attrs={
         "constants": G(optional=True, attrs={"trials_ok": A("int"), "trials": A("int")}, members={
             "name": D("str", _s(("P",))), "median": D("float", _s(("P",))), "se": D("float", _s(("P",))),
         }),
+        # predictions from the held-out trials' own poses, per pose source (truth or an observer)
+        "from_pose": G(optional=True, open=False, members={"*": G(attrs={
+            "depths": A("any"), "pose_from": A("str"), "skipped": A("any", optional=True),
+        }, members={
+            "start_index": D("int", _s(("N", "D"))),
+            "index": D("int", _s(("K",)), index="T"),
+            "*": G(attrs={"names": A("strs", "k", optional=True), "units": A("strs", "k", optional=True)}, members={
+                "state": D("float", _s(("N", "D", "K", "k")), optional=True),
+                "status": D("str", _s(("N", "D"))),
+                "reason": D("str", _s(("N", "D"))),
+            }),
+        })}),
     }),
 })
 

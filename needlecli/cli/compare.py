@@ -41,6 +41,7 @@ def compare(
         skipped,
         terminal_form,
         truth_failed,
+        with_axis_errors,
         worse_than_model,
     )
     from needlecli.reports.plots import draw_plots
@@ -60,7 +61,7 @@ def compare(
     caption = f"Observers on the same insertions of {res.attrs.get('name', '')} ({n_runs} runs)."
     write_table(df, out_dir / "compare", ["csv"])
     _atomic_text(out_dir / "compare.md", f"{caption}\n\n{to_markdown(wide)}\n\n{notes(res, df)}\n")
-    plots = draw_plots(res, errors, out_dir / "compare", names=["error_vs_depth"]) if len(df) else []
+    plots = draw_plots(res, with_axis_errors(res, errors), out_dir / "compare", names=["error_vs_depth"]) if len(df) else []
     typer.echo(terminal_form(df, res) if len(df) else "(no observer could run)")
     log = logging.getLogger("needlecli")
     for w in worse_than_model(df):

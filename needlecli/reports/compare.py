@@ -77,39 +77,38 @@ def _sensor_text(res: Group) -> tuple[str, str]:
     return "; ".join(parts), " & ".join(rates)
 
 
-def _axis_errors(res: Group) -> dict[str, dict[str, tuple[np.ndarray, str]]]:
-    """Per observer, the error of each position axis it estimates (``E_x``, ``E_y``, ``E_z``; ``E_px``, ...
-    of the magnetic models), mm, over the runs whose truth and estimate are ok: ``{observer: {quantity:
-    (values (N_kept, T), "mm")}}``."""
+def with_axis_errors(res: Group, errors: dict[str, ErrorSet]) -> dict[str, ErrorSet]:
+    """The errors of :func:`~needlecli.metrics.compute_errors` (the tip position's norm, each angle, the
+    rotation, unit vectors, curvature, any other common state) with each position axis an observer
+    estimates on its own, in mm (``E_x``, ``E_y``, ``E_z``; ``E_px``, ... of the magnetic models), over the
+    runs whose truth and estimate are ok: a position error that an observer of fewer axes also has (seed
+    000's E_x), beside every other's. New :class:`~needlecli.metrics.ErrorSet` objects; ``errors`` is
+    left as it is."""
+    import dataclasses
+
+    from needlecli.metrics import QuantityError
+
     truth = res.data["truth"]
     t_names = list(truth.attrs["names"])
     axes = next((ax for ax in _AXES if all(a in t_names for a in ax)), None)
-    if axes is None:
-        return {}
     scale = _LENGTH_TO_MM.get(str(res.attrs.get("length_unit", "mm")), 1.0)
     t_state = np.asarray(truth.data["state"])
     t_ok = np.asarray(truth.data["status"]).astype(str) == "ok"
-    out = {}
-    for name, g in res.data.get("estimates", Group()).data.items():
-        e_names = list(g.attrs["names"])
-        keep = np.nonzero(t_ok & (np.asarray(g.data["status"]).astype(str) == "ok"))[0]
-        est = np.asarray(g.data["state"])
-        out[name] = {f"E_{a}": (scale * np.abs(est[keep][..., e_names.index(a)] - t_state[keep][..., t_names.index(a)]),
-                                "mm") for a in axes if a in e_names}
-    return out
-
-
-def quantities(res: Group, errors: dict[str, ErrorSet]) -> dict[str, dict[str, tuple[np.ndarray, str]]]:
-    """Every error quantity of every observer, ``{observer: {quantity: (values (N_kept, T), unit)}}``: the
-    errors of :func:`~needlecli.metrics.compute_errors` (the tip position's norm, each angle, the
-    rotation, unit vectors, curvature, any other common state) with each position axis on its own, in mm
-    (:func:`_axis_errors`: a position error an observer of fewer axes also has, seed 000's E_x)."""
-    axes = _axis_errors(res)
+    estimates = res.data.get("estimates", Group()).data
     out = {}
     for name, es in errors.items():
-        own = {q: (qe.values, qe.unit) for q, qe in es.quantities.items()}
-        own.update(axes.get(name, {}))
-        out[name] = own
+        es = dataclasses.replace(es, quantities=dict(es.quantities))
+        g = estimates.get(name)
+        if axes is not None and g is not None:
+            e_names = list(g.attrs["names"])
+            keep = np.nonzero(t_ok & (np.asarray(g.data["status"]).astype(str) == "ok"))[0]
+            est = np.asarray(g.data["state"])
+            for a in axes:
+                if a in e_names:
+                    v = scale * np.abs(est[keep][..., e_names.index(a)] - t_state[keep][..., t_names.index(a)])
+                    if np.isfinite(v).any():
+                        es.quantities[f"E_{a}"] = QuantityError(f"E_{a}", "mm", v, keep)
+        out[name] = es
     return out
 
 
@@ -160,7 +159,8 @@ def compare_table(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
     preds = prediction_errors(res)
     estimates = res.data.get("estimates", Group()).data
     curvature = _curvature_param(res)
-    qs = quantities(res, errors)
+    qs = {n: {q: (qe.values, qe.unit) for q, qe in es.quantities.items()}
+          for n, es in with_axis_errors(res, errors).items()}
     units: dict[str, str] = {}
     for per in qs.values():
         for q, (_, unit) in per.items():

@@ -385,9 +385,10 @@ def notes(res: Group, df: pd.DataFrame | None = None) -> str:
 
 
 def settings_note(res: Group) -> str:
-    """What differs between the observers whose settings were derived (``defaults``) in how they weigh the
-    measurements: the channels each uses and the noise law of each (a distance growth of R, a gate), from
-    the settings the results file's config records; empty when they weigh them alike."""
+    """Whether the compared observers that weigh measurements (those whose settings name
+    ``measurements``: the config's own and the derived ones) weigh them alike, or what differs: the
+    channels each uses and the noise law of each (sigma, a distance growth of R, a gate), from the
+    settings the results file's config records; empty with fewer than two such observers."""
     from needlecli.io.yamlfile import parse_yaml
 
     g = comparison(res)
@@ -397,19 +398,28 @@ def settings_note(res: Group) -> str:
         cfg = parse_yaml(str(res.attrs.get("config", "")), "the results file's config")
     except Exception:  # noqa: BLE001 (a config that cannot be read: nothing to say)
         return ""
-    derived = {n for n, o in zip(_texts(g.data["observer"]), _texts(g.data["settings"])) if o == "defaults"}
-    laws = {}
+    compared = set(_texts(g.data["observer"]))
+    laws: dict[str, dict[str, str]] = {}  # observer -> channel -> its law
     for o in cfg.get("observers") or []:
         name = o.get("name") or o.get("type")
         meas = o.get("measurements")
-        if name in derived and isinstance(meas, dict) and meas:
-            laws[name] = "; ".join(f"{c}: sigma {m.get('sigma')}" + (" with growth" if m.get("growth") else "")
-                                   + (f", gate {m['gate']}" if m.get("gate") else "")
-                                   for c, m in sorted(meas.items()) if isinstance(m, dict))
-    if len(set(laws.values())) <= 1:
-        return (f"Measurements weighed alike by {', '.join(sorted(laws))} ({next(iter(laws.values()))})."
-                if len(laws) > 1 else "")
-    return "Measurements weighed differently: " + " | ".join(f"{n}: {v}" for n, v in sorted(laws.items())) + "."
+        if name in compared and isinstance(meas, dict) and meas:
+            laws[name] = {c: f"sigma {m.get('sigma')}" + (" with growth" if m.get("growth") else "")
+                          + (f", gate {m['gate']}" if m.get("gate") else "")
+                          for c, m in sorted(meas.items()) if isinstance(m, dict)}
+    if len(laws) < 2:
+        return ""
+    channels = sorted({c for law in laws.values() for c in law})
+    differ = [c for c in channels if len({law.get(c, "not used") for law in laws.values()}) > 1]
+    if not differ:
+        return f"Measurements weighed alike by {', '.join(sorted(laws))}."
+    parts = []
+    for c in differ:
+        by: dict[str, list[str]] = {}
+        for n, law in sorted(laws.items()):
+            by.setdefault(law.get(c, "not used"), []).append(n)
+        parts.append(f"{c}: " + "; ".join(f"{w} ({', '.join(ns)})" for w, ns in by.items()))
+    return "Measurements weighed differently: " + " | ".join(parts) + "."
 
 
 def terminal_form(df: pd.DataFrame, res: Group, width: int = 80) -> str:

@@ -189,6 +189,15 @@ def test_compare_replays_a_log_with_the_model_given(tiny, tmp_path):
     df = pd.read_csv(tmp_path / "rp" / "compare.csv").set_index("observer")
     assert set(df.index) == {"ukf", "open_loop"} and (df["runs"] == 2).all()
     assert np.isfinite(df.loc["ukf", "E_xyz_mean"])  # against the logged truth
+    from needlecli.io.logs import read_log
+
+    res = read_results(next((tmp_path / "rp").glob("*_compare.h5")))  # --runs: the log's first trials
+    assert [str(t) for t in res.data["truth"].data["trial_id"]] == [t.id for t in read_log(tmp_path / "tiny.log.h5").trials][:2]
+    # the replay's filters are derived from what the log records: the sensors' sigmas, the truth's start
+    import yaml
+
+    ukf = next(o for o in yaml.safe_load(res.attrs["config"])["observers"] if o["name"] == "ukf")
+    assert ukf["measurements"]["us3d"]["sigma"] == 0.3 and ukf["init"]["from"] == "truth"
 
 
 @pytest.mark.parametrize("args, message", [

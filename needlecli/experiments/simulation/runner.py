@@ -199,7 +199,9 @@ class SharedStart:
         return "own init" + (f" ({self.why})" if self.why else "")
 
     def starts(self) -> dict[str, str]:
-        return {n: self.start_of(n) for n in (self.reference,) * bool(self.reference) + self.sharing + self.own}
+        """Each observer's start in words (:meth:`start_of`); none for a study of one observer."""
+        names = (self.reference,) * bool(self.reference) + self.sharing + self.own
+        return {n: self.start_of(n) for n in names} if len(names) > 1 else {}
 
 
 def shared_start(cfg: ExperimentConfig, problem: EstimationProblem) -> SharedStart:

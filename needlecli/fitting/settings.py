@@ -13,7 +13,7 @@ from typing import Literal
 from pydantic import Field
 
 from needlecli.initial import InitialEstimate
-from needlecli.schema import NonNeg, Positive, Strict
+from needlecli.schema import DistanceGrowth, NonNeg, Positive, Strict
 
 
 class KalmanInit(InitialEstimate):
@@ -56,6 +56,9 @@ class ChannelNoise(Strict):
     student_t: Positive | None = Field(
         None, description="EM: Student-t noise with these degrees of freedom (robust weights in the E-step: "
                           "outliers weigh less); off if unset")
+    growth: DistanceGrowth | None = Field(
+        None, description="a position's noise growing with the sample's distance to a transducer, sigma (1 + a d / "
+                          "d_max) per sample (as the UKF's growth; world axes only)")
 
 
 Ticks = Literal["grid", "measurements"] | Positive

@@ -277,29 +277,25 @@ def _run_common_start(cfg: ExperimentConfig, text, path: Path, base_dir: Path, p
     observers, the held-out trials' groups, the fitted constants)."""
     from needlecli.experiments.simulation import components
     from needlecli.experiments.simulation.replay import replay_truth
-    from needlecli.experiments.simulation.runner import build_problem, results_tree
+    from needlecli.experiments.simulation.runner import build_problem, results_tree, shared_start
     from needlecli.experiments.simulation.truth import stream
     from needlecli.io.results import write_atomic
 
     truth, sensors, streams = replay_truth(cfg, base_dir)
     problem = build_problem(cfg, truth, sensors, streams)
     seed = cfg.runs.seed
-    start = None
-    for o in cfg.observers:
-        start = components.initial_estimate(o, problem, stream(seed, f"observer/{o.name or o.type}"))
-        if start is not None:
-            break
-    problem = dataclasses.replace(problem, start=start)
+    shared = shared_start(cfg, problem)  # runs.common_start: by default the first observer's that gives one
     estimates = {}
     for o in cfg.observers:  # each guarded and checked: a failure ends the study before this fold is written
         obs = components.build_observer(o)
         cb = (lambda k, n, _n=obs.name: progress(f"fold {fd.index + 1}: {_n}", k, n)) if progress else None
-        estimates[obs.name] = components.run_observer(obs, o, problem, stream(seed, f"observer/{obs.name}"), progress=cb)
+        estimates[obs.name] = components.run_observer(obs, o, shared.problem_of(obs.name, problem),
+                                                      stream(seed, f"observer/{obs.name}"), progress=cb)
     if depths:  # the held-out trials again, from their pose at each depth (the model's part of the error)
         fold.data["from_pose"] = pose_predictions(cfg, problem, truth.states, estimates, depths=depths,
                                                   pose_from=tuple(pose_from), predict=list(predict or []), seed=seed,
                                                   progress=progress)
-    tree = results_tree(cfg, text, truth, streams, estimates, sensors)
+    tree = results_tree(cfg, text, truth, streams, estimates, sensors, starts=shared.starts())
     tree.data["crossval"] = fold
     return write_atomic(path, tree)
 

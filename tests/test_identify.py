@@ -428,3 +428,20 @@ def test_identifiability_table_from_the_command_line(seed004_fit, tmp_path):
     assert r.exit_code == 0, r.output
     assert "tr(Q_h)" in r.output and "10 mT" in r.output
     assert (tmp_path / "seed004_study_identifiability.tex").exists()
+
+
+def test_a_fit_file_with_malformed_group_verdicts_is_refused(seed004_fit, tmp_path):
+    """The identifiability group's additions are checked by the fit file's layout when it is opened."""
+    import shutil
+
+    from needlecli.errors import DataError
+    from needlecli.io.fit import read_fit
+
+    bad = tmp_path / "bad.h5"
+    shutil.copy(seed004_fit, bad)
+    with h5py.File(bad, "a") as f:
+        ig = f["fit/mnm/identifiability"]
+        del ig["group_verdict"]
+        ig["group_verdict"] = np.array([["identified"]] * 2).astype("S")  # 2 groups of 1 for 3 labels, 6 quantities
+    with pytest.raises(DataError, match=r"\[/fit/mnm/identifiability/group_verdict\] has shape \(2, 1\)"):
+        read_fit(bad)

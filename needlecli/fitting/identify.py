@@ -461,7 +461,7 @@ def _with_recovery(verdict: str, reason: str, idf: Identifiability, sel: np.ndar
         to_truth = np.log(tm / em) if q.kind != "constant" else tm - em  # the step that would reach the truth
         covered = shift / to_truth
     if np.isfinite(covered):
-        where = "" if verdict == STOPPED_SHORT else f"the log-likelihood peaks at {_peak(q, shift)} (Newton step): "
+        where = "" if verdict == STOPPED_SHORT else f"the log-likelihood peaks at {_peak(q, shift)} (Newton step); "
         parts.append(f"{where}the step goes {100.0 * covered:.0f} % of the way to the truth: " +
                      ("the likelihood's maximum lies near the truth, EM stopped short of it" if covered >= 0.5
                       else "the likelihood's maximum itself misses the truth"))

@@ -292,10 +292,11 @@ def table3(res: Group, errors=None) -> pd.DataFrame:
     df.insert(0, "% difference", ["Trace", "Blockwise"])
     marked = [c for c, q in zip(cols, quantity) if q in either]
     if marked:
-        df.attrs["note"] = (f"{MARK} {', '.join(marked)}: weakly identified in at least one of the fits "
+        df.attrs["note"] = (f"{MARK} {', '.join(marked)}: not identified as fitted in at least one of the fits "
                             f"({'; '.join(f'{m}: ' + ', '.join(w) for m, w in weak.items() if w)}), so their % "
-                            "difference compares values the data do not determine (EM stopped in a flat direction, "
-                            "near its starting guess), not two measurements; see table identifiability.")
+                            "difference compares values the data do not determine (EM stopped short of the "
+                            "likelihood's maximum, a flat direction, or a bias), not two measurements; see table "
+                            "identifiability.")
     return df
 
 

@@ -413,8 +413,10 @@ def with_groups(idf: Identifiability, group: np.ndarray, labels: Sequence[str],
             with np.errstate(all="ignore"):
                 se_theta = np.where(scale[None, :], idf.se / idf.estimate, idf.se)[sel]
             _, gnewton[g], _, gnewton_z[g] = recovery(idf.newton[sel], se_theta, np.zeros_like(se_theta))
+        floored = idf.floored[sel].any(0) if idf.floored is not None else np.zeros(d, dtype=bool)
         for k in range(d):
-            v, r = _with_newton(qs[k], info_v[k], info_r[k], gnewton[g, k], gnewton_z[g, k], int(n[g]), o)
+            v, r = _with_newton(qs[k], info_v[k], info_r[k], gnewton[g, k], gnewton_z[g, k], int(n[g]), o,
+                                bool(floored[k]))
             gverdict[g, k], greason[g, k] = _with_recovery(v, r, idf, sel, k, gz[g, k], gnewton[g, k], o)
     idf.group, idf.group_labels = group, [str(x) for x in labels]
     idf.group_estimate, idf.group_se, idf.group_rse, idf.group_truth, idf.group_z = est, gse, grse, gtruth, gz
@@ -429,13 +431,22 @@ def _peak(q: Quantity, shift: float) -> str:
 
 
 def _with_newton(q: Quantity, verdict: str, reason: str, shift: float, z: float, n: int,
-                 o: IdentifyOptions) -> tuple[str, str]:
+                 o: IdentifyOptions, floored: bool = False) -> tuple[str, str]:
     """A group's verdict once the distance to the likelihood's maximum is in: where the mean Newton step of
     its trials lies more than ``z_max`` standard errors of that mean from the estimate, "EM stopped short
-    of the maximum", with where the maximum is."""
+    of the maximum", with where the maximum is. Not for a noise level whose step leaves the decade either
+    way (the quadratic model is out of its range there; the decade test, which evaluates the likelihood
+    at x10 and x1/10, decides), nor below a floor that held it (then: held by its floor)."""
     if not (np.isfinite(z) and abs(z) > o.z_max) or verdict == NOT_IDENTIFIED:
         return verdict, reason
+    if q.kind != "constant" and abs(shift) > np.log(10.0):
+        return verdict, reason
     words = f"the log-likelihood peaks at {_peak(q, shift)} (Newton step, {z:+.1f} SE over {n} trials)"
+    if floored and shift < 0:
+        if "floor" in reason:
+            return verdict, reason
+        return (WEAK if verdict == IDENTIFIED else verdict,
+                "; ".join(r for r in (reason, f"held by its floor ({words}, below it)") if r))
     return STOPPED_SHORT, "; ".join(r for r in (words, reason if verdict != IDENTIFIED else "") if r)
 
 

@@ -160,6 +160,11 @@ def identifiability_table(res: Group, errors=None) -> pd.DataFrame:
         for g, label in enumerate(gs.labels):
             if not (gs.group == g).any():  # a level of the design no trial of this file has
                 continue
+            if not gs.trials[g]:  # one row: every fit of the group failed
+                rows.append({"Model": model, "Quantity": "(all)", "Group": label, "Trials": 0, "Verdict": "not assessed",
+                             "Per trial": f"{int((gs.group == g).sum())} trial(s), none assessed",
+                             "Reason": "no trial of this group assessed: its fits failed (table fit_status)"})
+                continue
             sel = used & (gs.group == g)
             for k, (q, u) in enumerate(zip(gs.names, gs.units)):
                 s = se[sel, k]

@@ -300,6 +300,32 @@ def check_fit(fit, sensors: dict) -> list:
             out.append((("hold", i), f"no fitted model ({', '.join(fit.models)}) has a state or fitted constant {k!r}"))
         elif k not in fit.q and not any(k in fit_augment(cls) for cls in classes):
             out.append((("hold", i), f"{k!r} has no process noise (not in q) and is no fitted constant: nothing to hold"))
+    out += _check_isotropic(fit, classes)
     for cls in classes:
         out += check_channels(fit, cls, sensors)
+    return out
+
+
+def _check_isotropic(fit, classes) -> list:
+    """Problems of ``fit.isotropic``: each a block (a state stem) of a fitted model with at least two of its
+    states in ``q``, none of them held."""
+    from needlecli.models.base import state_blocks
+
+    out = []
+    blocks: dict[str, list[str]] = {}
+    for cls in classes:
+        for stem, idx in state_blocks(cls.state_names).items():
+            blocks.setdefault(stem, [cls.state_names[i] for i in idx])
+    for i, stem in enumerate(fit.isotropic):
+        if stem not in blocks:
+            out.append((("isotropic", i), f"no fitted model ({', '.join(fit.models)}) has a block {stem!r} of states; "
+                        f"blocks: {', '.join(blocks)}"))
+            continue
+        noisy = [s for s in blocks[stem] if s in fit.q]
+        if len(noisy) < 2:
+            out.append((("isotropic", i), f"block {stem!r} has {len(noisy)} state(s) with process noise in q "
+                        f"({', '.join(noisy) or 'none'}): nothing to tie"))
+        held = [s for s in noisy if s in fit.hold]
+        if held:
+            out.append((("isotropic", i), f"block {stem!r} has held states ({', '.join(held)}): a tied block is fitted"))
     return out

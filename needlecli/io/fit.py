@@ -35,6 +35,25 @@ FAILED = ("singular", "diverged")
 SYMMETRY_RTOL = 1e-6
 PSD_RTOL = 1e-6
 
+#: the verdicts of ``/fit/<model>/identifiability`` (:mod:`needlecli.fitting.identify` decides them; every
+#: table that shows one reads it from the file)
+IDENTIFIED = "identified"
+WEAK = "weakly identified"
+NOT_IDENTIFIED = "not identified"
+STOPPED_SHORT = "EM stopped short of the maximum"
+BIASED = "biased"
+OUTSIDE = "outside its bounds"  # a value the quantity cannot take: never identified, whatever the curvature
+#: the verdicts in the order a count lists them
+VERDICTS = (IDENTIFIED, WEAK, STOPPED_SHORT, NOT_IDENTIFIED, BIASED, OUTSIDE)
+
+
+def verdict_text(verdict: str, z: float = np.nan) -> str:
+    """A verdict as tables print it: ``biased (estimate - truth = +6.4 SE)`` with the group's ``z``; the
+    others as they are."""
+    if verdict == BIASED and np.isfinite(z):
+        return f"{BIASED} (estimate - truth = {z:+.1f} SE)"
+    return verdict
+
 
 def is_fit_file(path: str | Path) -> bool:
     """Whether ``path`` is an HDF5 file with the fit format (False for anything else, unreadable too)."""

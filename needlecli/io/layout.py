@@ -196,6 +196,18 @@ FIT = G(attrs={
         "constant": G(optional=True, open=False, members={"*": D("float", _s(("N",)))}),
         "R": G(optional=True, open=False, members={"*": D("float", _s(("N", "*", "*"), ("*", "*")))}),
         "history": G(optional=True, open=False, members={"*": D("num", _s(("N", "I"), ("N", "I", "*")))}),
+        # what the data identify (docs/reference/fit-file.md); its recovery and design groups are additions
+        "identifiability": G(optional=True, attrs={"quantities": A("strs", "d"), "group_labels": A("strs", "G", optional=True)},
+                             members={
+            "estimate": D("float", _s(("N", "d"))),
+            "verdict": D("str", _s(("N", "d"))),
+            "used": D("bool", _s(("N",))),
+            "truth": D("float", _s(("N", "d")), optional=True),
+            "group": D("int", _s(("N",)), optional=True),
+            "group_verdict": D("str", _s(("G", "d")), optional=True),
+            "group_reason": D("str", _s(("G", "d")), optional=True),
+            "group_z": D("float", _s(("G", "d")), optional=True),
+        }),
     })}),
 })
 

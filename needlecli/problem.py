@@ -71,6 +71,8 @@ class EstimationProblem:
     params: Mapping[str, np.ndarray]  # nominal model parameters from the config
     interfaces: np.ndarray  # tissue interface depths known to the experiment
     initial_truth: np.ndarray | None = None  # (N, n) only for observers configured to start from it
+    #: the config's ``model.initial_state`` by state name: with the model's default pose, the nominal start
+    initial_state: Mapping[str, float] = field(default_factory=dict)
     cov_stride: int = 1  # keep covariances every k-th step of the time grid
     cov_layout: str = "full"  # "full" (..., n, n), "diag" (..., n) or "none"
     start: CommonStart | None = None  # one initial estimate for every observer (needle compare), or None

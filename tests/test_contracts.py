@@ -203,6 +203,7 @@ def test_what_an_observer_declares_is_read_through_the_registry():
     assert [t for t, v in takes.items() if v is not None and v.sensor_states] == ["ekf", "eks"]
     assert not takes["open_loop"].measurements and takes["ukf"].measurements
     assert [t for t in OBSERVERS.builtin_names() if OBSERVERS.get(t).default_reference] == ["ukf"]
+    assert [t for t in OBSERVERS.builtin_names() if OBSERVERS.get(t).model_only] == ["open_loop"]
     hg = OBSERVERS.get("high_gain")
     s = hg.Settings.model_validate({"type": "high_gain", **hg.derived_settings(None)})
     assert hg.prescribed_start(s) == "x, beta = 0"

@@ -15,7 +15,8 @@ A case::
       expect: {file: cfg.yaml, key: sensors -> 0 -> rate, message: finite number}   # code: 2 by default
 
 ``expect`` may give ``hdf5`` (an HDF5 path in brackets) instead of ``key``, ``code`` and ``lines`` (the
-lines on stderr, default 1); ``created`` lists files a successful case may make.
+lines on stderr, default 1); ``created`` lists files a successful case may make, ``warning`` what one of
+its ``warning:`` lines on stderr must say.
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ from needlecli.experiments.config.overrides import set_dotted
 
 HERE = Path(__file__).parent / "hardening"
 BASE = yaml.safe_load((HERE / "base.yaml").read_text())
-CLASSES = sorted(p for p in HERE.glob("[0-9]_*.yaml"))
+CLASSES = sorted(p for p in HERE.glob("[0-9]*_*.yaml"))
 CASES = [(p.stem, c) for p in CLASSES for c in yaml.safe_load(p.read_text())]
 
 
@@ -106,6 +107,24 @@ def _generated(kind: str, n: int | None) -> bytes:
     raise ValueError(kind)
 
 
+def _path_csv(angle: float = 0.0, n: int = 41, step: float = 0.5, kappa: float = 0.01, noise: float = 0.02,
+              seed: int = 1, speed: float = 2.0, q: list | None = None) -> tuple[str, float]:
+    """A tracker's CSV (``t,tx,ty,tz``, mm) of a bevel-tip insertion: a circle of curvature ``kappa``
+    bending toward -y, one sample per ``step`` mm at ``speed`` mm/s, started along the direction ``angle``
+    degrees from +z (turned about x), with ``noise`` (mm) on each coordinate; ``q``: a quaternion ``[w, x, y,
+    z]`` the tracker reports at every sample (columns ``qw,qx,qy,qz``). Returns the text and the last time."""
+    s = step * np.arange(n)
+    th = kappa * s
+    pos = np.c_[np.zeros(n), (np.cos(th) - 1.0) / kappa, np.sin(th) / kappa]
+    a = np.radians(angle)
+    turn = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(a), -np.sin(a)], [0.0, np.sin(a), np.cos(a)]])
+    pos = pos @ turn.T + np.random.default_rng(seed).normal(0.0, noise, pos.shape)
+    t = s / speed
+    tail = "".join(f",{c:.9g}" for c in q) if q is not None else ""
+    rows = "\n".join(f"{ti:.6g},{x:.6f},{y:.6f},{z:.6f}{tail}" for ti, (x, y, z) in zip(t, pos))
+    return "t,tx,ty,tz" + (",qw,qx,qy,qz" if q is not None else "") + "\n" + rows + "\n", float(t[-1])
+
+
 def _h5_value(v):
     if isinstance(v, list) and v and all(isinstance(x, str) for x in v):
         return np.array(v, dtype=h5py.string_dtype())
@@ -169,6 +188,13 @@ def damage(path: Path, ops: list) -> None:
                 f.create_dataset(arg, data=v, chunks=True, compression="gzip")
             elif kind == "datatype":
                 f[arg] = np.dtype("f8")
+            elif kind == "copy":  # [path, new path]: a dataset copied, its attributes too
+                src, dst = arg
+                f.copy(f[src], dst)
+            elif kind == "texts":  # [path, [text, ...]]: a dataset of texts in place of what was there
+                p, values = arg
+                del f[p]
+                f.create_dataset(p, data=np.array(values, dtype=object), dtype=h5py.string_dtype())
             else:
                 after.append(op)
     for op in after:
@@ -219,6 +245,17 @@ def build(case_dir: Path, name: str, spec, good) -> None:
         files.update(spec["ultrasteer"] or {})
         for fname, text in files.items():
             (folder / fname).write_text(text if text.endswith("\n") else text + "\n")
+    elif "yaml" in spec:  # a YAML file given in full (@name: a path in the case's folder), with set/del edits
+        p.write_text(yaml.safe_dump(_paths(_edited(spec["yaml"], spec), case_dir), sort_keys=False))
+    elif "imported" in spec:  # a log imported from a tracker's path (see _path_csv) by BASE's mapping
+        src = case_dir / f".{name}.exports"
+        src.mkdir()
+        (src / "mapping.yaml").write_text(yaml.safe_dump(_edited(BASE["mapping"], spec["imported"]), sort_keys=False))
+        path, end = _path_csv(**{k: v for k, v in spec["imported"].items() if k not in ("set", "del")})
+        (src / "us.csv").write_text(path)
+        (src / "robot.csv").write_text(f"t,speed\n0,2\n{end:g},2\n")
+        r = invoke(["log", "import-csv", src / "mapping.yaml", "--out", p])
+        assert r.exit_code == 0, r.output
     elif "dir" in spec:
         p.mkdir(exist_ok=True)
     elif "symlink" in spec:
@@ -308,6 +345,8 @@ def test_case(cls, case, good, tmp_path):
             assert str(sub) in line, f"{sub!r} not in {line!r}"
         for jargon in ("Value error", "union_tag", "function-after", "[key]", "Errno"):
             assert jargon not in line, line
+    for sub in np.atleast_1d(exp.get("warning", [])):  # what a command that succeeds must warn about
+        assert any(ln.startswith("warning: ") and str(sub) in ln for ln in err), f"no warning {sub!r}: {result.stderr}"
     after = _snapshot(case_dir)
     made = sorted(set(after) - set(before))
     allowed = [str(Path(c)) for c in exp.get("created", [])]

@@ -142,6 +142,18 @@ RESULTS = G(attrs={
         "constants": G(optional=True, attrs={"trials_ok": A("int"), "trials": A("int")}, members={
             "name": D("str", _s(("P",))), "median": D("float", _s(("P",))), "se": D("float", _s(("P",))),
         }),
+        # predictions from the held-out trials' own poses, per pose source (truth or an observer)
+        "from_pose": G(optional=True, open=False, members={"*": G(attrs={
+            "depths": A("any"), "pose_from": A("str"), "skipped": A("any", optional=True),
+        }, members={
+            "start_index": D("int", _s(("N", "D"))),
+            "index": D("int", _s(("K",)), index="T"),
+            "*": G(attrs={"names": A("strs", "k", optional=True), "units": A("strs", "k", optional=True)}, members={
+                "state": D("float", _s(("N", "D", "K", "k")), optional=True),
+                "status": D("str", _s(("N", "D"))),
+                "reason": D("str", _s(("N", "D"))),
+            }),
+        })}),
     }),
 })
 
@@ -184,6 +196,18 @@ FIT = G(attrs={
         "constant": G(optional=True, open=False, members={"*": D("float", _s(("N",)))}),
         "R": G(optional=True, open=False, members={"*": D("float", _s(("N", "*", "*"), ("*", "*")))}),
         "history": G(optional=True, open=False, members={"*": D("num", _s(("N", "I"), ("N", "I", "*")))}),
+        # what the data identify (docs/reference/fit-file.md); its recovery and design groups are additions
+        "identifiability": G(optional=True, attrs={"quantities": A("strs", "d"), "group_labels": A("strs", "G", optional=True)},
+                             members={
+            "estimate": D("float", _s(("N", "d"))),
+            "verdict": D("str", _s(("N", "d"))),
+            "used": D("bool", _s(("N",))),
+            "truth": D("float", _s(("N", "d")), optional=True),
+            "group": D("int", _s(("N",)), optional=True),
+            "group_verdict": D("str", _s(("G", "d")), optional=True),
+            "group_reason": D("str", _s(("G", "d")), optional=True),
+            "group_z": D("float", _s(("G", "d")), optional=True),
+        }),
     })}),
 })
 

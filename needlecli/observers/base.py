@@ -12,7 +12,8 @@ the registry (nothing outside the observer's module names its type):
 * ``check``: problems with running on a model and sensors (the config check, ``needle compare``);
 * ``takes_common_start``, ``initial_estimate``, ``default_reference``, ``prescribed_start``: its part
   in the common start of a comparison (``needle compare``, ``needle crossval``);
-* ``causal``: a filter (True) or a smoother;
+* ``causal``: a filter (True) or a smoother; ``model_only``: the model alone (the open loop), which a
+  filter must beat;
 * ``derived_settings``: its settings for a fair comparison, from the experiment
   (:class:`~needlecli.observers.defaults.ComparisonContext`);
 * ``fit_takes``: what ``from_fit`` may set on it from a fit of ``needle fit-em`` (:class:`FitTakes`).
@@ -120,6 +121,9 @@ class Observer:
     takes_common_start: ClassVar[bool] = False
     #: whether the estimate at time t uses the samples available up to t only (False: a smoother)
     causal: ClassVar[bool] = True
+    #: whether it is the model alone from its start, using no measurement: the reference a filter must
+    #: beat (``needle compare`` warns when a filter's error is larger than such an observer's)
+    model_only: ClassVar[bool] = False
     #: the compiled kernel that takes longest to compile, ``(module of needlecli.kernels, function)``, which a
     #: first run's warm-up compiles in a second process (:func:`needlecli.kernels.warm_up`); None: no kernel
     compiled_entry: ClassVar[tuple[str, str] | None] = None

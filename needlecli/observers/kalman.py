@@ -65,13 +65,14 @@ class _Kalman(Observer):
     @classmethod
     def derived_settings(cls, ctx):
         """Tuned as the UKF is (:func:`~needlecli.observers.defaults.filter_settings`): the same
-        measurement sigmas (no distance growth: the EKF has none), the same process noise as a std per
+        measurement sigmas with the same distance growth, the same process noise as a std per
         square-root second (the UKF's per tick over sqrt(dt)), the same init and initial variances (which
         a common start replaces anyway)."""
         u = filter_settings(ctx)
         root_dt = float(np.sqrt(ctx.dt))
         return {"q": {k: v / root_dt for k, v in u["q"].items()}, "p0": u["p0"], "init": u["init"],
-                "measurements": {n: {"sigma": m["sigma"]} for n, m in u["measurements"].items()}}
+                "measurements": {n: {k: m[k] for k in ("sigma", "growth") if k in m}
+                                 for n, m in u["measurements"].items()}}
 
     @classmethod
     def check(cls, settings, model, sensors):

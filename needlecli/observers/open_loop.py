@@ -47,6 +47,7 @@ class OpenLoopSettings(ObserverSettings):
 class OpenLoop(Observer):
     Settings = OpenLoopSettings
     takes_common_start = True
+    model_only = True  # the reference every filter must beat (needle compare warns when one does not)
     fit_takes = FitTakes(q="per_root_second", measurements=False, sensor_states=False)
 
     @classmethod

@@ -116,7 +116,11 @@ def nees(res: Group, obs: str) -> list[Normalised] | None:
         out = []
         if full:
             ok = np.isfinite(e).all(-1) & np.isfinite(P).all((-2, -1))
-            sol = np.linalg.solve(np.where(ok[..., None, None], P, np.eye(len(cols))), np.where(ok[..., None], e, 0.0)[..., None])
+            A, b = np.where(ok[..., None, None], P, np.eye(len(cols))), np.where(ok[..., None], e, 0.0)[..., None]
+            try:
+                sol = np.linalg.solve(A, b)
+            except np.linalg.LinAlgError:  # a singular P somewhere (a state no noise reaches): its pseudo-inverse
+                sol = np.linalg.pinv(A, hermitian=True) @ b
             q = np.where(ok, np.einsum("nki,nki->nk", e, sol[..., 0]), np.nan)
             out.append(Normalised(f"all states ({', '.join(names)})", q, len(cols), time, depth, keep))
         else:  # a diagonal covariance: the states' sum, as if uncorrelated (said in the label)

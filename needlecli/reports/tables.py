@@ -245,11 +245,32 @@ def write_table(df: pd.DataFrame, stem: Path, formats: list[str], caption: str =
     return out
 
 
+def starts_note(res: Group) -> str:
+    """Which start each observer of a results file had (``/estimates/<observer>`` attribute ``start``,
+    written by the runner from ``runs.common_start``), in one sentence; empty for one observer or a file
+    that does not say."""
+    starts = {n: str(g.attrs["start"]) for n, g in res.data.get("estimates", Group()).data.items()
+              if isinstance(g, Group) and "start" in g.attrs}
+    if len(starts) < 2:
+        return ""
+    ref = next((n for n, s in starts.items() if s.startswith("common (reference)")), None)
+    own = [n for n, s in starts.items() if s.startswith("own")]
+    if ref is None:
+        why = next((s[s.index("(") + 1: -1] for s in starts.values() if "(" in s), "")
+        return f"Start: each observer from its own init{f' ({why})' if why else ''}."
+    sharing = [n for n, s in starts.items() if n != ref and s.startswith("common")]
+    out = f"Start: {', '.join(sharing)} from {ref}'s initial estimate (its own draw, made once; runs.common_start)."
+    return out + (f" From their own init: {', '.join(own)}." if own else "")
+
+
 def table_caption(name: str, df: pd.DataFrame, res: Group | None = None) -> str:
     """A table's caption: the first paragraph of its function's docstring, what a replay compared
-    against, and what the table measured on this file (``df.attrs["note"]``)."""
+    against, which start each observer had (:func:`starts_note`, tables with an ``Observer`` column) and
+    what the table measured on this file (``df.attrs["note"]``)."""
     doc = " ".join((TABLES.get(name).__doc__ or "").strip().split("\n\n")[0].split())
     if res is not None and res.attrs.get("source") == "replay":
         doc += f" Replayed logs; errors against: {res.attrs.get('truth_kind', 'the logs')}."
+    if res is not None and "Observer" in df.columns and (starts := starts_note(res)):
+        doc += f" {starts}"
     note = df.attrs.get("note")
     return f"{doc} {note}" if note else doc

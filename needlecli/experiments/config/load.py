@@ -247,11 +247,11 @@ def check_consistency(cfg: ExperimentConfig, source: str, problems: list | None 
         for loc, msg in _checked(Component.of(OBSERVERS, o.type, name), cls.check, o, model, names):
             report(("observers", i) + loc, msg + _hint(msg, names))
     cs = cfg.runs.common_start
-    if cs is not None:
+    if not isinstance(cs, str):  # shared, none: nothing named to check
         by_name = {o.name or o.type: o for o in cfg.observers if not isinstance(o, dict)}
         known = True
         for loc, name in [(("runs", "common_start", "observer"), cs.observer)] + [
-                (("runs", "common_start", "observers", i), n) for i, n in enumerate(cs.observers)]:
+                (("runs", "common_start", "observers", i), n) for i, n in enumerate(cs.observers or [])]:
             if name not in by_name:
                 report(loc, f"no observer named {name!r}; observers: {', '.join(by_name)}" + did_you_mean(name, by_name))
                 known = False
@@ -259,7 +259,7 @@ def check_consistency(cfg: ExperimentConfig, source: str, problems: list | None 
             if OBSERVERS.get(by_name[cs.observer].type).initial_estimate.__func__ is Observer.initial_estimate.__func__:
                 report(("runs", "common_start", "observer"),
                        f"observer {cs.observer!r} ({by_name[cs.observer].type}) gives no initial estimate to share")
-            for i, n in enumerate(cs.observers):
+            for i, n in enumerate(cs.observers or []):
                 if not OBSERVERS.get(by_name[n].type).takes_common_start:
                     report(("runs", "common_start", "observers", i),
                            f"observer {n!r} ({by_name[n].type}) cannot start from another's estimate")

@@ -186,8 +186,9 @@ def table_errors(s: Study, observers: list[str], ref: str, quantities: list[tupl
     return out
 
 
-def render(studies: dict[str, Study], when: str) -> str:
-    out = [BEGIN, "", f"*Measured by `make particles` ({when}), git {_git()}; {os.cpu_count()} cores, shared.*", ""]
+def render(studies: dict[str, Study], when: str, commit: str | None = None) -> str:
+    out = [BEGIN, "", f"*Measured by `make particles` ({when}), git {commit or _git()}; {os.cpu_count()} cores, "
+           "shared.*", ""]
     if "table1" in studies:
         s = studies["table1"]
         out += ["### (a) Seed 003's Table 1: agreement and cost", "",
@@ -246,6 +247,7 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=None, help="the first N runs of each study (default: the config's)")
     ap.add_argument("--render", action="store_true", help="write the tables from results/particles, running nothing")
     ap.add_argument("--page", type=Path, default=PAGE)
+    ap.add_argument("--commit", help="with --render: the commit whose code made the results (default: this checkout's)")
     args = ap.parse_args()
     when = dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     todo = [] if args.render else (args.only or list(STUDIES))
@@ -255,7 +257,11 @@ def main() -> None:
             continue
         run_study(name, args.runs)
     studies = {name: Study(results_file(name)) for name in STUDIES if list((WORK / name).glob("*_compare.h5"))}
-    block = render(studies, when)
+    if args.render:  # the time the results were made, not now
+        made = max((results_file(n) for n in studies), key=lambda p: p.stat().st_mtime, default=None)
+        if made is not None:
+            when = dt.datetime.fromtimestamp(made.stat().st_mtime, dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    block = render(studies, when, args.commit)
     write_page(block, args.page)
     print(block)
     print(f"written: {args.page}")

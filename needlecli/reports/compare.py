@@ -340,6 +340,20 @@ def _narrow_markdown(df: pd.DataFrame) -> str:
     return "\n".join([line(cols), "|" + "|".join("-" * (x + 2) for x in w) + "|"] + [line(r) for r in cells])
 
 
+def _column_groups(df: pd.DataFrame, width: int) -> str:
+    """:func:`_narrow_markdown` of ``df`` within ``width`` columns: its first column (the labels) in every
+    table, the others split over as many tables, in order, as it takes (one per column at the least)."""
+    label, rest = df.columns[0], list(df.columns[1:])
+    tables, group = [], []
+    for c in rest:
+        if group and max(len(ln) for ln in _narrow_markdown(df[[label, *group, c]]).splitlines()) > width:
+            tables.append(_narrow_markdown(df[[label, *group]]))
+            group = []
+        group.append(c)
+    tables.append(_narrow_markdown(df[[label, *group]]))
+    return "\n\n".join(tables)
+
+
 def footnote(res: Group) -> str:
     """The note on the prediction error and on what the errors and runtimes count."""
     return (f"*Prediction error of the final tip position from the estimate after observing "
@@ -425,7 +439,8 @@ def settings_note(res: Group) -> str:
 def terminal_form(df: pd.DataFrame, res: Group, width: int = 80) -> str:
     """The comparison for a terminal of ``width`` columns: what every observer shares in a few lines,
     then two narrow tables (how each observer ran; the mean of each error quantity, one row each, one
-    column per observer), then the notes, wrapped."""
+    column per observer, in as many tables as the observers' columns need to fit the width), then the
+    notes, wrapped."""
     unit = str(res.attrs.get("length_unit", "mm"))
     n_runs = int(np.asarray(res.data["truth"].data["status"]).shape[0])
     parts = [textwrap.fill(f"Observers on the same insertions of {res.attrs.get('name', '')}: {n_runs} run(s) of "
@@ -442,7 +457,7 @@ def terminal_form(df: pd.DataFrame, res: Group, width: int = 80) -> str:
     errs = {"mean error": [f"{q} ({u})" if u else q for q, u in error_quantities(df)] + ["prediction* (mm)"]}
     for _, r in df.iterrows():
         errs[str(r["observer"])] = [_short(r[f"{q}_mean"]) for q, _ in error_quantities(df)] + [_short(r["pred_mean_mm"])]
-    parts += [_narrow_markdown(how), _narrow_markdown(pd.DataFrame(errs))]
+    parts += [_narrow_markdown(how), _column_groups(pd.DataFrame(errs), width)]
     start = common_start(res)
     notes_ = [f"Start: every observer marked 'common' starts from one initial estimate, the {start}."
               if start and not start.startswith("no ") else f"Start: {start}."]

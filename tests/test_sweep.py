@@ -248,7 +248,7 @@ def test_shipped_grid_makes_valid_cells(tmp_path):
                        out_dir=tmp_path)
     assert len(cells) == 50 and {c.seed for c in cells} == set(range(10))
     assert sorted({c.overrides["observers.0.q.kappa"] for c in cells}) == pytest.approx(
-        [2e-7, 2e-7 * 10**0.5, 2e-6, 2e-6 * 10**0.5, 2e-5])
+        [2e-6, 2e-6 * 10**0.5, 2e-5, 2e-5 * 10**0.5, 2e-4])
     assert all(yaml.safe_load(c.config_text)["runs"]["count"] == 10 for c in cells)
 
 

@@ -15,7 +15,13 @@ the registry (nothing outside the observer's module names its type):
 * ``causal``: a filter (True) or a smoother;
 * ``derived_settings``: its settings for a fair comparison, from the experiment
   (:class:`~needlecli.observers.defaults.ComparisonContext`);
-* ``fit_takes``: what ``from_fit`` may set on it from a fit of ``needle fit-em`` (:class:`FitTakes`).
+* ``fit_takes``: what ``from_fit`` may set on it from a fit of ``needle fit-em`` (:class:`FitTakes`);
+* ``upgrade_settings``: how its keys of an older config format convert to their current meaning.
+
+Keys mean one thing in every observer: ``q`` is the process noise std per state in the state's unit per
+square-root second (the truth's ``process_noise.std``; a filter with ticks takes ``q sqrt(dt_tick)`` per
+tick itself), ``p0`` an initial variance per state (the unit squared), ``sigma`` a measurement noise std per
+component, ``rate`` a frequency in Hz.
 
 A subclass registered under another name inherits all of it (a UKF variant is compared and tuned as
 the UKF is, under its own type).
@@ -25,7 +31,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, ClassVar, Literal
+from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 from pydantic import Field
@@ -87,15 +93,12 @@ def shrink_cov(p: np.ndarray, layout: str) -> np.ndarray | None:
 @dataclass(frozen=True)
 class FitTakes:
     """What ``from_fit`` (:mod:`needlecli.experiments.config.from_fit`) may set on an observer from a fit of
-    ``needle fit-em``: always its process noise ``q`` (the std of each fitted state's noise) and its model
-    constants ``params``; further as declared here.
+    ``needle fit-em``: always its process noise ``q`` (the std of each fitted state's noise per square-root
+    second, ``sqrt(Q_ii)``: the one meaning of ``q`` in every observer) and its model constants ``params``;
+    further as declared here.
 
     Attributes
     ----------
-    q : {"per_tick", "per_root_second"}
-        How the observer's ``q`` is given: a std per filter tick, ``sqrt(Q_ii dt_tick)`` (the tick: the
-        observer's ``rate`` setting, else the grid step ``simulation.dt``), or per square-root second,
-        ``sqrt(Q_ii)``.
     measurements : bool
         Whether it takes each fitted channel's noise as ``measurements.<channel>.sigma`` (and the
         channel's ``frame`` and ``across_axis`` where R was fitted in needle coordinates).
@@ -105,7 +108,6 @@ class FitTakes:
         variance joins the channel's noise along the needle.
     """
 
-    q: Literal["per_tick", "per_root_second"]
     measurements: bool = True
     sensor_states: bool = False
 
@@ -166,5 +168,49 @@ class Observer:
         as the note for a comparison's table (``"x, beta = 0"``); None: the common start as it is."""
         return None
 
+    @classmethod
+    def upgrade_settings(cls, settings: dict, *, config_format: int, dt: float) -> list[str]:
+        """Bring ``settings``, this observer's mapping in a config written in an older format
+        (``config_format``, the config's ``format:``; 1 where it has none), to the current meaning of its
+        keys, in place; ``dt`` is the config's grid step (``simulation.dt``), s. Called by the loader
+        before the schema (:func:`needlecli.experiments.config.load.load_config`), with the values as the
+        file gives them (check their types; leave what is not a valid value to the schema).
+
+        Returns
+        -------
+        list of str
+            One line per converted key, saying from what to what (the loader logs each and keeps it in the
+            results file above the converted config). The default converts nothing: ``[]``.
+        """
+        return []
+
     def run(self, problem: EstimationProblem, rng: np.random.Generator, progress=None) -> Posterior:
+        """Estimate every run of ``problem`` at once: the one method an observer must implement.
+
+        Parameters
+        ----------
+        problem : EstimationProblem
+            The time grid ``time (T,)``, the known inputs ``inputs (N, T, m)``, the inserted depth
+            ``depth (N, T)``, the measurement channels (``channels``: name -> :class:`Channel`, each with
+            its samples ``value (N, M, m)``, ``valid (N, M)``, times ``t (M,)``, ``t_available (M,)``,
+            grid index ``index (M,)`` and measurement function ``h``), the experiment's ``model`` and its
+            nominal ``params``, the covariances to keep (``cov_stride``, ``cov_layout``), and, in a
+            comparison, a common ``start`` (:class:`CommonStart`). ``N = problem.n_runs`` runs.
+        rng : numpy.random.Generator
+            This observer's own random stream (the same seed gives the same numbers), for a random start
+            or sampling; an observer that draws nothing ignores it.
+        progress : callable ``(done, total)``, optional
+            Told how far the run is (``RunRecorder`` does this from its ``progress``).
+
+        Returns
+        -------
+        Posterior
+            On the problem's time grid: ``state (N, T, n)``; ``cov (N, T', n, n)`` (``full``), ``(N, T', n)``
+            (``diag``) or None (``none``, or an observer without a covariance), ``T' = ceil(T /
+            cov_stride)``; ``status`` and ``reason`` ``(N,)`` (``ok`` and ``""``, or a stopped run's status
+            and why); the ``names`` and ``units`` of the ``n`` states (a state that the truth also has is
+            compared with it by name), the ``angle_states`` (compared wrapped), ``extras`` (further arrays
+            with the runs first) and ``attrs``. What comes back is checked
+            (:mod:`needlecli.observers.contract`) before anything is written.
+        """
         raise NotImplementedError

@@ -132,8 +132,9 @@ def filter_settings(ctx: ComparisonContext) -> dict[str, Any]:
       parameter;
     * ``p0``: sigma^2 of the first measurement (times (1 + a)^2 with growth), the init std^2, for the
       curvature (param_std or 25 % of the nominal value)^2, else 1e-6;
-    * ``q`` per tick of the grid: the truth's process noise times sqrt(dt), at least 1e-3 mm for
-      positions, 1e-5 rad for angles, 4e-4 times the nominal curvature, 1e-4 for other states;
+    * ``q`` (per square-root second, as every observer's): the truth's process noise, at least the floor of
+      a grid step ``dt`` over ``sqrt(dt)`` (per step: 1e-3 mm for positions, 1e-5 rad for angles, 4e-4 times
+      the nominal curvature, 1e-4 for other states);
     * ``predict_at_depths``: [25 % of the insertion length].
 
     Raises
@@ -195,7 +196,7 @@ def filter_settings(ctx: ComparisonContext) -> dict[str, Any]:
             floor = 1e-3 * length
         else:
             floor = 1e-4
-        q[k] = float(max(proc.get(k, 0.0) * root_dt, floor))
+        q[k] = float(max(proc.get(k, 0.0) * root_dt, floor)) / root_dt  # per step, as a std per sqrt(s)
     out: dict[str, Any] = {
         "q": q, "p0": p0, "measurements": meas,
         "init": {"from": "nominal" if ctx.replay else "truth", "std": std, "values": values, "first_measurement": first},

@@ -47,7 +47,7 @@ class OpenLoopSettings(ObserverSettings):
 class OpenLoop(Observer):
     Settings = OpenLoopSettings
     takes_common_start = True
-    fit_takes = FitTakes(q="per_root_second", measurements=False, sensor_states=False)
+    fit_takes = FitTakes(measurements=False, sensor_states=False)
 
     @classmethod
     def derived_settings(cls, ctx):

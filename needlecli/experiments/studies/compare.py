@@ -227,6 +227,7 @@ def compare_observers(
     file ``<out_dir>/<name>_compare.h5`` with the comparison's ``/compare`` group (the tables of
     :mod:`needlecli.reports.compare` read it)."""
     from needlecli.experiments.config.load import load_config
+    from needlecli.experiments.config.types import CONFIG_FORMAT
     from needlecli.experiments.simulation import components
     from needlecli.experiments.simulation.replay import replay_truth
     from needlecli.experiments.simulation.runner import build_problem, results_tree, simulate_and_measure
@@ -265,6 +266,7 @@ def compare_observers(
     skipped = [c for c in cands if c.skip]
     data = copy.deepcopy(raw)
     data["observers"] = [c.settings for c in chosen]
+    data["format"] = CONFIG_FORMAT  # the derived settings' meaning (the config's own are converted in text)
     cfg1, text1 = load_config(source, text=yaml.safe_dump(data, sort_keys=False))
     problem = build_problem(cfg1, truth, sensors, streams)
     start, start_text = common_start(ctx, chosen, cfg1, problem, seed_)

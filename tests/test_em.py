@@ -209,7 +209,7 @@ def test_evaluate_reads_the_fit_file(fitted):
     d, out = fitted
     r = invoke("evaluate", out, "--out", d / "tables")
     assert r.exit_code == 0, r.output + repr(r.exception)
-    for t in ("seed004_table1", "seed004_table2", "seed004_table3", "seed004_recovery", "fit_status"):
+    for t in ("fit_parameters", "seed004_table1", "seed004_table2", "seed004_table3", "fit_recovery", "fit_status"):
         assert (d / "tables" / f"tiny_fit_{t}.csv").exists()
         assert f"## {t}" in r.output
     assert "c @ a" in r.output and "SD as Traj. Err. (mm)" in r.output

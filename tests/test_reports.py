@@ -8,6 +8,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+import h5py
 import numpy as np
 import pandas as pd
 import pytest
@@ -27,6 +28,7 @@ from needlecli.reports.seed004 import ALL_FIT_TABLES
 from needlecli.reports.tables import TABLES, column_formatter, latex_escape, to_latex, to_markdown
 
 SIM = """\
+format: 2
 name: reports_sim
 model: {type: modified_unicycle, params: {kappa: 0.005, beta_cut: 0.035}, param_std: {kappa: 0.0005}}
 inputs:
@@ -40,7 +42,7 @@ sensors:
 observers:
   - name: ukf
     type: ukf
-    q: {x: 2.0e-3, y: 2.0e-3, z: 2.0e-3, alpha: 2.0e-5, beta: 2.0e-5, gamma: 5.0e-4, kappa: 2.0e-6}
+    q: {x: 2.0e-2, y: 2.0e-2, z: 2.0e-2, alpha: 2.0e-4, beta: 2.0e-4, gamma: 5.0e-3, kappa: 2.0e-5}
     p0: {x: 1.0, y: 1.0, z: 1.0, alpha: 5.0e-3, beta: 5.0e-3, gamma: 0.1, kappa: 2.0e-6}
     measurements:
       us3d: {sigma: 0.3, growth: {transducer: [0.0, 0.0, 90.0], a: 1.0, d_max: 80.0}}
@@ -245,3 +247,48 @@ def test_fit_tables_are_refused_on_results_files(sim):
 
 def test_every_plot_is_registered_once():
     assert len(PLOTS.names()) == len(set(PLOTS.names()))
+
+
+# ---------------------------------------------------------------------------------------------- fit files
+@pytest.fixture(scope="module")
+def unicycle_fit(tmp_path_factory) -> Path:
+    """The EM tutorial's unicycle, 3 trials, a few EM iterations."""
+    d = tmp_path_factory.mktemp("unicycle_fit")
+    cfg = Path(__file__).resolve().parents[1] / "configs" / "tutorials" / "fit_em.yaml"
+    r = invoke("fit-em", cfg, "--out", d / "fit.h5", "--quiet", "--set", "runs.count=3", "--set", "fit.em.max_iter=3",
+               "--set", "fit.identify.enabled=false", "--set", "fit.repeats=2")
+    assert r.exit_code == 0, r.output
+    return d / "fit.h5"
+
+
+def test_a_fit_of_another_model_gets_tables_named_for_what_they_hold(unicycle_fit, tmp_path):
+    """A unicycle's fit writes fit_parameters and fit_recovery, not seed 004's tables of the MNM and BiNM
+    (empty, captioned with the paper's numbers, as it used to); those are still there by name."""
+    r = invoke("evaluate", unicycle_fit, "--out", tmp_path / "t", "--no-plots")
+    assert r.exit_code == 0, r.output
+    written = sorted(p.name for p in (tmp_path / "t").glob("*.csv"))
+    assert not [n for n in written if "seed004" in n], written
+    for t in ("fit_parameters", "fit_recovery", "fit_status"):
+        assert f"fit_em_{t}.csv" in written and f"## {t}" in r.output
+    df = pd.read_csv(tmp_path / "t" / "fit_em_fit_parameters.csv")
+    assert set(df["Model"]) == {"unicycle"} and "kappa" in set(df["Quantity"]) and "tr(R_tracker)" in set(df["Quantity"])
+    with h5py.File(unicycle_fit) as f:  # the mean of the fitted constant over the kept trials
+        kappa = f["fit/unicycle/constant/kappa"][()]
+    assert float(df.loc[df["Quantity"] == "kappa", "Mean"].iloc[0]) == pytest.approx(kappa.mean(), rel=1e-6)
+    r = invoke("evaluate", unicycle_fit, "--tables", "seed004_recovery", "--no-plots", "--out", tmp_path / "old")
+    assert r.exit_code == 0 and (tmp_path / "old" / "fit_em_seed004_recovery.csv").exists()  # the former name
+
+
+def test_the_log_likelihood_decrease_line_says_whether_it_matters():
+    from types import SimpleNamespace
+
+    from needlecli.cli.fit_em import ll_decrease_line
+
+    ll = np.array([[-1000.0, -500.0, -100.0, -100.2, -90.0], [-800.0, -700.0, -650.0, np.nan, np.nan]])
+    small = SimpleNamespace(ll_decreases=np.array([1, 0]), ll_worst_drop=np.array([0.2, 0.0]), history={"loglik": ll})
+    line = ll_decrease_line(small)
+    assert "in 1 iteration(s) of 1 trial(s)" in line and "0.022 % of its trial's rise" in line and "negligible" in line
+    big = SimpleNamespace(ll_decreases=np.array([1, 2]), ll_worst_drop=np.array([0.2, 40.0]), history={"loglik": ll})
+    line = ll_decrease_line(big)
+    assert "in 3 iteration(s) of 2 trial(s)" in line and "27 % of its trial's rise" in line and "not negligible" in line
+    assert ll_decrease_line(SimpleNamespace(ll_decreases=np.zeros(2, int), ll_worst_drop=np.zeros(2), history={})) == ""

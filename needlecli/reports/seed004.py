@@ -1,5 +1,7 @@
-"""Seed 004's tables and figures from a fit file of ``needle fit-em``.
+"""The tables and figures of a fit file of ``needle fit-em``: seed 004's and their generic forms.
 
+* ``fit_parameters``: for any fitted model, each constant, tr(Q) per block and tr(R_j) per channel: mean,
+  SD and the SD as trajectory error, one row per model and quantity (Tables 1 and 2 below in long form);
 * ``seed004_table1`` (MNM) and ``seed004_table2`` (BiNM): the constant (``c``, ``l_inv``) per parameter case
   (field strength), ``tr(Q_p)``, ``tr(Q_h)``, ``tr(Q_B)`` and ``tr(R_j)`` of every channel, each trace
   divided by its dimension as the seed reports them; rows Mean, SD and "SD as Traj. Err. (mm)": the
@@ -8,8 +10,12 @@
   distance of the tip path to the nominal one averaged (R does not enter the path: 0).
 * ``seed004_table3``: % difference of the BiNM from the MNM, by the mean trace and block-wise by the
   Frobenius norm of the difference of the element-wise median matrices.
-* ``seed004_recovery``: the fits against the truth of a simulated study.
+* ``fit_recovery`` (formerly ``seed004_recovery``, which still names it): the fits against the truth of a
+  simulated study, for any model.
 * ``fit_status``: statuses, reasons, iterations, log-likelihood decreases.
+
+``needle evaluate FIT.h5`` writes seed 004's own tables (``seed004_table1`` to ``3``) by default only for a fit
+of the models they are about (:data:`PAPER_TABLE_MODELS`); a fit of a unicycle gets ``fit_parameters``.
 
 Trials whose fit failed for any model (singular, diverged) are left out for every model (seed 004: 3 of
 44 trials). Figures: ``seed004_fig5`` (a trial's paths and measurements, both models), ``seed004_fig10``
@@ -37,6 +43,9 @@ from needlecli.reports.tables import TABLES, count_cell, table_caption, write_ta
 log = logging.getLogger("needlecli")
 
 FIT_TABLES = FIT_DEFAULT  # written by default (the tables of a fit file: needlecli.reports.FIT_TABLE_NAMES)
+#: seed 004's paper tables and the models each is about: written by default only for a fit of those models
+#: (the others' fits get the same content from fit_parameters, under a name that says what it holds)
+PAPER_TABLE_MODELS = {"seed004_table1": ("mnm",), "seed004_table2": ("binm",), "seed004_table3": ("mnm", "binm")}
 #: every table of a fit file: :data:`FIT_TABLES` (written by default) and those asked for by name
 ALL_FIT_TABLES = FIT_TABLE_NAMES
 FIT_PLOTS = ("seed004_fig5", "seed004_fig10", "fit_regression")
@@ -253,6 +262,30 @@ def trajectory_errors(res: Group, model: str, st: dict, moves: list, case: np.nd
     return out
 
 
+@TABLES.register("fit_parameters")
+def fit_parameters_table(res: Group, errors=None) -> pd.DataFrame:
+    """What EM fitted, for every model of the fit file: each constant (per parameter case), tr(Q) per state
+    block and tr(R_j) per channel, traces divided by their dimension (Q per second); mean and SD over the
+    kept trials and the SD as trajectory error (the input cases re-simulated with each quantity moved by one
+    SD; mm). Seed 004's Tables 1 and 2 (tables seed004_table1, seed004_table2) in long form, for any model."""
+    if not is_fit(res):
+        return pd.DataFrame()
+    rows, notes = [], []
+    for model in res.data["fit"].data:
+        wide = parameter_table(res, model)
+        for col in wide.columns[1:]:
+            rows.append({"Model": model, "Quantity": col, "Mean": wide[col].iloc[0], "SD": wide[col].iloc[1],
+                         "SD as Traj. Err. (mm)": wide[col].iloc[2]})
+        if wide.attrs.get("note"):
+            notes.append(wide.attrs["note"])
+    df = pd.DataFrame(rows, columns=["Model", "Quantity", "Mean", "SD", "SD as Traj. Err. (mm)"])
+    keep = kept_trials(res)
+    df["Trials"] = count_cell(keep.sum(), len(keep))
+    if notes:
+        df.attrs["note"] = " ".join(notes)
+    return df
+
+
 # ---------------------------------------------------------------------------------------------- Table 3
 @TABLES.register("seed004_table3")
 def table3(res: Group, errors=None) -> pd.DataFrame:
@@ -308,11 +341,12 @@ def _blockwise(ma: np.ndarray, mb: np.ndarray) -> float:
 
 
 # ---------------------------------------------------------------------------------------------- recovery
+@TABLES.register("fit_recovery")
 @TABLES.register("seed004_recovery")
 def recovery_table(res: Group, errors=None) -> pd.DataFrame:
     """Fitted against true values of a simulated study (the model that made the truth): the constant per
     parameter case, tr(Q) per block and tr(R) per channel (traces divided by their dimension), mean and
-    SD over the kept trials and the error of the mean."""
+    SD over the kept trials and the error of the mean (any model; seed004_recovery is its former name)."""
     if not is_fit(res) or "params" not in res.data.get("truth", Group()).data:
         return pd.DataFrame()
     truth = res.data["truth"]
@@ -573,7 +607,7 @@ def evaluate_fit(
 
     path = Path(path)
     res = read_fit(path)
-    names = tables or list(FIT_TABLES)
+    names = tables or default_fit_tables(res)
     for n in names:
         if n not in ALL_FIT_TABLES:
             raise DataError(f"{path}: table {n!r} needs a results file; a fit file has {', '.join(ALL_FIT_TABLES)}")
@@ -595,3 +629,10 @@ def evaluate_fit(
             draw_plots(res, None, out_dir / stem, FIT_PLOTS,
                        options={"fit_regression": {"regress": design["regress"]}} if design and design.get("regress") else None)
     return out
+
+
+def default_fit_tables(res: Group) -> list[str]:
+    """The tables ``needle evaluate`` writes for a fit file by default: :data:`FIT_TABLES`, seed 004's paper
+    tables only where the fit has their models (:data:`PAPER_TABLE_MODELS`)."""
+    fitted = set(res.data["fit"].data) if is_fit(res) else set()
+    return [n for n in FIT_TABLES if set(PAPER_TABLE_MODELS.get(n, ())) <= fitted]

@@ -306,7 +306,7 @@ def test_fit_tables_compile(fitted, tmp_path):
 
 def test_fit_figures_hold_data_in_one_colour_per_model(fitted, tmp_path, monkeypatch):
     from needlecli.io.fit import read_fit
-    from needlecli.reports.plots import draw_plots, observer_colours
+    from needlecli.reports.plots import draw_plots, observer_colour, observer_colours
     from needlecli.reports.seed004 import FIT_PLOTS
 
     d, out = fitted
@@ -315,7 +315,8 @@ def test_fit_figures_hold_data_in_one_colour_per_model(fitted, tmp_path, monkeyp
     written = draw_plots(res, None, tmp_path / "p", FIT_PLOTS)
     assert len(written) == 2 and len(figs) == 2
     colours = observer_colours(res)
-    assert colours == {"binm": "C0", "mnm": "C1"} or colours == {"mnm": "C0", "binm": "C1"}
+    assert colours == {"binm": observer_colour("binm"), "mnm": observer_colour("mnm")}  # by name, not file order
+    assert colours["binm"] != colours["mnm"]
     problems = [p for fig in figs for p in figure_problems(fig, colours)]
     assert not problems, "\n".join(problems)
     title = figs[1].axes[0].get_title()

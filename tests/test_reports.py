@@ -9,6 +9,7 @@ import logging
 from pathlib import Path
 
 import h5py
+import matplotlib
 import numpy as np
 import pandas as pd
 import pytest
@@ -23,7 +24,7 @@ from needlecli.io.logs import log_from_results, write_log
 from needlecli.io.results import read_results
 from needlecli.metrics import compute_errors
 from needlecli.reports.evaluate import evaluate_results
-from needlecli.reports.plots import PLOTS, draw_plots, observer_colours
+from needlecli.reports.plots import PLOTS, draw_plots, observer_colour, observer_colours, observer_look
 from needlecli.reports.seed004 import ALL_FIT_TABLES
 from needlecli.reports.tables import TABLES, column_formatter, latex_escape, to_latex, to_markdown
 
@@ -111,7 +112,7 @@ def test_every_plot_holds_data_in_one_colour_per_observer(which, drawn):
     assert {"error_vs_depth", "trajectories", "curvature", "rotation_error", "prediction", "nees_vs_depth"} <= names, names
     assert len(figs) == len(written)
     colours = observer_colours(res)
-    assert colours == {"open_loop": "C0", "ukf": "C1"}  # the results file's observer order
+    assert colours == {"open_loop": observer_colour("open_loop"), "ukf": observer_colour("ukf")}  # by name
     problems = [p for fig in figs for p in figure_problems(fig, colours, layout=which == "sim")]  # the same layout
     assert not problems, "\n".join(problems)
     # the same observer has the same colour in every figure (and in every panel: figure_problems)
@@ -122,6 +123,89 @@ def test_every_plot_holds_data_in_one_colour_per_observer(which, drawn):
                 if (ln.get_gid() or "").startswith("observer:"):
                     seen.setdefault(ln.get_gid(), set()).add(ln.get_color())
     assert seen and all(len(c) == 1 for c in seen.values()), seen
+
+
+@pytest.fixture(scope="module")
+def second_study(tmp_path_factory) -> Path:
+    """Another study: an EKF first (it sorts before the others in the results file), the open loop, the UKF
+    with one prediction depth (as needle compare sets it)."""
+    d = tmp_path_factory.mktemp("second")
+    data = yaml.safe_load(SIM)
+    ukf, ol = data["observers"]
+    ukf["predict_at_depths"] = [3.0]
+    ekf = {"name": "ekf", "type": "ekf", "q": dict(ukf["q"]), "p0": dict(ukf["p0"]), "init": dict(ukf["init"]),
+           "measurements": {"us3d": {"sigma": 0.3}, "robot": {"sigma": 0.0035}, "swe": {"sigma": 0.001}}}
+    data["observers"] = [ekf, ol, ukf]
+    data["name"] = "reports_second"
+    cfg, text = load_config(text=yaml.safe_dump(data, sort_keys=False))
+    return run_experiment(cfg, text, out=d / "second.h5").path
+
+
+def _looks(figs) -> dict[str, set]:
+    """gid -> the (colour, dashes, marker) of every line drawn for it."""
+    seen: dict[str, set] = {}
+    for fig in figs:
+        for ax in fig.axes:
+            for ln in ax.lines:
+                if (ln.get_gid() or "").startswith("observer:"):
+                    seen.setdefault(ln.get_gid().split(":", 1)[1], set()).add(
+                        (matplotlib.colors.to_hex(ln.get_color()), ln.get_marker()))
+    return seen
+
+
+def test_an_observer_keeps_its_colour_in_every_figure_of_every_study(drawn, second_study, tmp_path):
+    """Two studies with their observers in different orders (and an EKF in one): every plot of both, and
+    each observer is drawn in one colour and marker throughout, the one of its name."""
+    first = drawn["sim"][1]
+    res2, second, written = _draw_all(second_study, tmp_path)
+    assert len(second) == len(written) >= 5
+    looks = _looks(first + second)
+    assert {"ukf", "open_loop", "ekf"} <= set(looks)
+    for obs, seen in looks.items():  # single runs' thin lines go without markers
+        assert {c for c, _ in seen} == {observer_colour(obs)}, (obs, seen)
+        assert {m for _, m in seen} - {"None", "_"} == {observer_look(obs)["marker"]}, (obs, seen)  # _: error bar caps
+    problems = [p for fig in second for p in figure_problems(fig, observer_colours(res2), layout=False)]
+    assert not problems, "\n".join(problems)
+    # one prediction depth: no plot of a single point (table prediction gives it)
+    assert not [p for p in written if p.name.endswith("_prediction.png")]
+    assert TABLES.get("prediction")(res2, compute_errors(res2)).shape[0] == 1
+
+
+def test_curves_on_top_of_each_other_stay_visible():
+    """The names that meet in one figure most often get different colours: the built-in observers' (also
+    their default names and needle compare's), the built-in models' (fitted side by side), the bundled
+    configs' tuned variants; any two observers differ in colour, dashes or marker, their markers start
+    elsewhere, and none is the grey of sensor samples."""
+    from needlecli.models import MODELS
+    from needlecli.observers import OBSERVERS
+
+    for names in (OBSERVERS.builtin_names(), MODELS.builtin_names(), ["ukf", "ukf_em", "ukf_em_white", "ukf_gated",
+                  "open_loop"], ["hand_tuned", "em_tuned", "ukf_em"], ["ol", "ukf", "cv", "cv_kf"],
+                  ["ukf_reset_1x", "ukf_reset_10x"], [*OBSERVERS.builtin_names(), "ukf_defaults"]):
+        assert len({observer_colour(n) for n in names}) == len(names), names
+    names = OBSERVERS.builtin_names()
+    assert observer_colour("ukf") == "#1f77b4" and "#7f7f7f" not in {observer_colour(n) for n in names}
+    looks = [observer_look(n) for n in [*names, "ukf_em", "ukf_reset_1x", "ukf_reset_10x", "hand_tuned", "cv"]]
+    keys = [(lk["color"], str(lk["ls"]), lk["marker"]) for lk in looks]
+    assert len(set(keys)) == len(keys)
+    a, b = observer_look("ukf"), observer_look("ekf")
+    assert a["ls"] != b["ls"] and a["markevery"][0] != b["markevery"][0]
+
+
+def test_legends_sit_outside_the_data(drawn, second_study, tmp_path):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    figs = drawn["sim"][1] + _draw_all(second_study, tmp_path)[1]
+    for fig in figs:
+        fig.set_dpi(30)
+        canvas = FigureCanvasAgg(fig)
+        canvas.draw()
+        r = canvas.get_renderer()
+        legends = list(fig.legends) + [ax.get_legend() for ax in fig.axes if ax.get_legend() is not None]
+        for leg in legends:
+            box = leg.get_window_extent(r)
+            for ax in fig.axes:
+                assert not box.overlaps(ax.get_window_extent(r)), f"{title(fig)!r}: a legend over a panel"
 
 
 def test_replayed_error_curves_come_from_the_truth_frames(drawn):

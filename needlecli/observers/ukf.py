@@ -120,11 +120,8 @@ class UKFSettings(ObserverSettings):
     beta: NonNeg = Field(2.0, description="prior-distribution weight of the sigma points (2 is optimal for a "
                                           "Gaussian; seed 003: 2)")
     kappa: float = Field(0.0, description="secondary scaling of the sigma points (seed 003: 0); not the curvature")
-    q: dict[str, NonNeg] = Field(default_factory=dict, description="process noise std per state, unit/sqrt(s) (the "
-                                 "truth's and every observer's meaning; each filter tick of dt_tick s adds "
-                                 "Q = diag(q^2) dt_tick); config format 1 gave it per tick (converted on loading)")
-    p0: dict[str, NonNeg] = Field(default_factory=dict, description="initial variance per state, unit^2 (a variance, "
-                                                                  "not a std)")
+    q: dict[str, NonNeg] = Field(default_factory=dict, description="process noise std per state, unit/sqrt(s)")
+    p0: dict[str, NonNeg] = Field(default_factory=dict, description="initial variance per state (unit^2, not a std)")
     measurements: dict[str, MeasurementSpec] = Field(default_factory=dict, description="channels used, by sensor "
                                                      "name, with their noise, growth and gate (default: every channel "
                                                      "the model can predict, with the sensor's own sigma)")

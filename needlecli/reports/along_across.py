@@ -132,8 +132,8 @@ def error_along_across(res: Group, errors, path_stem: Path) -> Path | None:
         PlotSkipped,
         curve_against_depth,
         length_scale,
-        observer_colours,
         observer_style,
+        outside_legend,
         save_figure,
         subplots,
     )
@@ -144,7 +144,6 @@ def error_along_across(res: Group, errors, path_stem: Path) -> Path | None:
     if not src:
         raise PlotSkipped("no position sensor or observer to compare with a reference tangent")
     scale = length_scale(res)
-    colours = observer_colours(res)
     fig, axes = subplots(2, 1, figsize=(7.5, 6.0), sharex=True)
     handles = {}
     for label, kind, depth, al, ac in src:
@@ -155,7 +154,7 @@ def error_along_across(res: Group, errors, path_stem: Path) -> Path | None:
                                gid=f"sensor:{label}")
             else:
                 d, m, lo, hi, _ = curve_against_depth(scale * depth, scale * v)
-                st = observer_style(colours, label)
+                st = observer_style(label)
                 (h,) = ax.plot(d, m, lw=1.4, label=label, **st)
                 ax.fill_between(d, lo, hi, alpha=0.15, color=st["color"], lw=0)
             handles.setdefault(label, h)
@@ -165,7 +164,7 @@ def error_along_across(res: Group, errors, path_stem: Path) -> Path | None:
     axes[1].set_xlabel("inserted depth [mm]")
     for ax in axes:
         ax.grid(alpha=0.3)
-    fig.legend(handles.values(), handles.keys(), loc="outside lower center", ncol=min(len(handles), 3), fontsize="small")
+    outside_legend(fig, handles.values(), handles.keys(), ncol=3)
     fig.suptitle(f"{res.attrs.get('name', '')}: tip error along and across the needle "
                  "(observers: mean and 5-95 % over runs; sensor: the first run's samples)", fontsize=9)
     return save_figure(fig, Path(f"{path_stem}_error_along_across.png"))

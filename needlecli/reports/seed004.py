@@ -37,7 +37,7 @@ from needlecli.models import MODELS
 from needlecli.models.base import state_blocks
 from needlecli.reports import FIT_DEFAULT, FIT_TABLE_NAMES
 from needlecli.reports.identify import MARK, mark_label, weak_note, weak_quantities
-from needlecli.reports.plots import PLOTS, draw_plots, observer_colours, observer_style, save_figure, subplots
+from needlecli.reports.plots import PLOTS, beside_legend, draw_plots, observer_style, save_figure, subplots
 from needlecli.reports.tables import TABLES, count_cell, table_caption, write_table
 
 log = logging.getLogger("needlecli")
@@ -466,8 +466,7 @@ def fig5(res: Group, errors, path_stem: Path) -> Path | None:
     y = y_all[:, cols]
     shown = _two_widest(y, valid)  # the plane of the plot: the two axes the path spans most
     t_meas = np.asarray(mg.data["t"])
-    colours = observer_colours(res)
-    fig, axs = subplots(1, 2, figsize=(12, 4.8))
+    fig, axs = subplots(1, 2, figsize=(13, 4.8))
     axs[0].plot(y[valid, shown[0]], y[valid, shown[1]], ".", ms=3, color="0.5", label=f"{ch} measurements")
     tr = res.data.get("truth", Group())
     if "state" in tr.data:
@@ -483,22 +482,23 @@ def fig5(res: Group, errors, path_stem: Path) -> Path | None:
             continue
         z = np.asarray(g.data["state"])[i][:, idx] * scale
         status = str(np.asarray(g.data["status"]).astype(str)[i])
-        sty = observer_style(colours, model)
+        sty = observer_style(model)
+        plain = {k: v for k, v in sty.items() if k not in ("marker", "markevery", "ms")}
         axs[0].plot(z[:, shown[0]], z[:, shown[1]], lw=1.2, label=f"{model} EM ({status})", **sty)
         ticks = np.asarray(g.data["ticks"])
         at = np.clip(np.searchsorted(ticks, np.asarray(mg.data["index"])), 0, len(ticks) - 1)
         d = np.linalg.norm(z[at] - y, axis=-1)
         d = np.where(valid, d, np.nan)
         run = np.sqrt(np.nancumsum(d**2) / np.maximum(np.cumsum(valid), 1))
-        axs[1].plot(t_meas, d, lw=0.5, alpha=0.5, **sty)
+        axs[1].plot(t_meas, d, lw=0.5, alpha=0.5, **plain)
         axs[1].plot(t_meas, run, lw=1.5, label=f"{model}: running RMS {run[-1]:.3f} mm", **sty)
     axs[0].set_xlabel(f"{pairs[shown[0]][1]} [mm]")
     axs[0].set_ylabel(f"{pairs[shown[1]][1]} [mm]")
     axs[0].set_aspect("equal", adjustable="datalim")
-    axs[0].legend(fontsize="small")
+    beside_legend(axs[0])
     axs[1].set_xlabel("time [s]")
     axs[1].set_ylabel("distance from the measurement [mm]")
-    axs[1].legend(fontsize="small")
+    beside_legend(axs[1])
     for ax in axs:
         ax.grid(alpha=0.3)
     labels = [str(x) for x in np.atleast_1d(res.data["inputs"].attrs.get("case_labels", []))]
@@ -561,8 +561,7 @@ def fig10(res: Group, errors, path_stem: Path) -> Path | None:
     closest = np.nanmin(np.abs(_cos_hb(zm, mn)), 1)
     i = int(sing[0]) if sing.size else int(np.nanargmin(closest))
     time = np.asarray(res.data["time"])
-    colours = observer_colours(res)
-    fig, ax = subplots(figsize=(8, 4.2))
+    fig, ax = subplots(figsize=(9.5, 4.2))
     tr = res.data.get("truth", Group())
     if "state" in tr.data:
         tn = [str(x) for x in tr.attrs["names"]]
@@ -574,13 +573,13 @@ def fig10(res: Group, errors, path_stem: Path) -> Path | None:
         z = np.asarray(g.data[key])[i]
         lbl = {"state": "EM estimate", "ekf_state": "EKF forward pass"}[key]
         st = str(np.asarray(g.data["status"]).astype(str)[i])
-        ax.plot(time[ticks], _cos_hb(z, names), style, lw=1.3,
-                label=f"{model} {lbl}" + (f" ({st})" if key == "state" else ""), **observer_style(colours, model))
+        ax.plot(time[ticks], _cos_hb(z, names), lw=1.3, label=f"{model} {lbl}" + (f" ({st})" if key == "state" else ""),
+                **observer_style(model, ls=style))
     ax.axhline(0.0, color="r", lw=0.8, label="BiNM singularity (h . B = 0)")
     ax.set_xlabel("time [s]")
     ax.set_ylabel("h . B / (|h| |B|) [-]")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize="small")
+    beside_legend(ax)
     if sing.size:
         what = f"the BiNM fit reached the singularity ({str(fits['binm'].data['reason'][i])})"
     else:

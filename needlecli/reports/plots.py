@@ -24,7 +24,7 @@ import numpy as np  # noqa: E402
 
 from needlecli.io.atomic import atomic_path  # noqa: E402
 from needlecli.io.results import Group  # noqa: E402
-from needlecli.metrics import ErrorSet, QuantityError  # noqa: E402
+from needlecli.metrics import AXIS_QUANTITIES, ErrorSet, QuantityError  # noqa: E402
 from needlecli.reports import PLOTS  # noqa: E402, F401  (the registry of plots; the plots register in it)
 
 TRUTH_COLOUR = "k"
@@ -173,11 +173,14 @@ def _band_words(kinds: set[str]) -> str:
 @PLOTS.register("error_vs_depth")
 def error_vs_depth(res: Group, errors: dict[str, ErrorSet], path_stem: Path) -> Path | None:
     """Mean and 5-95 % band of each error quantity against inserted depth, one panel per quantity, from
-    the steps where truth exists; one colour per observer, one legend for all panels."""
+    the steps where truth exists; one colour per observer, one legend for all panels. The per-axis
+    position errors of an observer whose E_xyz is drawn are left to the tables (E_lat and E_ax are drawn)."""
     from needlecli.reports.tables import order_quantities
 
-    quantities = order_quantities({q for es in errors.values() for q, qe in es.quantities.items()
-                                   if np.isfinite(qe.values).any()})
+    shown = {obs: {q: qe for q, qe in es.quantities.items()  # per-axis errors where the norm is drawn: the tables
+                   if np.isfinite(qe.values).any() and not (q in AXIS_QUANTITIES and "E_xyz" in es.quantities)}
+             for obs, es in errors.items()}
+    quantities = order_quantities({q for qs in shown.values() for q in qs})
     if not quantities:
         raise PlotSkipped("no error quantity could be computed (no truth where any observer estimated)")
     depth = run_depths(res)
@@ -186,8 +189,8 @@ def error_vs_depth(res: Group, errors: dict[str, ErrorSet], path_stem: Path) -> 
     kinds: set[str] = set()
     handles = {}
     for ax, q in zip(axes[:, 0], quantities):
-        for obs, es in errors.items():
-            qe: QuantityError | None = es.quantities.get(q)
+        for obs in errors:
+            qe: QuantityError | None = shown[obs].get(q)
             if qe is None or qe.values.size == 0:
                 continue
             d, m, lo, hi, kind = curve_against_depth(depth[qe.runs], qe.values)

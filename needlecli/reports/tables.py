@@ -21,11 +21,12 @@ from needlecli.reports import TABLES
 
 TableFn = Callable[[Group, dict[str, ErrorSet]], pd.DataFrame]
 
-_QUANTITY_ORDER = ["E_xyz", "E_x", "E_y", "E_z", "E_alpha", "E_beta", "E_gamma", "E_R", "E_h", "E_B", "E_kappa"]
+_QUANTITY_ORDER = ["E_xyz", "E_x", "E_y", "E_z", "E_lat", "E_ax", "E_alpha", "E_beta", "E_gamma", "E_R", "E_h", "E_B", "E_kappa"]
 
 
 def order_quantities(names):
-    """Quantities in the papers' order (position, angles, rotation, vectors, curvature, the rest)."""
+    """Quantities in the papers' order (position: its norm, per axis, across and along the needle; angles,
+    rotation, vectors, curvature, the rest)."""
     return sorted(names, key=lambda q: (_QUANTITY_ORDER.index(q) if q in _QUANTITY_ORDER else 99, q))
 
 
@@ -63,7 +64,9 @@ def _rows(errors: dict[str, ErrorSet], stats: dict[str, Callable[[np.ndarray], f
 def summary_table(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
     """Instantaneous estimation error over all kept runs and all time steps, the initial one included:
     Mean, Std, Max (seed 003's statistics; its Table 1, table seed003_table1, counts only the steps after
-    initialisation)."""
+    initialisation). The tip position error E_xyz is also given per axis (E_x, E_y, E_z) and, where the
+    model has a needle axis, across it (E_lat, lateral) and along it (E_ax, axial), about the truth's
+    tangent."""
     return _rows(errors, {"Mean": np.mean, "Std": np.std, "Max": np.max})
 
 

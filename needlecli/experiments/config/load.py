@@ -66,12 +66,20 @@ def config_problems(path: str | Path, overrides: list[str] | None = None) -> lis
     """Every problem of a config at once (``needle validate``): each key the schema refuses, then, when the
     schema holds, every problem across sections; the memory check only when nothing else is wrong. A
     file that cannot be read or parsed, or an override that cannot be applied, is one problem. Empty: valid."""
+    return checked_config(path, overrides)[1]
+
+
+def checked_config(path: str | Path, overrides: list[str] | None = None) -> tuple[ExperimentConfig | None,
+                                                                                 list[NeedleError]]:
+    """:func:`config_problems` with the validated config: ``(config, [])`` for a valid one (what ``needle
+    validate`` analyses further), ``(None, problems)`` otherwise."""
     problems: list[NeedleError] = []
+    loaded = None
     try:
-        _load(path, overrides=overrides, problems=problems)
+        loaded = _load(path, overrides=overrides, problems=problems)
     except NeedleError as e:
         problems.append(e)
-    return problems
+    return (loaded[0] if loaded is not None and not problems else None), problems
 
 
 def _load(path, *, text=None, overrides=None, runs=None, seed=None, memory=True, problems=None):

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -54,6 +55,7 @@ if TYPE_CHECKING:
     from needlecli.io.results import Group
 
 Progress = Callable[[str, int, int], None]
+log = logging.getLogger("needlecli")
 
 
 # ---------------------------------------------------------------------------------------------- config
@@ -229,6 +231,7 @@ def compare_observers(
     from needlecli.experiments.config.load import load_config
     from needlecli.experiments.config.types import CONFIG_FORMAT
     from needlecli.experiments.simulation import components
+    from needlecli.experiments.simulation.observability import unobservable_states
     from needlecli.experiments.simulation.replay import replay_truth
     from needlecli.experiments.simulation.runner import build_problem, results_tree, simulate_and_measure
     from needlecli.experiments.simulation.truth import stream
@@ -238,6 +241,8 @@ def compare_observers(
     from needlecli.observers import OBSERVERS
 
     cfg, text, source = load_compare_config(config, model=model, runs=runs, seed=seed, overrides=overrides)
+    for u in unobservable_states(cfg):  # what no observer can estimate with these sensors, said before the table
+        log.warning("%s: [sensors] %s", source, u.message())
     out = Path(out_dir) if out_dir is not None else Path("results") / f"{cfg.name}_compare"
     check_output_dir(out, what="the comparison")
     base_dir = Path(source.split(" (replay config)")[0]).parent if cfg.source is not None else Path(config).parent

@@ -51,7 +51,17 @@ STATUS_UNOBSERVABLE = "unobservable"  # the inputs cannot make the estimate conv
 
 
 class ObserverSettings(Strict):
-    """Settings every observer has."""
+    """Settings every observer has; an observer's ``Settings`` subclass adds its own keys as pydantic
+    fields (each with a description: ``needle explain`` and the config reference show them), with
+    ``type`` a ``Literal`` of its registered name. Unknown keys are refused.
+
+    Attributes
+    ----------
+    type : str
+        The registered name (the entry point's name for a plug-in).
+    name : str or None
+        The observer's name in the results file and the tables (default: the type).
+    """
 
     type: str
     name: Name | None = Field(None, description="name in the results file (defaults to the type)")
@@ -59,10 +69,28 @@ class ObserverSettings(Strict):
 
 @dataclass
 class Posterior:
-    """Observer output on the problem's time grid.
+    """Observer output on the problem's time grid (``N`` runs, ``T`` grid times, ``n`` estimated states;
+    checked by :mod:`needlecli.observers.contract` before it is written).
 
-    state : (N, T, n); cov : (N, T, n, n) or None; status : (N,) str; reason : (N,) str;
-    names, units : per state; extras : further named arrays (stored under the observer's group).
+    Attributes
+    ----------
+    state : (N, T, n) ndarray
+        The estimates; NaN only in a run whose status is not ``ok``, from where it stopped.
+    cov : (N, T', n, n) or (N, T', n) ndarray, or None
+        Covariances at grid steps ``0, s, 2s, ...`` (``s = problem.cov_stride``, ``T' = ceil(T / s)``) in
+        ``problem.cov_layout`` (``full`` or ``diag``); None for layout ``none`` or an observer without one.
+        Symmetric and positive semi-definite in every ``ok`` run.
+    status, reason : (N,) str
+        ``ok`` and ``""``, or ``diverged``, ``singular``, ``unobservable`` with why.
+    names, units : tuple of str
+        Each state's name and unit: a state the truth has by the same name is compared with it
+        (``x``, ``y``, ``z`` give E_xyz, E_x, E_lat, ...).
+    angle_states : tuple of str
+        The states compared wrapped (angles).
+    extras : dict of str to ndarray
+        Further arrays with the runs first, stored under the observer's group (``nis/<channel>``, ...).
+    attrs : dict
+        Further attributes of the observer's group (texts, numbers, lists).
     """
 
     state: np.ndarray

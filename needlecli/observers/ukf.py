@@ -255,6 +255,8 @@ class UnscentedKalmanFilter(Observer):
         new = {k: (v / root if _real(v) else v) for k, v in q.items()}
         settings["q"] = new
         pairs = ", ".join(f"{k} {q[k]:g} -> {new[k]:g}" for k in q if _real(q[k]))
+        if not pairs:
+            return []
         return [f"q was per filter tick of {tick:g} s (config format {config_format}); now per square-root second "
                 f"(q_tick / sqrt({tick:g} s)): {pairs}"]
 

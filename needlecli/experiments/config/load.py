@@ -105,6 +105,9 @@ def _load(path, *, text=None, overrides=None, runs=None, seed=None, memory=True,
     check_consistency(cfg, source, problems)
     if problems:
         return None
+    for line in upgraded:  # said once the config holds (a bad config's one line is its error)
+        log.warning("%s; write format: %d at the top of the config once it gives q per square-root second", line,
+                    CONFIG_FORMAT)
     if memory:
         check_memory(cfg, source, Path(source).parent if source != "<string>" else Path("."))
     if changed or fitted or upgraded:  # the config as it ran: converted keys and from_fit's values written out,
@@ -118,8 +121,9 @@ def upgrade_format(data: dict, source: str) -> list[str]:
     place: each observer converts its own keys (:meth:`Observer.upgrade_settings
     <needlecli.observers.base.Observer.upgrade_settings>`: format 1's ukf ``q`` per filter tick becomes per
     square-root second), and ``format`` is set. The format is the config's ``format:``, 1 where it has
-    none. Returns one line per observer converted, which is also logged (a warning: the config's numbers
-    now mean something else than its text says); none for a config in the current format."""
+    none. Returns one line per observer converted (the loader logs each as a warning once the config is
+    valid: its numbers now mean something else than its text says); none for a config in the current
+    format."""
     if not isinstance(data, dict):
         return []
     given = data.get("format", 1)
@@ -142,9 +146,6 @@ def upgrade_format(data: dict, source: str) -> list[str]:
     rest = {k: v for k, v in data.items() if k != "format"}
     data.clear()
     data.update({"format": CONFIG_FORMAT, **rest})  # first, as a config writes it
-    for line in lines:
-        log.warning("%s; write format: %d at the top of the config once it gives q per square-root second", line,
-                    CONFIG_FORMAT)
     return lines
 
 

@@ -28,10 +28,14 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from needlecli.models import MODELS, Model, NotMeasurable
+
+if TYPE_CHECKING:
+    from needlecli.experiments.config.types import ExperimentConfig
 
 log = logging.getLogger("needlecli")
 
@@ -126,7 +130,7 @@ def _jacobian(h, x: np.ndarray, scale: np.ndarray) -> np.ndarray:
         return ((np.asarray(h(xp), dtype=float) - np.asarray(h(xm), dtype=float)) / (2 * steps[:, None])).T
 
 
-def unobservable_states(cfg) -> list[Unobservable]:
+def unobservable_states(cfg: ExperimentConfig) -> list[Unobservable]:
     """The states of ``cfg``'s model that a table reports and that its sensors do not observe along the
     nominal insertion (module docstring); empty for a replay, a config without sensors, or a model whose
     path cannot be linearised (an advice: a model or sensor that fails here, a plug-in's too, is left to
@@ -138,7 +142,7 @@ def unobservable_states(cfg) -> list[Unobservable]:
         return []
 
 
-def _unobservable(cfg) -> list[Unobservable]:
+def _unobservable(cfg: ExperimentConfig) -> list[Unobservable]:
     from needlecli.experiments.simulation.truth import time_grid
     from needlecli.numerics import complex_step_jacobian
     from needlecli.sensors import SENSORS

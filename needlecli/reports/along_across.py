@@ -131,7 +131,7 @@ def error_along_across(res: Group, errors, path_stem: Path) -> Path | None:
                                gid=f"sensor:{label}")
             else:
                 d, m, lo, hi, _ = curve_against_depth(scale * depth, scale * v)
-                st = observer_style(label)
+                st = observer_style(label, n=d.size)
                 (h,) = ax.plot(d, m, lw=1.4, label=label, **st)
                 ax.fill_between(d, lo, hi, alpha=0.15, color=st["color"], lw=0)
             handles.setdefault(label, h)

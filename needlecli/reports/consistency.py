@@ -264,7 +264,7 @@ def nees_vs_depth(res: Group, errors, path_stem: Path) -> Path | None:
         values = np.concatenate([np.concatenate([it[2], it[3], it[4]]) for it in items])
         values = values[np.isfinite(values) & (values > 0)]
         for obs, d, avg, lo, hi, _ in items:
-            st = observer_style(obs)
+            st = observer_style(obs, n=d.size)
             (line,) = ax.plot(d, avg, lw=1.3, **st)
             ax.fill_between(d, lo, hi, color=st["color"], alpha=0.15, lw=0)
             handles.setdefault(obs, line)

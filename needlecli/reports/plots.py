@@ -65,13 +65,24 @@ def observer_colour(name: str) -> str:
     return OBSERVER_PALETTE[_name_hash(name) % len(OBSERVER_PALETTE)]
 
 
-def observer_look(name: str) -> dict:
+#: markers on a curve of many points: about this many, each name's first at another eighth of the spacing
+MARKERS_PER_CURVE = 8
+
+
+def observer_look(name: str, n: int | None = None) -> dict:
     """Colour, dashes and marker of ``name``'s artists (``color``, ``ls``, ``marker``, ``markevery``), the
-    same in every figure: the markers every 12 % of a curve's length, each name's starting elsewhere."""
+    same in every figure. The markers: on a curve of ``n`` points about :data:`MARKERS_PER_CURVE` of them,
+    every ``n // 8`` points from an offset that depends on the name (so that two curves on top of each
+    other show both); without ``n``, every 12 % of the curve's drawn length."""
     h = _name_hash(name) // len(OBSERVER_PALETTE)
     k = h // len(OBSERVER_DASHES)
+    if n is None:
+        every = (0.015 * (k % 8), 0.12)
+    else:
+        step = max(1, int(n) // MARKERS_PER_CURVE)
+        every = ((k % 8) * step // 8, step)
     return {"color": observer_colour(name), "ls": OBSERVER_DASHES[h % len(OBSERVER_DASHES)],
-            "marker": OBSERVER_MARKERS[k % len(OBSERVER_MARKERS)], "markevery": (0.015 * (k % 8), 0.12)}
+            "marker": OBSERVER_MARKERS[k % len(OBSERVER_MARKERS)], "markevery": every}
 
 
 def observer_colours(res: Group) -> dict[str, str]:
@@ -82,11 +93,12 @@ def observer_colours(res: Group) -> dict[str, str]:
     return {n: observer_colour(n) for n in names}
 
 
-def observer_style(obs: str, *, line: bool = True, ls=None) -> dict:
-    """Keywords of an observer's artists: its look (:func:`observer_look`) and a ``gid`` naming it (the
-    tests read it). ``line=False``: colour, marker and gid only (error bars, scatter); ``ls``: a line style
-    that means something else in the figure (an input case), in place of the observer's dashes."""
-    look = observer_look(obs)
+def observer_style(obs: str, *, line: bool = True, ls=None, n: int | None = None) -> dict:
+    """Keywords of an observer's artists: its look (:func:`observer_look`; ``n``: the curve's number of
+    points) and a ``gid`` naming it (the tests read it). ``line=False``: colour, marker and gid only (error
+    bars, scatter); ``ls``: a line style that means something else in the figure (an input case), in
+    place of the observer's dashes."""
+    look = observer_look(obs, n)
     out = {"color": look["color"], "marker": look["marker"], "gid": f"observer:{obs}"}
     if line:
         out.update(ls=look["ls"] if ls is None else ls, markevery=look["markevery"], ms=4)
@@ -197,7 +209,7 @@ def error_vs_depth(res: Group, errors: dict[str, ErrorSet], path_stem: Path) -> 
             if d.size == 0:
                 continue
             kinds.add(kind)
-            st = observer_style(obs)
+            st = observer_style(obs, n=d.size)
             (line,) = ax.plot(d, m, lw=1.3, label=obs, **st)
             ax.fill_between(d, lo, hi, alpha=0.18, color=st["color"], lw=0)
             handles.setdefault(obs, line)
@@ -246,7 +258,7 @@ def trajectories(res: Group, errors: dict[str, ErrorSet], path_stem: Path, max_r
                 fin = np.isfinite(e[r, :, a]) & np.isfinite(e[r, :, b])
                 if fin.sum() >= 2:
                     (line,) = ax.plot(e[r, fin, a], e[r, fin, b], lw=0.8, label=obs if obs not in drawn else None,
-                                      **observer_style(obs))
+                                      **observer_style(obs, n=int(fin.sum())))
                     drawn.setdefault(obs, line)
         ax.set_xlabel(f"{axes_names[a]} [mm]")
         ax.set_ylabel(f"{axes_names[b]} [mm]")

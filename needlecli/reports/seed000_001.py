@@ -270,7 +270,7 @@ def rotation_error_plot(res: Group, errors: dict[str, ErrorSet], path_stem: Path
         d, m, _, _, kind = curve_against_depth(depth[runs], e)
         if d.size:
             kinds.add(kind)
-            (line,) = ax.plot(d, m, lw=1.8, **st)
+            (line,) = ax.plot(d, m, lw=1.8, **{**st, **observer_style(obs, n=d.size)})
             handles.setdefault(obs, line)
     if not handles:
         plt.close(fig)

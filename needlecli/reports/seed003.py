@@ -173,7 +173,7 @@ def curvature_plot(res: Group, errors, path_stem: Path) -> Path | None:
             runs = runs[ok[runs]]
             if runs.size == 0:
                 continue
-            st = observer_style(obs, ls=CASE_STYLES[c % len(CASE_STYLES)] if len(groups) > 1 else None)
+            st = observer_style(obs, ls=CASE_STYLES[c % len(CASE_STYLES)] if len(groups) > 1 else None, n=len(time))
             axs[0].plot(time, g.data["state"][runs, :, ki].mean(0), lw=1.4, **st)
             if obs in with_cov:
                 cov = g.data["cov"]

@@ -482,7 +482,7 @@ def fig5(res: Group, errors, path_stem: Path) -> Path | None:
             continue
         z = np.asarray(g.data["state"])[i][:, idx] * scale
         status = str(np.asarray(g.data["status"]).astype(str)[i])
-        sty = observer_style(model)
+        sty = observer_style(model, n=len(z))
         plain = {k: v for k, v in sty.items() if k not in ("marker", "markevery", "ms")}
         axs[0].plot(z[:, shown[0]], z[:, shown[1]], lw=1.2, label=f"{model} EM ({status})", **sty)
         ticks = np.asarray(g.data["ticks"])
@@ -574,7 +574,7 @@ def fig10(res: Group, errors, path_stem: Path) -> Path | None:
         lbl = {"state": "EM estimate", "ekf_state": "EKF forward pass"}[key]
         st = str(np.asarray(g.data["status"]).astype(str)[i])
         ax.plot(time[ticks], _cos_hb(z, names), lw=1.3, label=f"{model} {lbl}" + (f" ({st})" if key == "state" else ""),
-                **observer_style(model, ls=style))
+                **observer_style(model, ls=style, n=len(ticks)))
     ax.axhline(0.0, color="r", lw=0.8, label="BiNM singularity (h . B = 0)")
     ax.set_xlabel("time [s]")
     ax.set_ylabel("h . B / (|h| |B|) [-]")

@@ -188,8 +188,9 @@ class Mapping(Strict):
 def read_csv(path: Path, columns: list[str]) -> dict[str, np.ndarray]:
     """Numeric columns of a CSV with a header row; a bad row is an error naming file and line. Empty
     cells (and nan, NA) are missing values (NaN): a lost sensor sample, an error in an input or truth."""
-    if not path.exists():
-        raise DataError(f"{path}: no such CSV file")
+    from needlecli.io.inputs import check_kind
+
+    check_kind(path, "a CSV file")  # a regular file (never a FIFO that would wait for ever)
     try:
         with path.open(newline="", encoding="utf-8") as f:
             rows = list(csv.reader(f))
@@ -383,7 +384,7 @@ def _stream_time(mp, spec, default_time, meta, src, loc):
 def _check_formula_names(path: Path, formula, tcols: list[str], meta: dict) -> None:
     """A name of a time formula that is neither the row, the trial's metadata nor a column of the file:
     one error saying all three (before the CSV is read)."""
-    if formula is None or not tcols or not path.exists():
+    if formula is None or not tcols or not path.is_file():
         return
     try:
         with path.open(newline="", encoding="utf-8") as f:

@@ -70,10 +70,10 @@ def user_errors(fn: Callable | None = None, *, outputs: str = "set") -> Callable
                         if e.exit_code in (0, 1) and written is not None:  # complete outputs, then a verdict
                             written.keep = True
                         raise
-                WARNINGS.flush()
+                WARNINGS.show()
                 return result
             except (typer.Exit, click.exceptions.Exit) as e:
-                WARNINGS.flush() if e.exit_code in (0, 1) else WARNINGS.drop()
+                WARNINGS.show() if e.exit_code in (0, 1) else WARNINGS.drop()
                 raise
             except NeedleError as e:
                 hold_signals()
@@ -193,9 +193,13 @@ class WarningChannel(logging.Handler):
         lines, self.held = self.held, []
         return lines
 
-    def flush(self) -> None:  # noqa: D102 (logging.Handler's name: print what is held)
+    def show(self) -> None:
+        """Print what is held (the command succeeded)."""
         for line in self.take():
             typer.echo(line, err=True)
+
+    def flush(self) -> None:
+        """Nothing: held lines are printed by :meth:`show` only (``logging.shutdown`` flushes every handler)."""
 
     def drop(self) -> None:
         self.held.clear()

@@ -579,6 +579,10 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
             with contextlib.suppress(OSError):
                 os.unlink(tmp)
             JOURNAL.inflight.discard(tmp)
+            if current is None:  # the folders made for it (a set removes its own with the rest)
+                for d in missing:
+                    with contextlib.suppress(OSError):
+                        os.rmdir(d)
         if isinstance(e, OSError) and not isinstance(e, OutputError):
             kept = " (the earlier file there is unchanged)" if path.is_file() else ""
             raise OutputError(path, f"cannot write: {_os_reason(e)}; nothing was written{kept}") from None

@@ -32,6 +32,8 @@ def read_fit(path: str | Path) -> Group:
     try:
         with open_hdf5(path, "a fit file") as f:
             fmt = root_attribute(f, "format", "any", path)
+            if isinstance(fmt, np.ndarray):  # an array where the documented text is: named with its path
+                root_attribute(f, "format", "str", path)
             if not isinstance(fmt, str) or fmt != FIT_FORMAT or "fit" not in f or "time" not in f:
                 raise DataError(f"{shown(path)}: not a needlecli fit file: it is {describe(path)} (format "
                                 f"{_what(fmt) if fmt is not None else 'none'}, no /fit or /time)")

@@ -329,6 +329,8 @@ def read_log(path: str | Path) -> Log:
     try:
         with open_hdf5(path, "a log file") as f:
             fmt = root_attribute(f, "format", "any", path)
+            if isinstance(fmt, np.ndarray):  # an array where the documented text is: named with its path
+                root_attribute(f, "format", "str", path)
             if not isinstance(fmt, str) or fmt != LOG_FORMAT:
                 shown_fmt = fmt if isinstance(fmt, (str, int, float)) or fmt is None else f"an array of shape {np.shape(fmt)}"
                 raise DataError(f"{shown(path)}: not a needlecli log: it is {describe(path)} (format attribute "

@@ -60,15 +60,16 @@ class CrossvalResult:
     out_dir: Path
 
 
-def group_of(trial_id: str, meta: dict, spec: str | None) -> str:
-    """A trial's group under ``spec``: ``id~REGEX`` (first match in the id) or a metadata key."""
+def group_of(trial_id: str, meta: dict, spec: str | None, where: str = "") -> str:
+    """A trial's group under ``spec``: ``id~REGEX`` (first match in the id) or a metadata key (``where``:
+    the file the trials come from, for the message when a trial lacks it)."""
     if spec is None:
         return trial_id
     if spec.startswith("id~"):
         m = re.search(spec[3:], trial_id)
         return m.group(0) if m else trial_id
     if spec not in meta:
-        where = f" of {shown(meta['log'])}" if isinstance(meta.get("log"), str) else ""
+        where = f" of {shown(meta['log'])}" if isinstance(meta.get("log"), str) else f" of {shown(where)}" if where else ""
         raise ConfigError("--group-by", (), f"trial {trial_id!r}{where} has no metadata {spec!r}; it has "
                           f"{', '.join(sorted(k for k in meta if k != 'log')) or 'none'} (or use id~REGEX)")
     return str(meta[spec])
@@ -214,7 +215,7 @@ def crossval(
     # memory and in the command's set of outputs, which is renamed into place only when all of it succeeded)
     base, trials, base_dir, sim_log = _replay_base(cfg_path, data, out, progress)
     ids = [t for t, _ in trials]
-    groups = [group_of(t, m, group_by) for t, m in trials]
+    groups = [group_of(t, m, group_by, source) for t, m in trials]
     plan = make_folds(ids, groups, k=None if leave_one_out else (folds if folds is not None else 5),
                       leave_one_out=leave_one_out, within=within, k_given=folds is not None)
     if sim_log is not None:

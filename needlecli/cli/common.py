@@ -9,7 +9,6 @@ import sys
 from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING
 
-import click
 import typer
 
 from needlecli.errors import ComponentError, Interrupted, NeedleError
@@ -66,14 +65,17 @@ def user_errors(fn: Callable | None = None, *, outputs: str = "set") -> Callable
                 with output_set() if outputs == "set" else contextlib.nullcontext() as written:
                     try:
                         result = fn(*args, **kwargs)
-                    except (typer.Exit, click.exceptions.Exit) as e:
+                    except typer.Exit as e:
                         if e.exit_code in (0, 1) and written is not None:  # complete outputs, then a verdict
                             written.keep = True
                         raise
                 WARNINGS.show()
                 return result
-            except (typer.Exit, click.exceptions.Exit) as e:
-                WARNINGS.show() if e.exit_code in (0, 1) else WARNINGS.drop()
+            except typer.Exit as e:
+                if e.exit_code in (0, 1):
+                    WARNINGS.show()
+                else:
+                    WARNINGS.drop()
                 raise
             except NeedleError as e:
                 hold_signals()

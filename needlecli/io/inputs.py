@@ -30,6 +30,8 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from needlecli import platform
 from needlecli.errors import DataError, NeedleError, shown
 from needlecli.io.atomic import staged_path
@@ -195,9 +197,12 @@ def root_format(path: str | Path) -> str | None:
         return None
     if isinstance(fmt, bytes):
         fmt = fmt.decode("utf-8", "replace")
+    if isinstance(fmt, np.ndarray) and fmt.dtype.kind in "OSU":  # a damaged text format: which one it meant
+        texts = {x.decode("utf-8", "replace") if isinstance(x, bytes) else str(x) for x in fmt.ravel()}
+        fmt = next((t for t in ("needlecli-fit", "needlecli-log") if t in texts), fmt)
     if isinstance(fmt, str):
         return {"needlecli-fit": "fit", "needlecli-log": "log"}.get(fmt, "hdf5")
-    if fmt is not None and "truth" in names and "time" in names:
+    if isinstance(fmt, (int, np.integer)) and not isinstance(fmt, bool) or (fmt is not None and "truth" in names):
         return "results"  # a results file's format is its version number
     return "hdf5"
 

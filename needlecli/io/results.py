@@ -361,9 +361,12 @@ def read_results(path: str | Path) -> Group:
     try:
         with open_hdf5(path, "a results file") as f:
             fmt = root_attribute(f, "format", "any", path)
-            if fmt is None or "truth" not in f or "time" not in f:
-                raise DataError(f"{shown(path)}: not a needlecli results file: it is {describe(path)} (no format "
-                                "attribute, /time or /truth)")
+            missing = [n for n in ("time", "truth") if n not in f]
+            if fmt is None or missing:
+                kind = describe(path)
+                what = "" if kind.startswith("a results file") else f": it is {kind}"
+                lacks = "no format attribute" if fmt is None else "no " + " or ".join("/" + m for m in missing)
+                raise DataError(f"{shown(path)}: not a needlecli results file{what} ({lacks})")
             if isinstance(fmt, bool) or not isinstance(fmt, int):
                 raise DataError(f"{shown(path)}: [/ attribute format] should be the integer {RESULTS_FORMAT}, is "
                                 f"{_what(fmt)}")

@@ -9,7 +9,7 @@ import typer
 from needlecli.cli.common import check_results_target, fail, log, progress_bar, setup_logging, user_errors
 
 
-@user_errors
+@user_errors(outputs="each")  # one fit file per source, each kept when complete
 def fit_em_cmd(
     sources: list[Path] = typer.Argument(..., metavar="CONFIG_OR_LOG...", help="Experiment configs (.yaml); "
                                          "recorded trials through a config with `source: {logs: [...]}`."),
@@ -31,6 +31,7 @@ def fit_em_cmd(
     """
     import numpy as np
 
+    from needlecli.errors import shown
     from needlecli.experiments.studies.fit import (
         default_fit_output,
         fit_models_option,
@@ -78,7 +79,7 @@ def fit_em_cmd(
 
             for line in warning_summary(tree, statuses=False):  # R on its floor, Q nearly singular, kappa < 0
                 typer.echo(f"  warning: {line}")
-        typer.echo(f"fit: {target}")
+        typer.echo(f"fit: {shown(target)}")
 
 
 #: a drop of the log-likelihood up to this fraction of the trial's whole rise over the fit is negligible

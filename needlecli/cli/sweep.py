@@ -11,7 +11,7 @@ from needlecli.cli.common import fail, log, progress_bar, setup_logging, user_er
 from needlecli.errors import Interrupted
 
 
-@user_errors
+@user_errors(outputs="each")  # each cell kept when complete, for --resume
 def sweep(
     config: Path = typer.Argument(..., help="Experiment config (YAML): the base of every cell."),
     grid: Path = typer.Option(..., "--grid", "-g", help="Grid file: axes, cells or random samples of dotted overrides."),

@@ -47,7 +47,7 @@ import numpy as np
 import yaml
 from pydantic import ValidationError
 
-from needlecli.errors import ComponentError, ConfigError, DataError, NeedleError
+from needlecli.errors import ComponentError, ConfigError, DataError, NeedleError, shown
 from needlecli.observers.defaults import PREDICTION_FRACTION, ComparisonContext, NotApplicable
 
 if TYPE_CHECKING:
@@ -61,18 +61,9 @@ log = logging.getLogger("needlecli")
 # ---------------------------------------------------------------------------------------------- config
 def is_log(path: str | Path) -> bool:
     """Whether ``path`` is an HDF5 log file (format needlecli-log)."""
-    import h5py
+    from needlecli.io.inputs import root_format
 
-    p = Path(path)
-    if not p.is_file() or not h5py.is_hdf5(p):
-        return False
-    try:
-        with h5py.File(p, "r") as f:
-            fmt = f.attrs.get("format")
-        fmt = fmt.decode() if isinstance(fmt, bytes) else fmt
-        return fmt == "needlecli-log"
-    except OSError:
-        return False
+    return root_format(path) == "log"
 
 
 def load_compare_config(
@@ -86,15 +77,14 @@ def load_compare_config(
     """The experiment to compare on: a config (``runs``, ``seed``, ``overrides`` as in ``needle
     simulate``), or a log file replayed with ``model`` (``runs``: its first trials). Returns
     ``(config, text, source)``."""
-    import h5py
-
     from needlecli.experiments.config.load import load_config
+    from needlecli.io.inputs import describe, root_format
     from needlecli.models import MODELS
 
     path = Path(path)
     if not is_log(path):
-        if path.is_file() and h5py.is_hdf5(path):
-            raise DataError(f"{path}: an HDF5 file that is not a log (format needlecli-log); give a config or a log")
+        if root_format(path) is not None:
+            raise DataError(f"{shown(path)}: is {describe(path)}, not a log (format needlecli-log); give a config or a log")
         if model is not None:
             raise ConfigError(str(path), (), "--model is for log files; a config names its model")
         cfg, text = load_config(path, overrides=overrides, runs=runs, seed=seed)

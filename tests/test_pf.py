@@ -27,7 +27,8 @@ from test_ukf import _channel, kalman_reference  # noqa: E402
 
 STATES = ("x", "y", "z", "vx", "vy", "vz")
 DT = 0.01
-Q = np.array([0.03, 0.03, 0.03, 0.05, 0.05, 0.05])  # std per tick
+Q = np.array([0.03, 0.03, 0.03, 0.05, 0.05, 0.05])  # the truth's noise std per grid step
+Q_ROOT = Q / np.sqrt(DT)  # the filters' q: the same, per square-root second
 P0 = np.array([0.09, 0.09, 0.09, 0.04, 0.04, 0.04])  # variances
 SIGMA = {"pos": 0.3, "vel": 0.05}  # as kalman_reference of test_ukf has them (SIGMA_LIN)
 RB_NAME = "linear_test_model_translation"
@@ -85,7 +86,7 @@ def particle_filter(problem, particles, *, rb=False, seed=1, **extra):
     cls, settings = (RaoBlackwellisedParticleFilter, RBPFSettings) if rb else (ParticleFilter, PFSettings)
     s = settings.model_validate({
         "type": "rbpf" if rb else "pf", "particles": particles,
-        "q": dict(zip(STATES, map(float, Q))), "p0": dict(zip(STATES, map(float, P0))),
+        "q": dict(zip(STATES, map(float, Q_ROOT))), "p0": dict(zip(STATES, map(float, P0))),
         "measurements": {c: {"sigma": SIGMA[c]} for c in problem.channels}, "init": {"from": "truth"}, **extra})
     return cls(s).run(problem, np.random.default_rng(seed))
 
@@ -105,7 +106,7 @@ def test_many_particles_match_the_kalman_filter(rb):
     instead of 0.05); these bounds are 0.2 to 0.5 sigma. (The Rao-Blackwellised filter carries the
     positions exactly given the velocities: its error is smaller.)"""
     problem, _ = linear_problem(RB_NAME if rb else linear_model.NAME)
-    ref_x, ref_p = kalman_reference(problem, q=Q, p0=P0)
+    ref_x, ref_p = kalman_reference(problem, q=Q_ROOT, p0=P0)
     post = particle_filter(problem, 20000, rb=rb)
     assert (post.status == "ok").all()
     ess_min = post.extras["ess"].min(axis=1)  # (N,)

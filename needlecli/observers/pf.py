@@ -7,9 +7,10 @@ or every ``rate``-th step and the last one; the samples that became available si
 latest valid one of each channel):
 
 1. **predict**: every particle through the model (RK4 on the grid steps of the tick, the inputs held per
-   step), then process noise ``w ~ N(0, diag(q^2))`` per tick; angles wrapped, the state brought back onto
-   its manifold (``model.normalize``). A particle that left the model's domain (``model.left_domain``,
-   e.g. the BiNM's ``h . B = 0``) or stopped being finite is dead: weight zero, its state held;
+   step), then process noise ``w ~ N(0, diag(q^2) dt_tick)`` per tick (``q`` per square-root second, as
+   every observer's); angles wrapped, the state brought back onto its manifold (``model.normalize``). A
+   particle that left the model's domain (``model.left_domain``, e.g. the BiNM's ``h . B = 0``) or stopped
+   being finite is dead: weight zero, its state held;
 2. **update**: each sample multiplies the weights by its likelihood ``p(y | x_i)``: Gaussian
    (``R = diag(sigma^2)``, sigma grown with the measured distance where configured) or, per channel,
    Student-t with ``dof`` degrees of freedom (``likelihood: student_t``, heavy tails for ultrasound
@@ -168,8 +169,8 @@ class PFSettings(ObserverSettings):
     roughening: Probability = Field(0.0, description="jitter after resampling, h of Liu and West's kernel "
                                                      "smoothing: x_bar + sqrt(1 - h^2) (x_i - x_bar) + h L z with L L^T "
                                                      "the cloud's covariance (mean and covariance kept), e.g. 0.1; 0: none")
-    q: dict[str, NonNeg] = Field(default_factory=dict, description="process noise std per state per tick")
-    p0: dict[str, NonNeg] = Field(default_factory=dict, description="initial variance per state")
+    q: dict[str, NonNeg] = Field(default_factory=dict, description="process noise std per state, unit/sqrt(s)")
+    p0: dict[str, NonNeg] = Field(default_factory=dict, description="initial variance per state (unit^2, not a std)")
     measurements: dict[str, ParticleMeasurementSpec] = Field(
         default_factory=dict, description="channels used, by sensor name, with their likelihood, noise, growth and "
                                           "gate (default: every channel the model can predict, Gaussian with the "
@@ -213,7 +214,7 @@ class _Setup:
     """What the tick loop works with, set up once: the filter's model and parameters, its inputs ``(N, T,
     m)``, ticks ``(K,)``, grid step, channels and one-sided channels, the initial mean ``(N, n)`` and the
     factor ``B (n, k)`` that draws the ``k`` particle states (``x0 + B z``), the process noise std per tick
-    ``q (n,)``, the translation states kept by Kalman filters (``marg``, RBPF) with their initial
+    ``q (n,)`` (the setting's ``q sqrt(dt_tick)``), the translation states kept by Kalman filters (``marg``, RBPF) with their initial
     covariance ``Pp0`` and noise ``Qp``, the key of the random numbers, the particles per run, the
     resampling threshold and roughening."""
 
@@ -259,7 +260,7 @@ class ParticleFilter(Observer):
     Settings = PFSettings
     takes_common_start = True
     compiled_entry = ("pf", "run")  # the kernel that compiles longest (the warm-up's)
-    fit_takes = FitTakes(q="per_tick", measurements=True, sensor_states=False)
+    fit_takes = FitTakes(measurements=True, sensor_states=False)
     #: particles for the positions (False) or Kalman filters per particle (True: the RBPF)
     marginal = False
     #: particles per run, and the jitter after resampling, of a comparison's derived settings
@@ -269,13 +270,19 @@ class ParticleFilter(Observer):
     @classmethod
     def derived_settings(cls, ctx):
         """The UKF's (:func:`~needlecli.observers.defaults.filter_settings`: the sensors' nominal sigmas
-        with their growth, the start, ``q`` per tick from the truth's process noise), Gaussian likelihoods,
+        with their growth, the start, ``q`` from the truth's process noise), Gaussian likelihoods,
         :attr:`COMPARE_PARTICLES` particles, Liu and West's jitter :attr:`COMPARE_JITTER` after resampling
         (the needle models' orientation noise per tick is too small to refresh a resampled cloud), no
         prediction (the filter has none)."""
         s = filter_settings(ctx)
         s.pop("predict_at_depths", None)
         return {"particles": cls.COMPARE_PARTICLES, "roughening": cls.COMPARE_JITTER, **s}
+
+    @classmethod
+    def upgrade_settings(cls, settings, *, config_format, dt):
+        """As the UKF's (:meth:`UnscentedKalmanFilter.upgrade_settings`): config format 1 gave ``q`` per filter
+        tick; it is now per square-root second."""
+        return UnscentedKalmanFilter.upgrade_settings(settings, config_format=config_format, dt=dt)
 
     # ------------------------------------------------------------------ configuration checks
     @classmethod
@@ -387,11 +394,10 @@ class ParticleFilter(Observer):
         model = self._model(problem)
         params = model.param_arrays()
         n = model.n
-        _, _, ticks = UnscentedKalmanFilter._ticks(self, problem.time)
-        dt = float(problem.time[1] - problem.time[0]) if len(problem.time) > 1 else 1.0
+        dt, stride, ticks = UnscentedKalmanFilter._ticks(self, problem.time)
         x0 = initial_mean(s.init, problem, model, params, rng)
         P0 = initial_covariance(s.init, model.state_names, s.p0, 1e-12, start=problem.start)
-        q = np.array([s.q.get(k, 0.0) for k in model.state_names], dtype=float)
+        q = np.array([s.q.get(k, 0.0) for k in model.state_names], dtype=float) * math.sqrt(stride * dt)  # per tick
         key = int(rng.integers(0, 2**63 - 1))
         marg = Pp0 = Qp = None
         if self.marginal:

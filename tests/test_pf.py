@@ -280,3 +280,100 @@ def test_outliers_of_a_sensor():
     p = 2 * (1 - norm.cdf(0.3))
     assert abs(beyond.mean() - p) < 4 * np.sqrt(p * (1 - p) / beyond.size)
     assert np.abs(plain).max() < 1.8
+
+
+# ============================================================================ 4. the commands, end to end
+def _study(tmp_path: Path, runs: int = 4) -> Path:
+    """The EM tutorial's experiment (configs/tutorials/fit_em.yaml: a unicycle, a 5 Hz tracker, a fit:
+    section), shortened, with a bootstrap and a Rao-Blackwellised filter of 200 particles beside its
+    open loop."""
+    import yaml
+
+    data = yaml.safe_load((Path(__file__).resolve().parents[1] / "configs/tutorials/fit_em.yaml").read_text())
+    data["format"] = 2  # q per square-root second
+    data["runs"]["count"] = runs
+    data["stop"] = {"depth": 8.0}
+    data["output"] = {"covariance": "full", "tables": ["summary"]}
+    data["fit"]["em"] = {"max_iter": 100, "tol": 0.05}
+    filt = {"particles": 200, "roughening": 0.1,
+            "q": {"x": 0.01, "y": 0.01, "z": 0.01, "alpha": 1.0e-3, "beta": 1.0e-3, "gamma": 1.0e-3},
+            "p0": {"alpha": 1.0e-3, "beta": 1.0e-3, "gamma": 1.0e-2},
+            "measurements": {"tracker": {"sigma": 0.2}},
+            "init": {"from": "truth", "first_measurement": {"x": "tracker.x", "y": "tracker.y", "z": "tracker.z"}}}
+    data["observers"] += [{"name": "pf", "type": "pf", **filt}, {"name": "rbpf", "type": "rbpf", **filt}]
+    path = tmp_path / "study.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def _cli(*args):
+    from typer.testing import CliRunner
+
+    from needlecli.cli.app import app
+
+    r = CliRunner().invoke(app, [str(a) for a in args])
+    assert r.exit_code == 0, r.output
+    return r
+
+
+def _estimates_contract(path: Path, names=("pf", "rbpf"), runs: int = 4) -> None:
+    """Each filter's group: covariances ``(N, T, n, n)`` symmetric PSD, ESS and the resampled flags ``(N, K)``
+    at its ticks, the NIS of the tracker's samples; every run ok."""
+    from needlecli.io.results import read_results
+
+    res = read_results(path)
+    T = np.asarray(res.data["time"]).shape[0]
+    for name in names:
+        g = res.data["estimates"].data[name].data
+        assert (np.asarray(g["status"]).astype(str) == "ok").all()
+        C = np.asarray(g["cov"])
+        assert C.shape == (runs, T, 6, 6)
+        np.testing.assert_allclose(C, np.swapaxes(C, -1, -2), atol=1e-12)
+        assert np.linalg.eigvalsh(C).min() > -1e-12
+        K = np.asarray(g["ticks"]).shape[0]
+        assert np.asarray(g["ess"]).shape == np.asarray(g["resampled"]).shape == (runs, K)
+        assert ((np.asarray(g["ess"]) > 0) & (np.asarray(g["ess"]) <= 200 + 1e-9)).all()
+        assert np.isfinite(np.asarray(g["nis"].data["tracker"])).any()
+
+
+def test_simulate_evaluate_replay_compare_crossval_with_the_particle_filters(tmp_path, monkeypatch):
+    """Both filters through every command that runs observers: ``simulate`` (the results contract's
+    covariances, the ESS and resampling flags per tick, NEES and NIS in ``evaluate``'s consistency table),
+    a replay of the simulation's log, ``compare`` (with the settings they derive themselves) and
+    ``crossval`` (their EM-tuned copies, from ``from_fit``)."""
+    import pandas as pd
+
+    from needlecli.io.logs import log_from_results, write_log
+    from needlecli.io.results import read_results
+
+    monkeypatch.chdir(tmp_path)
+    cfg = _study(tmp_path)
+    _cli("simulate", cfg, "--out", tmp_path / "sim.h5", "--quiet")
+    _estimates_contract(tmp_path / "sim.h5")
+    _cli("evaluate", tmp_path / "sim.h5", "--tables", "consistency", "--out", tmp_path / "ev", "--no-plots", "--quiet")
+    table = (tmp_path / "ev" / "fit_em_consistency.md").read_text()
+    for name in ("pf", "rbpf"):
+        assert f"| {name} " in table and "ANEES" in table and "ANIS" in table
+
+    # a replay: the simulation's log, the same observers
+    import yaml
+
+    write_log(tmp_path / "log.h5", log_from_results(read_results(tmp_path / "sim.h5")))
+    data = yaml.safe_load(cfg.read_text())
+    for k in ("inputs", "sensors", "stop", "process_noise"):
+        data.pop(k, None)
+    data["source"] = {"logs": [str(tmp_path / "log.h5")]}
+    (tmp_path / "replay.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+    _cli("simulate", tmp_path / "replay.yaml", "--out", tmp_path / "replay.h5", "--quiet")
+    assert read_results(tmp_path / "replay.h5").attrs["source"] == "replay"
+    _estimates_contract(tmp_path / "replay.h5")
+
+    _cli("compare", cfg, "--observers", "hand_tuned,pf,rbpf", "--out", tmp_path / "cmp", "--quiet")
+    df = pd.read_csv(tmp_path / "cmp" / "compare.csv").set_index("observer")
+    assert {"pf", "rbpf"} <= set(df.index), df.index
+    assert (df.loc[["pf", "rbpf"], "E_xyz_mean"] < 0.2).all()  # under the tracker's noise: they filter
+
+    _cli("crossval", cfg, "--observer", "pf", "--observer", "rbpf", "--folds", "2", "--from-depths", "",
+         "--out", "cv", "--quiet")
+    s = pd.read_csv(tmp_path / "cv" / "crossval_summary.csv").set_index("Observer")
+    assert {"pf", "pf_em", "rbpf", "rbpf_em"} <= set(s.index) and (s["Held-out trials"] == 4).all()

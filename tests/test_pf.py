@@ -377,3 +377,37 @@ def test_simulate_evaluate_replay_compare_crossval_with_the_particle_filters(tmp
          "--out", "cv", "--quiet")
     s = pd.read_csv(tmp_path / "cv" / "crossval_summary.csv").set_index("Observer")
     assert {"pf", "pf_em", "rbpf", "rbpf_em"} <= set(s.index) and (s["Held-out trials"] == 4).all()
+
+
+def test_the_image_plane_weighs_particles_by_its_probit(tmp_path):
+    """The one-sided image plane (tests/test_plane_bound.py's experiment: the filters started 5 mm off along
+    the needle, the plane their only measurement) brings the bootstrap filter to the tip, by the probit
+    likelihood of the seen/lost verdict, as it brings the UKF; without it the 5 mm stay. The
+    Rao-Blackwellised filter refuses the plane (position and tangent bounded together: not conditionally
+    linear), and the plane's likelihood is not a setting."""
+    import yaml
+    from test_plane_bound import SIM
+
+    from needlecli.errors import ConfigError
+    from needlecli.experiments.config.load import load_config
+    from needlecli.experiments.simulation.runner import run_experiment
+    from needlecli.io.results import read_results
+
+    data = yaml.safe_load(SIM)
+    for o in data["observers"]:
+        o.update(type="pf", particles=300, roughening=0.1)
+    cfg, text = load_config(text=yaml.safe_dump(data, sort_keys=False))
+    run_experiment(cfg, text, out=tmp_path / "plane.h5", base_dir=tmp_path)
+    res = read_results(tmp_path / "plane.h5")
+    truth = np.asarray(res.data["truth"].data["state"])
+    est = {o: np.asarray(res.data["estimates"].data[o].data["state"]) for o in ("with_plane", "without")}
+    used = np.asarray(res.data["estimates"].data["with_plane"].data["used"].data["plane"])
+    assert (used > 0.9 * np.asarray(res.data["measurements"].data["plane"].data["index"]).size).all()
+    err = {o: np.abs(e[:, -1, 2] - truth[:, -1, 2]).mean() for o, e in est.items()}
+    assert err["without"] > 4.0 and err["with_plane"] < 1.5, err
+    for change, match in (({"type": "rbpf"}, "not conditionally linear"),
+                          ({"measurements": {"plane": {"sigma": 0.2, "likelihood": "student_t"}}}, "probit")):
+        bad = yaml.safe_load(SIM)
+        bad["observers"][0].update({"type": "pf", **change})
+        with pytest.raises(ConfigError, match=match):
+            load_config(text=yaml.safe_dump(bad, sort_keys=False))

@@ -65,8 +65,8 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from needlecli.initial import InitialEstimate, check_initial, initial_covariance, initial_mean, make_start
-from needlecli.models import MODELS, Model, StateSelection
+from needlecli.initial import InitialEstimate, initial_covariance, initial_mean, make_start
+from needlecli.models import Model, StateSelection
 from needlecli.numerics import sincos, wrap_angle
 from needlecli.numerics.unscented import robust_cholesky, symmetrize
 from needlecli.observers.base import (
@@ -81,7 +81,7 @@ from needlecli.observers.base import (
 )
 from needlecli.observers.defaults import filter_settings
 from needlecli.observers.record import RunRecorder
-from needlecli.observers.ukf import UnscentedKalmanFilter, _chi2_quantile
+from needlecli.observers.ukf import UnscentedKalmanFilter, _chi2_quantile, check_filter
 from needlecli.schema import DistanceGrowth, NonNeg, Positive, Probability, Strict
 
 # ---------------------------------------------------------------------------------------------- random numbers
@@ -285,49 +285,20 @@ class ParticleFilter(Observer):
         return UnscentedKalmanFilter.upgrade_settings(settings, config_format=config_format, dt=dt)
 
     # ------------------------------------------------------------------ configuration checks
-    @classmethod
-    def _model_cls(cls, settings, model):
-        return MODELS.get(settings.model) if settings.model else type(model)
+    #: the filter's own model (``model`` and ``params`` of the settings), chosen as the UKF's
+    _model_cls = UnscentedKalmanFilter._model_cls
+    _model = UnscentedKalmanFilter._model
 
     @classmethod
     def check(cls, settings, model, sensors):
-        out = []
-        if settings.model and settings.model not in MODELS:
-            return [(("model",), f"unknown model {settings.model!r}; known: {', '.join(MODELS.names())}")]
-        mcls = cls._model_cls(settings, model)
-        for where, keys in (("q", settings.q), ("p0", settings.p0)):
-            for k in keys:
-                if k not in mcls.state_names:
-                    out.append(((where, k), f"model {mcls.registered_name!r} has no state {k!r}"))
-        for k in settings.params:
-            if k not in mcls.Params.model_fields:
-                out.append((("params", k), f"model {mcls.registered_name!r} has no parameter {k!r}"))
-        try:
-            own = mcls(mcls.Params(**{**(model.params.model_dump() if mcls is type(model) else {}), **settings.params}))
-        except Exception as e:  # parameters out of the model's range
-            return out + [(("params",), str(e).splitlines()[-1].strip())]
-        from needlecli.sensors.base import measurement_function
+        return check_filter(settings, model, sensors, channel=cls._check_likelihood)[0]
 
-        for name, spec in settings.measurements.items():
-            loc = ("measurements", name)
-            if name not in sensors:
-                out.append((loc, f"no sensor named {name!r}; sensors: {', '.join(sensors) or 'none'}"))
-            elif getattr(sensors[name], "inequality", False):  # a one-sided bound (image_plane)
-                out += [((*loc, *lc), msg) for lc, msg in UnscentedKalmanFilter._check_bound(sensors[name], own, spec)]
-                if spec.likelihood != "gaussian":
-                    out.append(((*loc, "likelihood"), "a one-sided channel's likelihood is the probit of its bound"))
-            elif {"sides", "margin"} & spec.model_fields_set:
-                out.append(((*loc, "sides" if "sides" in spec.model_fields_set else "margin"),
-                            f"only for a channel that bounds the state from one side; sensor {name!r} is a "
-                            f"{sensors[name].registered_name}"))
-            elif measurement_function(sensors[name], own) is None:
-                out.append((loc, f"model {mcls.registered_name!r} cannot predict what sensor {name!r} measures"))
-        out += [(("init", *loc), msg) for loc, msg in
-                check_initial(settings.init, mcls.state_names, mcls.registered_name, sensors)]
-        for k in mcls.input_names:
-            if k not in model.input_names:
-                out.append((("model",), f"the filter's model needs input {k!r}, which the experiment does not give"))
-        return out
+    @staticmethod
+    def _check_likelihood(name, spec, sensor, own) -> list[tuple[tuple, str]]:
+        """A one-sided channel's likelihood is the probit of its bound, not a setting."""
+        if getattr(sensor, "inequality", False) and spec.likelihood != "gaussian":
+            return [(("likelihood",), "a one-sided channel's likelihood is the probit of its bound")]
+        return []
 
     @classmethod
     def initial_estimate(cls, settings, problem, rng):
@@ -336,16 +307,6 @@ class ParticleFilter(Observer):
         return make_start(settings.init, problem, model, model.param_arrays(), rng, P0, settings.name or settings.type)
 
     # ------------------------------------------------------------------ set-up
-    def _model(self, problem: EstimationProblem) -> Model:
-        """The filter's own model: the experiment's, or ``model`` with ``params`` of the settings."""
-        s = self.settings
-        mcls = self._model_cls(s, problem.model)
-        if mcls is type(problem.model) and not s.params:
-            return problem.model
-        base = problem.model.params.model_dump() if mcls is type(problem.model) else {}
-        base.update(s.params)
-        return mcls(mcls.Params(**base))
-
     def _channels(self, problem: EstimationProblem, model: Model) -> list[dict]:
         """The measurement channels used (as :meth:`UnscentedKalmanFilter._channels` chooses them), each with
         its likelihood and, for the compiled kernel, how ``h`` reads the state (``kind`` 0: a selection

@@ -28,6 +28,7 @@ import numpy as np
 from needlecli.models import StateSelection
 from needlecli.observers.base import OBSERVERS
 from needlecli.observers.pf import ParticleFilter, PFSettings
+from needlecli.observers.ukf import check_filter
 
 
 class RBPFSettings(PFSettings):
@@ -77,16 +78,15 @@ class RaoBlackwellisedParticleFilter(ParticleFilter):
 
     @classmethod
     def check(cls, settings, model, sensors):
-        out = super().check(settings, model, sensors)
-        if out:
+        out, own = check_filter(settings, model, sensors, channel=cls._check_likelihood)
+        if out or own is None:
             return out
         from needlecli.sensors.base import measurement_function
 
-        mcls = cls._model_cls(settings, model)
+        mcls = type(own)
         if not mcls.translation_states:
             return [(("model",), f"model {mcls.registered_name!r} has no positions that its motion does not depend "
                                "on (translation_states): nothing to marginalise; use pf")]
-        own = mcls(mcls.Params(**{**(model.params.model_dump() if mcls is type(model) else {}), **settings.params}))
         names = list(settings.measurements) or list(sensors)
         for name in names:
             sensor = sensors[name]

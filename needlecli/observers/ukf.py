@@ -32,6 +32,7 @@ positions of 80 mm), so that the rounding the alpha = 1e-3 weights (7e4) amplify
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -155,6 +156,75 @@ def _real(v) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and bool(np.isfinite(v))
 
 
+def check_filter(settings, model: Model, sensors: Mapping, channel=None) -> tuple[list[tuple[tuple, str]], Model | None]:
+    """What is wrong with the settings a filter with its own model shares with the UKF: ``model`` and
+    ``params`` (the filter's model, default the experiment's ``model``), ``q`` and ``p0`` per state,
+    ``measurements`` by sensor name (a one-sided channel's bound; ``sides`` and ``margin`` only there; a
+    channel the model can predict), ``init``, and the inputs the filter's model needs.
+
+    Parameters
+    ----------
+    settings : ObserverSettings
+        With the keys above.
+    model : Model
+        The experiment's model.
+    sensors : mapping of str to Sensor
+        The experiment's sensors, by name.
+    channel : callable ``(name, spec, sensor, own) -> list``, optional
+        The filter's own checks of each channel that passed these (``sensor`` the sensor, ``own`` the
+        filter's model), as (key path below ``measurements.<name>``, message).
+
+    Returns
+    -------
+    problems : list of (key path, message)
+    own : Model or None
+        The filter's model; None where the model or its parameters are wrong (the filter's further checks
+        would only repeat that).
+    """
+    from needlecli.sensors.base import measurement_function
+
+    out = []
+    if settings.model and settings.model not in MODELS:
+        return [(("model",), f"unknown model {settings.model!r}; known: {', '.join(MODELS.names())}")], None
+    mcls = MODELS.get(settings.model) if settings.model else type(model)
+    for where, keys in (("q", settings.q), ("p0", settings.p0)):
+        for k in keys:
+            if k not in mcls.state_names:
+                out.append(((where, k), f"model {mcls.registered_name!r} has no state {k!r}"))
+    for k in settings.params:
+        if k not in mcls.Params.model_fields:
+            out.append((("params", k), f"model {mcls.registered_name!r} has no parameter {k!r}"))
+    try:
+        own = mcls(mcls.Params(**{**(model.params.model_dump() if mcls is type(model) else {}), **settings.params}))
+    except Exception as e:  # parameters out of the model's range
+        return out + [(("params",), str(e).splitlines()[-1].strip())], None
+    for name, spec in settings.measurements.items():
+        loc = ("measurements", name)
+        sensor = sensors.get(name)
+        if sensor is None:
+            out.append((loc, f"no sensor named {name!r}; sensors: {', '.join(sensors) or 'none'}"))
+            continue
+        if getattr(sensor, "inequality", False):  # a one-sided bound (image_plane)
+            found = UnscentedKalmanFilter._check_bound(sensor, own, spec)
+        elif {"sides", "margin"} & spec.model_fields_set:
+            found = [(("sides" if "sides" in spec.model_fields_set else "margin",),
+                      f"only for a channel that bounds the state from one side; sensor {name!r} is a "
+                      f"{sensor.registered_name}")]
+        elif measurement_function(sensor, own) is None:
+            found = [((), f"model {mcls.registered_name!r} cannot predict what sensor {name!r} measures")]
+        else:
+            found = []
+        if not found and channel is not None:
+            found = channel(name, spec, sensor, own)
+        out += [((*loc, *lc), msg) for lc, msg in found]
+    out += [(("init", *loc), msg) for loc, msg in
+            check_initial(settings.init, mcls.state_names, mcls.registered_name, sensors)]
+    for k in mcls.input_names:
+        if k not in model.input_names:
+            out.append((("model",), f"the filter's model needs input {k!r}, which the experiment does not give"))
+    return out, own
+
+
 def _chi2_quantile(p: float, m: int) -> float:
     from scipy.stats import chi2  # here: scipy.stats costs 0.5 s of start-up, and only gates need it
 
@@ -267,46 +337,10 @@ class UnscentedKalmanFilter(Observer):
 
     @classmethod
     def check(cls, settings, model, sensors):
-        out = []
-        if settings.model and settings.model not in MODELS:
-            return [(("model",), f"unknown model {settings.model!r}; known: {', '.join(MODELS.names())}")]
-        mcls = cls._model_cls(settings, model)
-        for where, keys in (("q", settings.q), ("p0", settings.p0)):
-            for k in keys:
-                if k not in mcls.state_names:
-                    out.append(((where, k), f"model {mcls.registered_name!r} has no state {k!r}"))
-        for k in settings.params:
-            if k not in mcls.Params.model_fields:
-                out.append((("params", k), f"model {mcls.registered_name!r} has no parameter {k!r}"))
-        try:
-            own = mcls(mcls.Params(**{**(model.params.model_dump() if mcls is type(model) else {}), **settings.params}))
-        except Exception as e:  # parameters out of the model's range
-            return out + [(("params",), str(e).splitlines()[-1].strip())]
-        from needlecli.sensors.base import measurement_function
-
-        for name in settings.measurements:
-            spec = settings.measurements[name]
-            if name not in sensors:
-                known = ", ".join(sensors) or "none"
-                out.append((("measurements", name), f"no sensor named {name!r}; sensors: {known}"))
-            elif getattr(sensors[name], "inequality", False):  # a one-sided bound (image_plane)
-                out += [(("measurements", name, *loc), msg) for loc, msg in cls._check_bound(sensors[name], own, spec)]
-            elif {"sides", "margin"} & spec.model_fields_set:
-                out.append((("measurements", name, "sides" if "sides" in spec.model_fields_set else "margin"),
-                            f"only for a channel that bounds the state from one side; sensor {name!r} is a "
-                            f"{sensors[name].registered_name}"))
-            elif measurement_function(sensors[name], own) is None:
-                out.append((("measurements", name),
-                            f"model {mcls.registered_name!r} cannot predict what sensor {name!r} measures"))
-            elif settings.measurements[name].frame == "needle" and (
-                    tuple(sensors[name].channel_names) != ("x", "y", "z") or not mcls.provides("tangent")):
-                out.append((("measurements", name, "frame"), "needle coordinates need a position with axes x, y, z "
-                            f"and a model with a tangent (sensor {name!r}: {', '.join(sensors[name].channel_names)})"))
-        out += [(("init", *loc), msg) for loc, msg in
-                check_initial(settings.init, mcls.state_names, mcls.registered_name, sensors)]
-        for k in mcls.input_names:
-            if k not in model.input_names:
-                out.append((("model",), f"the filter's model needs input {k!r}, which the experiment does not give"))
+        out, own = check_filter(settings, model, sensors, channel=cls._check_frame)
+        if own is None:
+            return out
+        mcls = type(own)
         if settings.kappa_max is not None or settings.kappa_reset is not None:
             if mcls.curvature_param not in mcls.state_names:
                 out.append((("kappa_max" if settings.kappa_max is not None else "kappa_reset",),
@@ -316,6 +350,16 @@ class UnscentedKalmanFilter(Observer):
             if sensor is None or sensor.registered_name != "elastography":
                 out.append((("kappa_reset", "interfaces"), "must be 'experiment' or the name of an elastography sensor"))
         return out
+
+    @staticmethod
+    def _check_frame(name, spec, sensor, own) -> list[tuple[tuple, str]]:
+        """Needle coordinates need a position with axes x, y, z and a model with a tangent."""
+        if sensor is None or getattr(sensor, "inequality", False) or spec.frame != "needle":
+            return []
+        if tuple(sensor.channel_names) != ("x", "y", "z") or not type(own).provides("tangent"):
+            return [(("frame",), "needle coordinates need a position with axes x, y, z and a model with a tangent "
+                                 f"(sensor {name!r}: {', '.join(sensor.channel_names)})")]
+        return []
 
     @staticmethod
     def _check_bound(sensor, model, spec) -> list[tuple[tuple, str]]:
@@ -328,10 +372,10 @@ class UnscentedKalmanFilter(Observer):
         out = []
         if isinstance(spec.sigma, list) and len(spec.sigma) != 1:
             out.append((("sigma",), "a one-sided channel has one bound: give one std"))
-        for key in ("growth", "gate", "across_axis"):
-            if getattr(spec, key) is not None:
+        for key in ("growth", "gate", "across_axis"):  # (a filter's channel settings may lack some of them)
+            if getattr(spec, key, None) is not None:
                 out.append(((key,), "not for a one-sided channel (the truncated update has no innovation to gate)"))
-        if spec.frame != "world":
+        if getattr(spec, "frame", "world") != "world":
             out.append((("frame",), "not for a one-sided channel (its bound is a plane in world coordinates)"))
         return out
 

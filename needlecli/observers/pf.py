@@ -81,7 +81,7 @@ from needlecli.observers.base import (
 )
 from needlecli.observers.defaults import filter_settings
 from needlecli.observers.record import RunRecorder
-from needlecli.observers.ukf import UnscentedKalmanFilter, _chi2_quantile, check_filter
+from needlecli.observers.ukf import UnscentedKalmanFilter, check_filter
 from needlecli.schema import DistanceGrowth, NonNeg, Positive, Probability, Strict
 
 # ---------------------------------------------------------------------------------------------- random numbers
@@ -312,39 +312,20 @@ class ParticleFilter(Observer):
         its likelihood and, for the compiled kernel, how ``h`` reads the state (``kind`` 0: a selection
         ``idx``; 1: the unit vector of states ``idx``; -1: neither). Marginal (RBPF) channels select
         translation states."""
-        s = self.settings
-        names = [c for c in s.measurements if problem.channels[c].bound_for(model) is None] or (
-            [] if s.measurements else [c for c, ch in problem.channels.items() if ch.h_for(model) is not None])
-        dt = float(problem.time[1] - problem.time[0]) if len(problem.time) > 1 else 1.0
         trans = {model.index(k) for k in model.translation_states}
-        out = []
-        for name in names:
-            ch = problem.channels[name]
-            h = ch.h_for(model)
-            if h is None:
-                raise ValueError(f"channel {name!r} cannot be predicted from model {model.registered_name!r}")
-            m = len(ch.names)
-            spec = s.measurements.get(name)
-            sigma = np.broadcast_to(np.asarray(spec.sigma if spec else ch.sigma, dtype=float), (m,)).copy()
-            pos_cols = [i for i, c in enumerate(ch.names) if c in ("x", "y", "z")]
-            avail = np.ceil(ch.t_available / dt - 1e-9).astype(np.int64)
-            order = np.argsort(avail, kind="stable")
+        out = UnscentedKalmanFilter._channels(self, problem, model)
+        for c in out:
+            spec = self.settings.measurements.get(c["name"])
+            h, m = c["h"], c["m"]
             if isinstance(h, StateSelection):
                 kind, idx = 0, np.asarray(h.index, dtype=np.int64)
             else:
                 uv = unit_vector_states(h, model)
                 kind, idx = (1, uv) if uv is not None else (-1, np.zeros(m, dtype=np.int64))
             student = spec is not None and spec.likelihood == "student_t"
-            marginal = self.marginal and kind == 0 and set(idx.tolist()) <= trans
-            out.append({
-                "name": name, "h": h, "m": m, "sigma": sigma, "growth": spec.growth if spec else None,
-                "pos_cols": pos_cols, "pos_axes": [("x", "y", "z").index(ch.names[i]) for i in pos_cols],
-                "gate": _chi2_quantile(spec.gate, m) if spec and spec.gate else None,
-                "angle": np.asarray(ch.angle, dtype=bool), "value": ch.value, "valid": ch.valid,
-                "avail": avail[order], "order": order, "kind": kind, "idx": idx, "marginal": marginal,
-                "student": student, "dof": float(spec.dof) if student else 0.0,
-                "const": student_constant(float(spec.dof), m) if student else -0.5 * m * _LOG_2PI,
-            })
+            c.update(kind=kind, idx=idx, marginal=self.marginal and kind == 0 and set(idx.tolist()) <= trans,
+                     student=student, dof=float(spec.dof) if student else 0.0,
+                     const=student_constant(float(spec.dof), m) if student else -0.5 * m * _LOG_2PI)
         return out
 
     def _bounds(self, problem: EstimationProblem, model: Model) -> list[dict]:

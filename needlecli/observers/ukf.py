@@ -655,6 +655,8 @@ class UnscentedKalmanFilter(Observer):
             spec = s.measurements.get(name)
             sigma = np.broadcast_to(np.asarray(spec.sigma if spec else ch.sigma, dtype=float), (m,)).copy()
             growth = spec.growth if spec else None
+            # (the particle filters' channels, read here too, are in world coordinates: no frame, no axis)
+            frame, across = getattr(spec, "frame", "world"), getattr(spec, "across_axis", None)
             pos_cols = [i for i, c in enumerate(ch.names) if c in ("x", "y", "z")]
             avail = np.ceil(ch.t_available / dt - 1e-9).astype(np.int64)
             order = np.argsort(avail, kind="stable")
@@ -665,8 +667,8 @@ class UnscentedKalmanFilter(Observer):
                 "gate": _chi2_quantile(spec.gate, m) if spec and spec.gate else None,
                 "angle": np.asarray(ch.angle, dtype=bool), "value": ch.value, "valid": ch.valid,
                 "avail": avail[order], "order": order, "channel": ch,
-                "frame": spec.frame if spec else "world", "tangent": model.tangent if spec and spec.frame == "needle" else None,
-                "axis": AXES.index(spec.across_axis) if spec and spec.across_axis else None,
+                "frame": frame, "tangent": model.tangent if frame == "needle" else None,
+                "axis": AXES.index(across) if across else None,
             })
             c = out[-1]
             c["scalar"] = m == 1 and c["select"] is not None and c["gate"] is None and not pos_cols

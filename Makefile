@@ -214,6 +214,9 @@ owndata:
 # The particle filters (issue 29, docs/guide/particle-filters.md): needle compare of each config in
 # configs/particles/ (seed 003's Table 1 with 100 to 1000 particles, seed 004's T2prelim with the bicycle
 # model, Table 1 with gross ultrasound errors, the recorded resultsOrig after `make real`), their tables
-# written on the page. About 30 minutes on 2 cores. PARTICLES_ARGS: e.g. --runs 10, --only table1, --render.
+# written on the page. The first 20 runs of each study (a shared 2-core machine takes about 40 minutes;
+# the minute figure is scaled to Table 1's 100 insertions). PARTICLES_ARGS: e.g. --runs 100 (the configs'
+# counts), --only table1, --render.
+PARTICLES_ARGS ?= --runs 20
 particles:
 	$(PY) tools/particles_page.py $(PARTICLES_ARGS)

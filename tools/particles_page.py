@@ -57,7 +57,10 @@ def run_study(name: str, runs: int | None) -> Path:
     it needs into the cache, so that the timed run's times are the filters', not the compiler's); the
     results file."""
     config, observers, _, *own = STUDIES[name]
-    runs = min([r for r in (runs, *own) if r is not None], default=None)  # --runs caps a study's own count
+    import yaml
+
+    count = (yaml.safe_load((ROOT / config).read_text(encoding="utf-8")).get("runs") or {}).get("count")
+    runs = min([r for r in (runs, *own, count) if r is not None], default=None)  # --runs caps, never adds
     out = WORK / name
     cmd = ["needle", "compare", config, "--observers", ",".join(observers), "--quiet"]
     for what, extra in (("warm-up", ["--runs", "1", "--out", str(WORK / "warm-up" / name)]),

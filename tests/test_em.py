@@ -289,11 +289,11 @@ def test_evaluate_reads_the_fit_file(fitted):
     d, out = fitted
     r = invoke("evaluate", out, "--out", d / "tables")
     assert r.exit_code == 0, r.output + repr(r.exception)
-    for t in ("fit_parameters", "seed004_table1", "seed004_table2", "seed004_table3", "fit_recovery", "fit_status"):
+    for t in ("fit_parameters", "mnm_parameters", "binm_parameters", "binm_vs_mnm", "fit_recovery", "fit_status"):
         assert (d / "tables" / f"tiny_fit_{t}.csv").exists()
         assert f"## {t}" in r.output
     assert "c @ a" in r.output and "SD as Traj. Err. (mm)" in r.output
-    assert (d / "tables" / "tiny_fit_seed004_fig5.png").exists()
+    assert (d / "tables" / "tiny_fit_fit_paths.png").exists()
     r = invoke("evaluate", out, "--tables", "summary", "--no-plots")
     assert r.exit_code == 2 and "needs a results file" in r.output
 

@@ -159,7 +159,7 @@ observers:
      init: {values: {x: 0.0, beta: 0.0}}}
 runs: {count: 3, seed: 0}
 stop: {depth: 40.0}
-output: {tables: [seed000_table1, status]}
+output: {tables: [x_pitch_roll_error, status]}
 """
 
 
@@ -224,7 +224,7 @@ def test_cli_simulate_and_evaluate_table1(tmp_path: Path):
     assert r.exit_code == 0, r.output + repr(r.exception)
     r = CliRunner().invoke(app, ["evaluate", str(out), "--out", str(tmp_path / "t"), "--no-plots", "--quiet"])
     assert r.exit_code == 0, r.output + repr(r.exception)
-    df = pd.read_csv(tmp_path / "t" / "hg_small_seed000_table1.csv")
+    df = pd.read_csv(tmp_path / "t" / "hg_small_x_pitch_roll_error.csv")
     assert list(df["Error"]) == ["e_x [mm]", "e_beta [rad]", "e_gamma [rad]"]
     row = df.set_index("Error").loc["e_beta [rad]"]
     assert row["Final"] < 0.01 and row["Average Absolute Estimation Error"] < 0.01

@@ -427,7 +427,7 @@ def test_identifiability_table_from_the_command_line(seed004_fit, tmp_path):
                                  "--out", str(tmp_path)])
     assert r.exit_code == 0, r.output
     assert "tr(Q_h)" in r.output and "10 mT" in r.output
-    assert (tmp_path / "seed004_study_identifiability.tex").exists()
+    assert (tmp_path / "em-magnetic-pratt2022_study_identifiability.tex").exists()
 
 
 def test_a_fit_file_with_malformed_group_verdicts_is_refused(seed004_fit, tmp_path):

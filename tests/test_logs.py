@@ -81,7 +81,7 @@ def test_good_log_replays_and_evaluates(tmp_path):
 @pytest.fixture(scope="module")
 def simulated(tmp_path_factory):
     d = tmp_path_factory.mktemp("sim")
-    cfg, text = load_config(ROOT / "configs/seed003/table1.yaml", overrides=["stop.depth=8", "runs.count=3"])
+    cfg, text = load_config(ROOT / "configs/multirate-ukf-us3d/table1.yaml", overrides=["stop.depth=8", "runs.count=3"])
     r = run_experiment(cfg, text, out=d / "sim.h5")
     return cfg, text, r, d
 
@@ -102,7 +102,7 @@ def test_log_round_trip_identical_arrays(simulated, tmp_path):
             np.testing.assert_array_equal(a.inputs[name].value, b.inputs[name].value)
         np.testing.assert_array_equal(a.truth.state, b.truth.state)
     assert back.attrs["synthetic"]
-    assert "seed003_table1" in back.attrs["config"]
+    assert "pose_curvature_error" in back.attrs["config"]
 
 
 def test_replay_of_own_streams_gives_the_same_estimates(simulated, tmp_path):

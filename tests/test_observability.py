@@ -83,7 +83,7 @@ def test_the_linearised_insertion_finds_what_the_sensors_cannot_see():
     # constraints are not unknowns: a unit heading's norm, a rotation's orthogonality
     cfg, _ = load_config(ROOT / "configs" / "examples" / "mnm_s_turn.yaml", memory=False)
     assert [u.state for u in unobservable_states(cfg)] == ["pz"]  # a camera's x, y and the field coils
-    cfg, _ = load_config(ROOT / "configs" / "seed001" / "helix.yaml", memory=False)
+    cfg, _ = load_config(ROOT / "configs" / "so3-invariant" / "helix.yaml", memory=False)
     assert unobservable_states(cfg) == []
 
 

@@ -731,7 +731,7 @@ def test_gate_rejects_gross_outliers():
 
 # ================================================================ 10. end to end, reduced seed 003
 def test_seed003_reduced_end_to_end():
-    cfg, text = load_config(Path(__file__).resolve().parents[1] / "configs/seed003/table1.yaml", runs=10,
+    cfg, text = load_config(Path(__file__).resolve().parents[1] / "configs/multirate-ukf-us3d/table1.yaml", runs=10,
                             overrides=["stop.depth=30", "output.covariance=none"])
     res = run_experiment(cfg, text, write=False)
     post = res.estimates["ukf"]
@@ -756,7 +756,7 @@ def test_estimate_insensitive_to_the_rounding_of_sin_and_cos(monkeypatch):
     implementation (the compiled kernels) can be checked against."""
     import needlecli.models.unicycle as unicycle
 
-    cfg, text = load_config(Path(__file__).resolve().parents[1] / "configs/seed003/table1.yaml", runs=4,
+    cfg, text = load_config(Path(__file__).resolve().parents[1] / "configs/multirate-ukf-us3d/table1.yaml", runs=4,
                             overrides=["stop.depth=30"])
     base = run_experiment(cfg, text, write=False).estimates["ukf"].state
     monkeypatch.setattr(unicycle, "sincos", lambda a: (np.sin(a), np.cos(a)))

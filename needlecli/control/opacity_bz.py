@@ -1,4 +1,4 @@
-"""Seed 004's planar control (sec. 2.3.6, eq. 7): the out-of-plane field from the camera's opacity.
+"""The magnetic needle EM paper's planar control (sec. 2.3.6, eq. 7): the out-of-plane field from the camera's opacity.
 
 ``B_z = clip(gain (opacity - opacity_0), -limit, limit)`` mT, ``opacity`` the grey level at the tip in
 the overhead camera's frame (:mod:`needlecli.sensors.imaging.camera`), ``opacity_0`` the opacity at the
@@ -33,12 +33,12 @@ _FIELD = ("Bx", "By", "Bz")
 
 
 class OpacityBzSettings(ControllerSettings):
-    """Seed 004 eq. (7) on a camera sensor; field strengths in mT."""
+    """The magnetic needle EM paper's eq. (7) on a camera sensor; field strengths in mT."""
 
     type: Literal["opacity_bz"]
-    gain: NonNeg = Field(2.0, description="mT of B_z per grey level of opacity (seed 004: 2.0)")
+    gain: NonNeg = Field(2.0, description="mT of B_z per grey level of opacity (the magnetic needle EM paper: 2.0)")
     limit: Positive = Field(28.0, description="saturation of B_z, mT (the coils' 28 mT)")
-    field: Positive = Field(description="in-plane field strength, mT (seed 004: 10, 19 or 28)")
+    field: Positive = Field(description="in-plane field strength, mT (the magnetic needle EM paper: 10, 19 or 28)")
 
 
 @CONTROLLERS.register("opacity_bz")

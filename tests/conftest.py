@@ -12,7 +12,7 @@ from needlecli.cli.app import app
 
 @pytest.fixture(scope="session")
 def seed004_fit(tmp_path_factory):
-    """Seed 004's study, reduced to 6 trials (both models), fitted by needle fit-em."""
+    """The magnetic needle EM paper's study, reduced to 6 trials (both models), fitted by needle fit-em."""
     d = tmp_path_factory.mktemp("ident")
     cfg = Path(__file__).resolve().parents[1] / "configs" / "em-magnetic-pratt2022" / "study.yaml"
     r = CliRunner().invoke(app, ["fit-em", str(cfg), "--model", "both", "--set", "runs.count=6",

@@ -1,4 +1,4 @@
-"""EM (seed 004, Algorithm 1): on a linear-Gaussian model with known Q and R it recovers them within
+"""EM (the magnetic needle EM paper, Algorithm 1): on a linear-Gaussian model with known Q and R it recovers them within
 sampling error and never lowers the log-likelihood; floors hold; the per-run parameter cases of the
 config; ``needle fit-em`` end to end (a fit file, its tables, clear errors); the BiNM fit fails with the
 singularity as the reason where the field crosses the heading."""

@@ -1,4 +1,4 @@
-"""Seed 000's high-gain observer: the transformed system against the unicycle, the error dynamics against
+"""The high-gain observer paper's high-gain observer: the transformed system against the unicycle, the error dynamics against
 the matrix exponential of theta (A + L C), the sampled loop, zeta, and the CLI end to end."""
 
 from __future__ import annotations
@@ -179,7 +179,7 @@ def test_converges_with_curvature_mismatch_and_tracks_zeta():
 
 
 def test_large_theta_is_numerically_stable_with_zoh_and_reported_with_predictor():
-    """theta = 67e4 (seed 000's simulation, as legible): with the held sample the exact flow stays finite;
+    """theta = 67e4 (the high-gain observer paper's simulation, as legible): with the held sample the exact flow stays finite;
     with the predictor the sampled loop is unstable and every run says why."""
     res = run(SIM, "observers.0.theta=670000", "observers.0.hold=zoh", "stop.depth=10")
     post = res.estimates["high_gain"]

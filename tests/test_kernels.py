@@ -5,7 +5,7 @@ pass and its internals, the on-disk cache and the warm-up.
 
 Tolerance 1e-10 (absolute, in the models' units) wherever the two compute the same thing in one go: a
 model step, the truth simulation, a few filter ticks. A filter run of hundreds of ticks carries the
-rounding of its first ticks along (seed 003's alpha = 1e-3 weights residuals by 7e4, and the position
+rounding of its first ticks along (the multi-rate UKF paper's alpha = 1e-3 weights residuals by 7e4, and the position
 integrates the angles): there the kernel must agree with the numpy path as well as the numpy path agrees
 with itself when only its sin and cos change by an ulp.
 """
@@ -79,7 +79,7 @@ def test_ukf_cholesky_repairs_as_numpy():
 
 
 def test_ukf_whole_insertion_within_the_references_own_rounding(monkeypatch):
-    """Seed 003's Table 1 set-up over 30 mm (2,000 ticks): the kernel differs from the numpy path by no
+    """The multi-rate UKF paper's Table 1 set-up over 30 mm (2,000 ticks): the kernel differs from the numpy path by no
     more than the numpy path differs from itself with numpy's sin and cos (within 2 ulp of its own)."""
     import needlecli.models.unicycle as unicycle
 

@@ -184,7 +184,7 @@ def test_regression_baseline_holds_and_a_tightened_one_fails(tmp_path):
 
 
 def test_polynomial_reference_agrees_with_the_logged_truth():
-    """Seed 000's reference (polynomials fitted to the 2D ultrasound) against the synthetic set's own
+    """The high-gain observer paper's reference (polynomials fitted to the 2D ultrasound) against the synthetic set's own
     ground truth: the fit recovers x within 0.03 mm and beta within 0.005 rad on average."""
     cfg, text = load_config(ROOT / "configs/replay/seed000_like_polynomial.yaml")
     poly = run_experiment(cfg, text, write=False, base_dir=ROOT / "configs/replay").truth

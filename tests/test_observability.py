@@ -74,7 +74,7 @@ def test_position_errors_per_axis_and_across_and_along_the_needle(probe2d):
 
 
 def test_the_linearised_insertion_finds_what_the_sensors_cannot_see():
-    # x alone (seed 000's simulation) with the roll at 0: the needle bends in the y-z plane, which x does not see
+    # x alone (the high-gain observer paper's simulation) with the roll at 0: the needle bends in the y-z plane, which x does not see
     for axes, unseen in ((["x", "y"], ["z"]), (["x", "y", "z"], []), (["x"], ["y", "z", "alpha", "kappa"])):
         data = _config(axes)
         cfg, _ = load_config(text=yaml.safe_dump(data, sort_keys=False))

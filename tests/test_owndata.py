@@ -463,7 +463,7 @@ def test_fit_recovers_the_curvature_law_and_the_slip(study, monkeypatch):
     """EM with the speed scale: the regression of the fitted kappa on the duty cycle has the true slope and
     intercept within two standard errors (from the spread across trials), the same numbers as numpy's
     least squares; every trial's slip within 0.01 of the truth; needle evaluate writes the tables and
-    plots (seed 004's Fig. 5 on a unicycle fit, the regression with its data)."""
+    plots (the magnetic needle EM paper's Fig. 5 on a unicycle fit, the regression with its data)."""
     from needlecli.io.fit import read_fit
     from needlecli.io.results import read_results
     from needlecli.reports import design

@@ -309,8 +309,8 @@ def test_run_counts_have_one_form(sim, replayed):
 
 def test_accuracy_is_named_for_what_it_is(sim):
     doc = TABLES.get("accuracy").__doc__
-    assert "x_pitch_roll_error" in doc and "form of seed 000" not in doc
-    assert "Seed 000 Table I" in TABLES.get("x_pitch_roll_error").__doc__
+    assert "x_pitch_roll_error" in doc and "form of the high-gain observer paper" not in doc
+    assert "The high-gain observer paper's Table I" in TABLES.get("x_pitch_roll_error").__doc__
 
 
 def test_measurement_use_has_one_row_per_distinct_run(replayed, tmp_path):
@@ -346,7 +346,7 @@ def unicycle_fit(tmp_path_factory) -> Path:
 
 
 def test_a_fit_of_another_model_gets_tables_named_for_what_they_hold(unicycle_fit, tmp_path):
-    """A unicycle's fit writes fit_parameters and fit_recovery, not seed 004's tables of the MNM and BiNM
+    """A unicycle's fit writes fit_parameters and fit_recovery, not the magnetic needle EM paper's tables of the MNM and BiNM
     (empty, captioned with the paper's numbers, as it used to); those are still there by name."""
     r = invoke("evaluate", unicycle_fit, "--out", tmp_path / "t", "--no-plots")
     assert r.exit_code == 0, r.output

@@ -1,4 +1,4 @@
-"""Seed 001's invariant observer on SO(3): against an independent integration of the error dynamics,
+"""The SO(3) observer paper's invariant observer on SO(3): against an independent integration of the error dynamics,
 its Lyapunov function, orthonormality, latency, the unobservable case, other models, and the CLI."""
 
 from __future__ import annotations
@@ -74,7 +74,7 @@ def test_matches_an_independent_integration_of_the_error_dynamics(helix):
 
 
 def test_lyapunov_function_is_non_increasing(helix):
-    """The rotation error angle (seed 001's V = |log E|^2 / 2) never grows on a noise-free run."""
+    """The rotation error angle (the SO(3) observer paper's V = |log E|^2 / 2) never grows on a noise-free run."""
     for name in ("from90", "random"):
         err = rotation_error_deg(helix, name)
         assert np.diff(err, axis=1).max() < 1e-7, name

@@ -1,7 +1,7 @@
-"""Study configs faithful to the papers (issue 15, item 5): seed 003's Table 1 simulated as the paper did
+"""Study configs faithful to the papers (issue 15, item 5): the multi-rate UKF paper's Table 1 simulated as the paper did
 (constant 0.3 mm ultrasound noise, the distance law only in the filter's R, elastography a pre-operative
-map), the former set-up kept as a variant; seed 000's experiment-like high-gain observer with a theta
-that converges within the insertion, beside a small sweep of theta; seed 001's caption saying what its
+map), the former set-up kept as a variant; the high-gain observer paper's experiment-like high-gain observer with a theta
+that converges within the insertion, beside a small sweep of theta; the SO(3) observer paper's caption saying what its
 3.5 cm-radius reading does and does not reproduce."""
 
 from __future__ import annotations
@@ -88,7 +88,7 @@ def test_seed001_caption_says_what_the_radius_reading_does_not_reproduce(tmp_pat
         c = df.attrs["caption"]
         assert "about 7 cm of insertion for an adequate estimate from 90 deg" in c
         assert "Here (arc radius 35.0 mm): from90, omega = pi/32: E_R 90 deg at 0, 55 deg at 70 mm, 31 deg after " \
-               "one half turn (110 mm), 82 % less over the second: seed 001's about 7 cm from 90 deg is not " \
+               "one half turn (110 mm), 82 % less over the second: the SO(3) observer paper's about 7 cm from 90 deg is not " \
                "reproduced (under 10 deg from 183 mm)" in c
     alt = yaml.safe_load((CONFIGS / "so3-invariant/helix_kappa35.yaml").read_text())
     assert alt["model"]["params"]["kappa"] == 0.35

@@ -354,10 +354,10 @@ for _seed in range(8):  # each of the four models twice, every kind of update (6
     case("ukf", f"seed{_seed}", check=assert_posteriors_agree)(functools.partial(run_observer, _text))
 
 
-# ---- the Kalman passes of EM (seed 004's study, 6 trials over 4 s, both models)
+# ---- the Kalman passes of EM (the magnetic needle EM paper's study, 6 trials over 4 s, both models)
 @functools.cache
 def seed004_systems():
-    """The systems fit-em builds for seed 004's study (6 trials, 4 s), by model."""
+    """The systems fit-em builds for the magnetic needle EM paper's study (6 trials, 4 s), by model."""
     from needlecli.experiments.simulation.runner import build_problem
     from needlecli.experiments.studies.fit import load_trials
     from needlecli.fitting.problem import build_system, fit_augment, own_model
@@ -373,7 +373,7 @@ def seed004_systems():
 
 @functools.cache
 def em_inputs(name: str):
-    """Seed 004's system of model ``name`` with a third of the samples missing, a random trajectory about
+    """The magnetic needle EM paper's system of model ``name`` with a third of the samples missing, a random trajectory about
     the initial state, the noise per trial, and the affine model (a linearisation on the numpy path) and
     its filter and smoother on the numpy path: fixed inputs of the passes."""
     from needlecli.fitting.smoother import linearise

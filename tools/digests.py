@@ -86,6 +86,19 @@ def collect() -> dict:
         return dict(pool.map(lambda c: digest_config(c, Path(d)), configs()))
 
 
+def _current(key: str) -> str:
+    """A digest's key under a paper's current config folder: ``configs/seed003/table1.yaml`` (its former
+    name, :mod:`needlecli.papers`) is ``configs/multirate-ukf-us3d/table1.yaml``, so that digests written
+    before the renaming compare with the same configs (whose ``name`` and ``config`` attributes moved)."""
+    sys.path.insert(0, str(ROOT))
+    from needlecli.papers import PAPERS  # noqa: PLC0415
+
+    for p in PAPERS:
+        if key.startswith(f"configs/{p.alias}/"):
+            return f"configs/{p.slug}/" + key.removeprefix(f"configs/{p.alias}/")
+    return key
+
+
 def main(argv: list[str]) -> int:
     if len(argv) != 2 or argv[0] not in ("write", "check"):
         print(__doc__)
@@ -100,7 +113,7 @@ def main(argv: list[str]) -> int:
             if not isinstance(v, dict):
                 print(f"  {k}: {v}")
         return 0
-    before = json.loads(path.read_text())
+    before = {_current(k): v for k, v in json.loads(path.read_text()).items()}
     bad = 0
     for key in sorted(set(before) | set(now)):
         a, b = before.get(key), now.get(key)

@@ -37,7 +37,7 @@ def main() -> None:
     t_fit = time.perf_counter() - t0
     t_ref = reference(1000, 5333)
     n = trials.truth.states.shape[0]
-    print(f"EM: {n} trials x 2 models (the magnetic needle EM paper study), at most {trials.cfg.fit.em.max_iter} iterations, "
+    print(f"EM: {n} trials x 2 models (the magnetic needle EM paper's study), at most {trials.cfg.fit.em.max_iter} iterations, "
           f"{args.workers} worker(s)")
     for name, mf in out.fits.items():
         r = mf.result

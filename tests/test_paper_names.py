@@ -51,6 +51,15 @@ def test_folders_pages_and_numbers_follow_the_table(p):
     assert f"papers/{p.slug}.md" in [next(iter(i.values())) for i in papers_nav]
 
 
+def test_every_link_under_configs_is_a_former_name():
+    """The only links in configs/ are former names, each leading to the file or folder of the new one."""
+    links = sorted(p for p in (ROOT / "configs").rglob("*") if p.is_symlink())
+    assert len(links) == len(PAPERS) + 2
+    for link in links:
+        p = next(p for p in PAPERS if link.name.startswith(p.alias))
+        assert link.resolve().exists() and link.resolve().name == link.name.replace(p.alias, p.slug, 1), link
+
+
 def test_a_former_config_path_still_runs(tmp_path):
     old = ROOT / "configs" / "seed003" / "table1.yaml"
     r = CliRunner().invoke(app, ["simulate", str(old), "--runs", "2", "--set", "stop.depth=3", "--out",

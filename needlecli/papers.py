@@ -31,7 +31,7 @@ class Paper:
     alias : str
         Its former name, the seed text's number: ``seed003``.
     short : str
-        How prose names it (``the multi-rate UKF paper``), after "the" is dropped at a sentence's start.
+        How prose names it (``the multi-rate UKF paper``; "The" at a sentence's start).
     title : str
         The title line: method, imaging; authors and year where the seed text gives them.
     method, imaging : str
@@ -48,11 +48,6 @@ class Paper:
     imaging: str
     authors: str = ""
     year: str = ""
-
-    @property
-    def seed_text(self) -> str:
-        """The file name pattern of its seed text (``seeds/003_*.txt``)."""
-        return f"seeds/{self.alias.removeprefix('seed')}_*.txt"
 
     @property
     def configs(self) -> str:

@@ -113,6 +113,7 @@ def seed_names(text: str) -> list[str]:
     on the same line (``make seed003`` beside ``make multirate-ukf-us3d``: an old name that keeps working).
     """
     bad = []
+    text = re.sub(r"\b([Ss]eeds?)\n[ \t]*(?:#[ \t]*)?(00[0-9])", r"\1 \2", text)  # "seed" and its number on two lines
     for line in text.splitlines():
         rest = line
         for p in PAPERS:

@@ -307,7 +307,7 @@ def test_a_filter_worse_than_the_model_alone_is_warned_about(tiny, tmp_path):
 
 def test_worse_than_model_compares_like_with_like():
     """Only observers from the common start against a model-only one from it; the tip norm where both have
-    it, else the axes the observer has (the high-gain observer paper's high-gain observer: E_x)."""
+    it, else the axes the observer has (the high-gain observer (`highgain-us2d`): E_x)."""
     from needlecli.reports.compare import worse_than_model
 
     nan = float("nan")

@@ -1,6 +1,6 @@
 """Consistency statistics (issue 15, item 4): NEES against a hand computation on a linear model, NIS
-against an independent Kalman filter, the chi-square intervals, the verdicts, wrapped angles, and seed
-003's UKF whose alpha and beta are optimistic over the first seconds (P0 below the 5 deg initial error)."""
+against an independent Kalman filter, the chi-square intervals, the verdicts, wrapped angles, and
+the multi-rate UKF paper's UKF whose alpha and beta are optimistic over the first seconds (P0 below the 5 deg initial error)."""
 
 from __future__ import annotations
 

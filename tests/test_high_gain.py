@@ -1,4 +1,4 @@
-"""The high-gain observer paper's high-gain observer: the transformed system against the unicycle, the error dynamics against
+"""The high-gain observer (`highgain-us2d`): the transformed system against the unicycle, the error dynamics against
 the matrix exponential of theta (A + L C), the sampled loop, zeta, and the CLI end to end."""
 
 from __future__ import annotations

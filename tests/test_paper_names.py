@@ -94,8 +94,8 @@ def test_former_make_targets_run_the_new_ones():
 
 
 def test_the_rule_of_seed_names():
-    assert seed_names("Seed 003's Table 1\nsee seeds 000 and 003\nmake seed003\nseed004_like") == [
-        "Seed 003's Table 1", "see seeds 000 and 003", "make seed003"]
+    assert seed_names("Seed 003's Table 1\nsee seeds 000 and 003\nmake seed003\nseed004_like\n# as seed\n# 001 does") == [
+        "Seed 003's Table 1", "see seeds 000 and 003", "make seed003", "# as seed 001 does"]
     ok = ("over seeds 3, 4, 5 (runs.seed=3)", "seed 4004", "the seed text seeds/003_*.txt",
           "`multirate-ukf-us3d` (formerly seed003)", "make seed003 runs make multirate-ukf-us3d",
           "the multi-rate UKF paper's Table 1")

@@ -1,4 +1,4 @@
-"""The SO(3) observer paper's invariant observer on SO(3): against an independent integration of the error dynamics,
+"""The invariant observer on SO(3) (`so3-invariant`): against an independent integration of the error dynamics,
 its Lyapunov function, orthonormality, latency, the unobservable case, other models, and the CLI."""
 
 from __future__ import annotations

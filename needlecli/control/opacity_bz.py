@@ -14,7 +14,7 @@ in-plane direction of ``B``, ``F`` the in-plane field strength (``field``, mT). 
 grid time is the one after the change. ``B_z`` then holds until the next command (``omega_B`` about z
 rotates ``B`` without changing its z component; other components of ``omega_B`` would move it between
 commands). A frame without a detection (NaN opacity) keeps the previous command; before the first
-detection the command is 0 (set at ``t = 0``: the seed's open-loop experiments had ``B_z = 0``).
+detection the command is 0 (set at ``t = 0``: the paper's open-loop experiments had ``B_z = 0``).
 """
 
 from __future__ import annotations

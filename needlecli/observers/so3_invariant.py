@@ -7,7 +7,7 @@ r"""Invariant observer on SO(3) of the SO(3) observer paper (sec. IV): the full 
 with the known body angular velocity :math:`w = (\kappa v, 0, u)` (inputs ``v``, ``u`` and the observer's
 curvature) and ``y`` the measured tangent :math:`R e_3` (our frame; the SO(3) observer paper puts it on its x axis). On
 SO(3) :math:`\hat R g = k \widehat{(y \times \hat y)} \hat R`, so the correction turns :math:`\hat y` by
-:math:`k (y \times \hat y) \times \hat y`: toward ``y`` only for **k < 0** (the seed's proof, eq. 23).
+:math:`k (y \times \hat y) \times \hat y`: toward ``y`` only for **k < 0** (the paper's proof, eq. 23).
 The config gives the magnitude (``gain: 0.65``, the SO(3) observer paper's number, 1/s, independent of the length
 unit); the observer uses ``k = -gain``. Several tangent channels add their cross products (``weight``
 each).
@@ -164,7 +164,7 @@ class SO3InvariantSettings(ObserverSettings):
 # ---------------------------------------------------------------------------------------------- observer
 @OBSERVERS.register("so3_invariant")
 class SO3InvariantObserver(Observer):
-    """The SO(3) observer paper's invariant observer, batched over runs (module docstring for the equations)."""
+    """The invariant observer on SO(3) (`so3-invariant`), batched over runs (module docstring for the equations)."""
 
     Settings = SO3InvariantSettings
     takes_common_start = True  # with a common start, init.error_deg does not apply

@@ -81,8 +81,8 @@ def with_axis_errors(res: Group, errors: dict[str, ErrorSet]) -> dict[str, Error
     """The errors of :func:`~needlecli.metrics.compute_errors` (the tip position's norm, each angle, the
     rotation, unit vectors, curvature, any other common state) with each position axis an observer
     estimates on its own, in mm (``E_x``, ``E_y``, ``E_z``; ``E_px``, ... of the magnetic models), over the
-    runs whose truth and estimate are ok: a position error that an observer of fewer axes also has (seed
-    000's E_x), beside every other's. New :class:`~needlecli.metrics.ErrorSet` objects; ``errors`` is
+    runs whose truth and estimate are ok: a position error that an observer of fewer axes also has
+    (the high-gain observer paper's E_x), beside every other's. New :class:`~needlecli.metrics.ErrorSet` objects; ``errors`` is
     left as it is."""
     import dataclasses
 

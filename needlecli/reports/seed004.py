@@ -4,7 +4,7 @@
   SD and the SD as trajectory error, one row per model and quantity (Tables 1 and 2 below in long form);
 * ``mnm_parameters`` (MNM) and ``binm_parameters`` (BiNM): the constant (``c``, ``l_inv``) per parameter case
   (field strength), ``tr(Q_p)``, ``tr(Q_h)``, ``tr(Q_B)`` and ``tr(R_j)`` of every channel, each trace
-  divided by its dimension as the seed reports them; rows Mean, SD and "SD as Traj. Err. (mm)": the
+  divided by its dimension as the paper reports them; rows Mean, SD and "SD as Traj. Err. (mm)": the
   input cases (T1, T2, mirrored) re-simulated with the mean parameters and with each parameter moved by
   one SD up and down, ``repeats`` times with the same process noise for nominal and moved, the RMS
   distance of the tip path to the nominal one averaged (R does not enter the path: 0).

@@ -17,7 +17,7 @@ declares ``default_reference``, with its derived settings: built-in types before
 mean of every run, drawn once from its random stream, and its initial covariance -- and every observer
 that can take it (``Observer.takes_common_start``) starts from it, whatever its own ``init`` says, the
 open-loop reference included. Where an observer's settings prescribe their own start in terms of the
-common one (``Observer.prescribed_start``: the high-gain observer paper's high-gain observer, x_hat0 = beta_hat0 = 0), that
+common one (``Observer.prescribed_start``: the high-gain observer (`highgain-us2d`), x_hat0 = beta_hat0 = 0), that
 applies on top. No observer starts from a run's own truth unless the reference does, and the table
 names, per observer, where it started (``start``) and the common start's recipe (footnote), flagging
 any state taken exactly from the truth.

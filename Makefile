@@ -106,16 +106,16 @@ DSTMP := results/datasets
 
 datasets:
 	@mkdir -p $(DSTMP)
-	needle simulate configs/datasets/seed000_like.yaml --out $(DSTMP)/seed000_like.h5 --quiet > /dev/null
-	needle log from-results $(DSTMP)/seed000_like.h5 --out datasets/seed000_like.h5 --truth-every 5 --prefix s000_
+	needle simulate configs/datasets/highgain-us2d_like.yaml --out $(DSTMP)/highgain-us2d_like.h5 --quiet > /dev/null
+	needle log from-results $(DSTMP)/highgain-us2d_like.h5 --out datasets/highgain-us2d_like.h5 --truth-every 5 --prefix s000_
 	for p in a b c; do \
-	  needle simulate configs/datasets/seed003_like_$$p.yaml --out $(DSTMP)/seed003_like_$$p.h5 --quiet > /dev/null && \
-	  needle log from-results $(DSTMP)/seed003_like_$$p.h5 --out $(DSTMP)/seed003_like_$$p.log.h5 --truth-every 10 --prefix s003$$p\_ || exit 1; \
+	  needle simulate configs/datasets/multirate-ukf-us3d_like_$$p.yaml --out $(DSTMP)/multirate-ukf-us3d_like_$$p.h5 --quiet > /dev/null && \
+	  needle log from-results $(DSTMP)/multirate-ukf-us3d_like_$$p.h5 --out $(DSTMP)/multirate-ukf-us3d_like_$$p.log.h5 --truth-every 10 --prefix s003$$p\_ || exit 1; \
 	done
-	needle log merge $(DSTMP)/seed003_like_a.log.h5 $(DSTMP)/seed003_like_b.log.h5 $(DSTMP)/seed003_like_c.log.h5 \
-	  --out datasets/seed003_like.h5 --description "synthetic, seed 003 manner: media A (4), B (5), two-layer phantom (1)"
-	needle simulate configs/datasets/seed004_like.yaml --out $(DSTMP)/seed004_like.h5 --quiet > /dev/null
-	needle log from-results $(DSTMP)/seed004_like.h5 --out datasets/seed004_like.h5 --truth-every 2 --prefix s004_
+	needle log merge $(DSTMP)/multirate-ukf-us3d_like_a.log.h5 $(DSTMP)/multirate-ukf-us3d_like_b.log.h5 $(DSTMP)/multirate-ukf-us3d_like_c.log.h5 \
+	  --out datasets/multirate-ukf-us3d_like.h5 --description "synthetic, multirate-ukf-us3d manner: media A (4), B (5), two-layer phantom (1)"
+	needle simulate configs/datasets/em-magnetic-pratt2022_like.yaml --out $(DSTMP)/em-magnetic-pratt2022_like.h5 --quiet > /dev/null
+	needle log from-results $(DSTMP)/em-magnetic-pratt2022_like.h5 --out datasets/em-magnetic-pratt2022_like.h5 --truth-every 2 --prefix s004_
 
 regress:
 	@for c in configs/replay/*.yaml; do \

@@ -306,7 +306,7 @@ def test_fit_em_user_errors(tmp_path, fitted):
     assert r.exit_code == 2 and "not an experiment config" in r.output and "Traceback" not in r.output
     r = invoke("fit-em", out)
     assert r.exit_code == 2 and "is a fit file already" in r.output
-    logfile = Path(__file__).resolve().parents[1] / "datasets" / "seed004_like.h5"
+    logfile = Path(__file__).resolve().parents[1] / "datasets" / "em-magnetic-pratt2022_like.h5"
     if logfile.exists():
         r = invoke("fit-em", logfile)
         assert r.exit_code == 2 and "is a log file" in r.output and "source" in r.output

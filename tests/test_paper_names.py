@@ -52,9 +52,10 @@ def test_folders_pages_and_numbers_follow_the_table(p):
 
 
 def test_every_link_under_configs_is_a_former_name():
-    """The only links in configs/ are former names, each leading to the file or folder of the new one."""
-    links = sorted(p for p in (ROOT / "configs").rglob("*") if p.is_symlink())
-    assert len(links) == len(PAPERS) + 2
+    """The only links in configs/ and datasets/ are former names, each leading to the file or folder of the
+    new one (the paper folders, an example, a sweep grid, the synthetic data sets)."""
+    links = sorted(p for d in ("configs", "datasets") for p in (ROOT / d).rglob("*") if p.is_symlink())
+    assert len(links) == len(PAPERS) + 2 + 3
     for link in links:
         p = next(p for p in PAPERS if link.name.startswith(p.alias))
         assert link.resolve().exists() and link.resolve().name == link.name.replace(p.alias, p.slug, 1), link

@@ -87,16 +87,18 @@ def collect() -> dict:
 
 
 def _current(key: str) -> str:
-    """A digest's key under a paper's current config folder: ``configs/seed003/table1.yaml`` (its former
-    name, :mod:`needlecli.papers`) is ``configs/multirate-ukf-us3d/table1.yaml``, so that digests written
-    before the renaming compare with the same configs (whose ``name`` and ``config`` attributes moved)."""
+    """A digest's key under a paper's current name: ``configs/seed003/table1.yaml`` and
+    ``configs/replay/seed003_like.yaml`` (its former name, :mod:`needlecli.papers`) are
+    ``configs/multirate-ukf-us3d/table1.yaml`` and ``configs/replay/multirate-ukf-us3d_like.yaml``, so that
+    digests written before the renaming compare with the same configs (whose ``name`` and ``config``
+    attributes, and a replay's log path, moved)."""
     sys.path.insert(0, str(ROOT))
     from needlecli.papers import PAPERS  # noqa: PLC0415
 
+    parts = key.split("/")
     for p in PAPERS:
-        if key.startswith(f"configs/{p.alias}/"):
-            return f"configs/{p.slug}/" + key.removeprefix(f"configs/{p.alias}/")
-    return key
+        parts = [p.slug + part.removeprefix(p.alias) if part.startswith(p.alias) else part for part in parts]
+    return "/".join(parts)
 
 
 def main(argv: list[str]) -> int:

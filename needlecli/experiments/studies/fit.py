@@ -123,7 +123,7 @@ def _not_a_config(path: Path) -> str:
     kind = root_format(path) or ""
     if kind == "log":
         return (f"{shown(path)}: is a log file; fit-em takes a config: write one with `source: {{logs: [{path.name}]}}`, "
-                "the model and a `fit:` section (see configs/replay/seed004_like.yaml) and pass that")
+                "the model and a `fit:` section (see configs/replay/em-magnetic-pratt2022_like.yaml) and pass that")
     if kind == "results":
         return f"{shown(path)}: is a results file; fit-em takes the experiment's config (.yaml)"
     if kind == "fit":

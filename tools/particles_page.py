@@ -12,11 +12,11 @@ evaluate`` (:func:`needlecli.metrics.compute_errors`): per run the mean over the
 initialisation, then the mean over the kept runs with its standard error; a filter's difference to the
 reference filter is taken run by run (paired), with its own standard error.
 
-(a) ``table1``: seed 003's Table 1, the UKF and both particle filters with 100, 300, 1000 particles; the
+(a) ``table1``: the multi-rate UKF paper's Table 1, the UKF and both particle filters with 100, 300, 1000 particles; the
     largest particle count that runs the 100 insertions in under a minute, from a line through the times
     (scaled to 100 insertions where fewer ran);
     ``table1_many``: the Rao-Blackwellised filter with 10000 particles on the first 5 insertions.
-(b) ``t2prelim``: seed 004's T2prelim with the bicycle model, whose singularity the truth crosses;
+(b) ``t2prelim``: the magnetic needle EM paper's T2prelim with the bicycle model, whose singularity the truth crosses;
     ``table1_outliers``: Table 1 with 10 % gross ultrasound errors.
 (c) ``resultsorig``: the recorded resultsOrig insertion (needs ``make real`` first).
 """
@@ -49,7 +49,7 @@ STUDIES = {  # name -> (config, observers, reference observer[, runs])
                     ["ukf_gated", "ukf_ungated", "open_loop", "pf_gated", "pf_student", "rbpf_gated"], "ukf_gated"),
 }
 MINUTE = 60.0
-TABLE1_RUNS = 100  # seed 003's Table 1: the insertions the minute is for
+TABLE1_RUNS = 100  # the multi-rate UKF paper's Table 1: the insertions the minute is for
 
 
 def run_study(name: str, runs: int | None) -> Path:
@@ -199,7 +199,7 @@ def render(studies: dict[str, Study], when: str, commit: str | None = None) -> s
            "shared.*", ""]
     if "table1" in studies:
         s = studies["table1"]
-        out += ["### (a) Seed 003's Table 1: agreement and cost", "",
+        out += ["### (a) The multi-rate UKF paper's Table 1: agreement and cost", "",
                 f"{s.n_runs} insertions, `configs/particles/table1.yaml`; errors after initialisation, mean over "
                 "the runs ± its standard error; the paired difference to the UKF run by run:", ""]
         out += table_a(s, STUDIES["table1"][2], STUDIES["table1"][1]) + [""]
@@ -209,7 +209,7 @@ def render(studies: dict[str, Study], when: str, commit: str | None = None) -> s
         out += table_a(s, STUDIES["table1_many"][2], STUDIES["table1_many"][1], minute=False) + [""]
     if "t2prelim" in studies:
         s = studies["t2prelim"]
-        out += ["### (b) The bicycle model's singularity: seed 004's T2prelim", "",
+        out += ["### (b) The bicycle model's singularity: the magnetic needle EM paper's T2prelim", "",
                 f"{s.n_runs} trials, `configs/particles/t2prelim.yaml`; errors over each observer's runs that did not "
                 "stop (failed: stopped singular or diverged):", ""]
         out += table_errors(s, STUDIES["t2prelim"][1], STUDIES["t2prelim"][2],

@@ -25,10 +25,10 @@ latest valid one of each channel):
    ``resample_below * P``; optionally **jittered** (``roughening: h``): the resampled particle states
    ``x_i`` become ``x_bar + a (x_i - x_bar) + h L z_i``, ``a = sqrt(1 - h^2)``, ``L L^T`` the weighted
    covariance of the cloud before resampling, ``z_i`` standard normals -- the kernel smoothing of Liu
-   and West (2001), which refreshes a cloud of copies where the process noise is too small to (seed 003's
+   and West (2001), which refreshes a cloud of copies where the process noise is too small to (the multi-rate UKF paper's
    orientation noise is 2e-5 rad per tick) while keeping its mean and covariance. Gordon, Salmond and
    Smith's roughening (a jitter proportional to the spread, added at every resampling) inflates the
-   cloud instead: resampling at the roll encoder's 100 Hz, it made seed 003's curvature and yaw diverge
+   cloud instead: resampling at the roll encoder's 100 Hz, it made the multi-rate UKF paper's curvature and yaw diverge
    within seconds. Off by default: the filter is then the plain bootstrap filter, whose limit is the Bayes
    posterior of the model as configured.
 

@@ -67,6 +67,7 @@ from needlecli.observers.base import (
 from needlecli.observers.defaults import filter_settings
 from needlecli.observers.record import RunRecorder
 from needlecli.schema import DistanceGrowth, NonNeg, Positive, Probability, Strict
+from needlecli.sensors.base import with_constraints
 
 
 class MeasurementSpec(Strict):
@@ -92,6 +93,13 @@ class MeasurementSpec(Strict):
     margin: NonNeg = Field(0.0, description="a one-sided channel (image_plane): the bound moved by this much in the "
                                            "sample's favour (side * g >= -margin: a tip seen up to margin short of "
                                            "the plane, a slice thickness), model length unit")
+    reading: str | None = Field(None, description="another reading of the samples that the sensor offers, instead of "
+                                "its h (a transverse plane: tip, each sample read as the tip's own position, the shaft "
+                                "behind it ignored); default: the sensor's h")
+    delayed: Literal["arrival", "acquisition"] = Field(
+        "arrival", description="a sample available latency s after it was taken updates the state at its arrival, as "
+        "if it were of now (arrival), or the state it was taken from (acquisition): the state carried back over the "
+        "latency by the filter's model with the recorded inputs (needlecli.sensors.past.retrodict)")
 
     @model_validator(mode="after")
     def _frame(self):
@@ -137,6 +145,59 @@ class UKFSettings(ObserverSettings):
         if any(b <= a for a, b in zip(self.predict_at_depths, self.predict_at_depths[1:])):
             raise ValueError("predict_at_depths must increase strictly")
         return self
+
+
+def _component_names(sensor, reading: str | None) -> tuple[str, ...]:
+    """The components a channel's ``h`` (or ``reading``) predicts: the measured channels, then the reading's
+    constraints."""
+    names = tuple(c for c in sensor.channel_names if c not in sensor.context_channels)
+    return names + (tuple(sensor.readings[reading][1]) if reading in sensor.readings else ())
+
+
+def _components(sensor, reading: str | None) -> int:
+    return len(_component_names(sensor, reading))
+
+
+#: the context of an invalid sample (NaN as stored): a plane through the origin, the world's x and y its axes,
+#: so that ``h`` stays finite for the runs it is masked out of
+_NEUTRAL_CONTEXT = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0])
+
+
+def _finite_context(ctx: np.ndarray) -> np.ndarray:
+    """A channel's context ``(N, M, k)`` with the entries of invalid samples made finite (masked out of the
+    gain anyway; NaN would survive the mask as ``NaN * 0``)."""
+    ok = np.isfinite(ctx).all(-1, keepdims=True)
+    if ok.all():
+        return ctx
+    k = ctx.shape[-1]
+    fill = _NEUTRAL_CONTEXT if k == _NEUTRAL_CONTEXT.size else np.zeros(k)
+    return np.where(ok, ctx, fill)
+
+
+def _predicted(c: dict, X: np.ndarray, jsel: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """``h`` of channel ``c`` at sigma points ``X (N, S, n)``, each run's for its sample ``jsel (N,)``: with the
+    sample's context (a transverse plane's pose), and carried back to the sample's acquisition where the
+    channel's delayed samples update the state they were taken from. ``(N, S, m)``."""
+    if c["context"] is None and c["retro"] is None:
+        return c["h"](X)
+    js = np.unique(jsel[valid]) if valid.any() else jsel[:1]
+    out = None
+    for j in js:
+        rows = None if js.size == 1 else (jsel == j)
+        Xj = X if rows is None else X[rows]
+        if c["retro"] is not None:
+            Xj = c["retro"](Xj, int(j), rows)
+        if c["context"] is None:
+            y = c["h"](Xj)
+        else:
+            ctx = c["context"][:, int(j)] if rows is None else c["context"][rows, int(j)]
+            y = c["h"](Xj, ctx[:, None, :])
+        if rows is None:
+            return y
+        if out is None:
+            out = np.zeros(X.shape[:2] + y.shape[-1:])
+        out[rows] = y
+    return out
 
 
 def _chi2_quantile(p: float, m: int) -> float:
@@ -258,9 +319,18 @@ class UnscentedKalmanFilter(Observer):
                 out.append((("measurements", name, "sides" if "sides" in spec.model_fields_set else "margin"),
                             f"only for a channel that bounds the state from one side; sensor {name!r} is a "
                             f"{sensors[name].registered_name}"))
-            elif measurement_function(sensors[name], own) is None:
+            elif spec.reading is not None and spec.reading not in sensors[name].readings:
+                out.append((("measurements", name, "reading"), f"sensor {name!r} ({sensors[name].registered_name}) "
+                            f"has no reading {spec.reading!r}" + (f"; readings: {', '.join(sensors[name].readings)}"
+                                                                  if sensors[name].readings else "")))
+            elif measurement_function(sensors[name], own, spec.reading) is None:
                 out.append((("measurements", name),
                             f"model {mcls.registered_name!r} cannot predict what sensor {name!r} measures"))
+            elif isinstance(spec.sigma, list) and len(spec.sigma) not in (1, _components(sensors[name], spec.reading)):
+                m = _components(sensors[name], spec.reading)
+                out.append((("measurements", name, "sigma"), f"has {len(spec.sigma)} entries for {m} components"
+                            + (f" (reading {spec.reading}: {', '.join(_component_names(sensors[name], spec.reading))})"
+                               if spec.reading else "")))
             elif settings.measurements[name].frame == "needle" and (
                     tuple(sensors[name].channel_names) != ("x", "y", "z") or not mcls.provides("tangent")):
                 out.append((("measurements", name, "frame"), "needle coordinates need a position with axes x, y, z "
@@ -322,6 +392,8 @@ class UnscentedKalmanFilter(Observer):
         # --- channels used, and the tick at which each sample becomes available
         chans = self._channels(problem, model)
         bounds = self._bounds(problem, model)  # one-sided channels: truncated updates (numpy path only)
+
+        self._retrodiction(chans, model, params, inputs, ticks, dt_grid)
 
         # --- initial estimate
         x, P0 = self._initial(problem, model, params, rng, chans)
@@ -568,11 +640,12 @@ class UnscentedKalmanFilter(Observer):
         out = []
         for name in names:
             ch = problem.channels[name]
-            h = ch.h_for(model)
+            spec = s.measurements.get(name)
+            h = ch.h_for(model, spec.reading) if spec is not None and spec.reading is not None else ch.h_for(model)
             if h is None:
                 raise ValueError(f"channel {name!r} cannot be predicted from model {model.registered_name!r}")
-            m = len(ch.names)
-            spec = s.measurements.get(name)
+            value, names_h = with_constraints(h, ch.value, ch.names)  # a reading's constraints: zero samples
+            m = len(names_h)
             sigma = np.broadcast_to(np.asarray(spec.sigma if spec else ch.sigma, dtype=float), (m,)).copy()
             growth = spec.growth if spec else None
             pos_cols = [i for i, c in enumerate(ch.names) if c in ("x", "y", "z")]
@@ -583,14 +656,45 @@ class UnscentedKalmanFilter(Observer):
                 "select": h.index if isinstance(h, StateSelection) else None,
                 "pos_cols": pos_cols, "pos_axes": [("x", "y", "z").index(ch.names[i]) for i in pos_cols],
                 "gate": _chi2_quantile(spec.gate, m) if spec and spec.gate else None,
-                "angle": np.asarray(ch.angle, dtype=bool), "value": ch.value, "valid": ch.valid,
+                "angle": np.r_[np.asarray(ch.angle, dtype=bool), np.zeros(m - len(ch.names), dtype=bool)],
+                "value": value, "valid": ch.valid,
                 "avail": avail[order], "order": order, "channel": ch,
                 "frame": spec.frame if spec else "world", "tangent": model.tangent if spec and spec.frame == "needle" else None,
                 "axis": AXES.index(spec.across_axis) if spec and spec.across_axis else None,
             })
             c = out[-1]
+            c["context"] = None if ch.context is None else _finite_context(ch.context)
+            c["delayed"] = spec is not None and spec.delayed == "acquisition" and bool(np.any(ch.t_available > ch.t))
+            c["index"] = np.asarray(ch.index)
+            c["retro"] = None  # set by _retrodiction once the ticks are known
+            if c["delayed"]:  # h of the state carried back over the latency: no longer a selection of the states
+                c["select"] = None
             c["scalar"] = m == 1 and c["select"] is not None and c["gate"] is None and not pos_cols
         return out
+
+    @staticmethod
+    def _retrodiction(chans: list[dict], model: Model, params, inputs: np.ndarray, ticks: np.ndarray, dt: float) -> None:
+        """For each channel whose delayed samples update the state they were taken from (``delayed:
+        acquisition``): ``c["retro"](X, j, rows)``, sigma points ``X (R, S, n)`` of the runs ``rows`` at the tick
+        where sample ``j`` is used, carried back to its acquisition grid step by the model with the recorded
+        inputs (:func:`needlecli.sensors.past.retrodict`)."""
+        from needlecli.sensors.past import retrodict
+
+        for c in chans:
+            if not c["delayed"]:
+                continue
+            used_at = np.empty_like(c["index"])
+            tick_of = np.minimum(np.searchsorted(ticks, c["avail"], side="left"), len(ticks) - 1)
+            used_at[c["order"]] = ticks[tick_of]
+
+            def retro(X, j, rows, _a=used_at, _i=c["index"]):
+                k0, k1 = int(_i[j]), int(_a[j])
+                if k1 <= k0:
+                    return X
+                u = inputs[:, k0:k1] if rows is None else inputs[rows, k0:k1]
+                return retrodict(model, X, u[:, None], params, dt)
+
+            c["retro"] = retro
 
     def _bounds(self, problem: EstimationProblem, model: Model) -> list[dict]:
         """The one-sided channels the settings name (``measurements``; never by default), with their
@@ -742,7 +846,7 @@ class UnscentedKalmanFilter(Observer):
             ys.append(y)
             masks.append(np.broadcast_to(v[:, None], (N, c["m"])))
             rs.append(r)
-            hs.append(c["select"] if X is None else c["h"](X))
+            hs.append(c["select"] if X is None else _predicted(c, X, jsel, v))
             angs.append(c["angle"])
         if not ys:
             return x, P

@@ -18,7 +18,7 @@ help:
 	@echo "make papers   - every number each paper states beside needlecli's over three seeds, into its page (seed00x-numbers: one paper)"
 	@echo "make datasets - rebuild the synthetic logs in datasets/ from configs/datasets/"
 	@echo "make regress  - replay every bundled data set and check its tables against datasets/baselines/"
-	@echo "make faults   - kill needle simulate and needle sweep at 20 random points each and check what is on disk"
+	@echo "make faults   - kill simulate, sweep, crossval, compare, log import-csv and fit-em at 20 random points each; check what is on disk"
 	@echo "make real     - import the recorded ultrasteer insertions (../shared/real-data) and make their tables in $(REAL)"
 	@echo "make real-tau - after make real: the ultrasound's likelihood against the image plane offset's time constant"
 	@echo "make real-plane - after make real: the image plane's bound with margins 0-8 mm and lost frames only (tip error against the tracker)"

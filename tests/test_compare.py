@@ -167,7 +167,7 @@ def test_ukf_defaults_from_the_sensors(tiny):
                                               "kappa": "swe.kappa"}
     assert s["init"]["std"] == {"alpha": 0.0873, "beta": 0.0873}
     assert s["p0"]["x"] == pytest.approx((2 * 0.3) ** 2) and s["p0"]["kappa"] == pytest.approx(1e-6)
-    assert s["q"]["x"] == pytest.approx(0.02 * np.sqrt(0.02))  # the truth's process noise per tick
+    assert s["q"]["x"] == pytest.approx(0.02)  # the truth's process noise, per square-root second as every q
     assert s["predict_at_depths"] == [3.75]
     OBSERVERS.get("ukf").Settings.model_validate({"type": "ukf", **s})
     # without a sensor with a nominal sigma that the model predicts, the UKF is skipped with the reason

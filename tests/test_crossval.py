@@ -31,7 +31,7 @@ def test_folds_keep_groups_together_and_leave_one_out_within_a_group():
     assert loo[0].test == ["d1-a"] and loo[0].train == ["d1-b", "d1-c"] and loo[3].train == ["d2-b"]
     with pytest.raises(ConfigError, match="alone in its group"):  # d3 has one trial
         make_folds(ids + ["d4-a"], groups + ["d4"], k=None, leave_one_out=True, within=True)
-    with pytest.raises(ConfigError, match="at most 3"):
+    with pytest.raises(ConfigError, match="give --folds 3 or fewer"):
         make_folds(ids, groups, k=4, leave_one_out=False, within=False)
 
 

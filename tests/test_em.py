@@ -289,7 +289,7 @@ def test_evaluate_reads_the_fit_file(fitted):
     d, out = fitted
     r = invoke("evaluate", out, "--out", d / "tables")
     assert r.exit_code == 0, r.output + repr(r.exception)
-    for t in ("seed004_table1", "seed004_table2", "seed004_table3", "seed004_recovery", "fit_status"):
+    for t in ("fit_parameters", "seed004_table1", "seed004_table2", "seed004_table3", "fit_recovery", "fit_status"):
         assert (d / "tables" / f"tiny_fit_{t}.csv").exists()
         assert f"## {t}" in r.output
     assert "c @ a" in r.output and "SD as Traj. Err. (mm)" in r.output
@@ -391,7 +391,7 @@ def test_fit_tables_compile(fitted, tmp_path):
 
 def test_fit_figures_hold_data_in_one_colour_per_model(fitted, tmp_path, monkeypatch):
     from needlecli.io.fit import read_fit
-    from needlecli.reports.plots import draw_plots, observer_colours
+    from needlecli.reports.plots import draw_plots, observer_colour, observer_colours
     from needlecli.reports.seed004 import FIT_PLOTS
 
     d, out = fitted
@@ -400,7 +400,8 @@ def test_fit_figures_hold_data_in_one_colour_per_model(fitted, tmp_path, monkeyp
     written = draw_plots(res, None, tmp_path / "p", FIT_PLOTS)
     assert len(written) == 2 and len(figs) == 2
     colours = observer_colours(res)
-    assert colours == {"binm": "C0", "mnm": "C1"} or colours == {"mnm": "C0", "binm": "C1"}
+    assert colours == {"binm": observer_colour("binm"), "mnm": observer_colour("mnm")}  # by name, not file order
+    assert colours["binm"] != colours["mnm"]
     problems = [p for fig in figs for p in figure_problems(fig, colours)]
     assert not problems, "\n".join(problems)
     title = figs[1].axes[0].get_title()

@@ -54,7 +54,9 @@ def test_ekf_takes_q_r_and_c_per_square_root_second(seed004_fit):
     assert text.startswith("# observer tuned:") and "from_fit" in text.splitlines()[0]
 
 
-def test_ukf_takes_q_per_tick_and_a_picked_trial(seed004_fit):
+def test_ukf_takes_q_per_square_root_second_and_a_picked_trial(seed004_fit):
+    """q means one thing in every observer: the UKF takes sqrt(Q_ii) as the EKF does, whatever its rate
+    (it converts to its 50 Hz tick itself)."""
     cfg, _ = load_config(text=_config(seed004_fit, {"type": "ukf", "rate": 50.0, "_ff": {"pick": "trial", "trial": 2}}))
     with h5py.File(seed004_fit) as f:
         g = f["fit/mnm"]
@@ -62,8 +64,7 @@ def test_ukf_takes_q_per_tick_and_a_picked_trial(seed004_fit):
         Q = g["Q"][()][2]
         c = g["constant/c"][()][2]
     o = cfg.observers[0]
-    dt_tick = 2 * 0.01  # 50 Hz on the 100 Hz grid
-    assert o.q["hx"] == pytest.approx(np.sqrt(Q[names.index("hx"), names.index("hx")] * dt_tick), rel=1e-12)
+    assert o.q["hx"] == pytest.approx(np.sqrt(Q[names.index("hx"), names.index("hx")]), rel=1e-12)
     assert o.params["c"] == pytest.approx(c, rel=1e-12)
 
 

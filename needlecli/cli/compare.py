@@ -31,6 +31,7 @@ def compare(
     import logging
     import textwrap
 
+    from needlecli.errors import shown
     from needlecli.experiments.studies.compare import compare_observers
     from needlecli.io.results import read_results
     from needlecli.metrics import compute_errors
@@ -70,7 +71,7 @@ def compare(
         typer.echo(f"{truth_failed(res)} run(s) of the truth stopped early (not counted above)")
     for s in skipped(res):
         typer.echo(textwrap.fill(f"skipped: {s}", 80, subsequent_indent="  "))
-    typer.echo(f"table: {out_dir / 'compare.md'}, {out_dir / 'compare.csv'}")
+    typer.echo(f"table: {shown(out_dir / 'compare.md')}, {shown(out_dir / 'compare.csv')}")
     if plots:
-        typer.echo(f"plots: {', '.join(str(p) for p in plots)}")
-    typer.echo(f"results: {result.path}")
+        typer.echo(f"plots: {', '.join(shown(p) for p in plots)}")
+    typer.echo(f"results: {shown(result.path)}")

@@ -14,7 +14,7 @@ def crossval(
     config: Path = typer.Argument(..., help="Experiment config with a fit: section (recorded trials through source: logs, or simulated)."),
     observer: list[str] = typer.Option(..., "--observer", "-O", help="Observer of the config to tune by EM (repeatable)."),
     model: str = typer.Option(None, "--model", "-m", help="Fitted model whose parameters the tuned observers take (default: the fit's only one)."),
-    folds: int = typer.Option(None, "--folds", "-k", min=2, help="Number of folds (default 5; whole groups with --group-by)."),
+    folds: int = typer.Option(None, "--folds", "-k", help="Number of folds (default 5; whole groups with --group-by)."),
     leave_one_out: bool = typer.Option(False, "--leave-one-out", help="Hold out one trial at a time."),
     group_by: str = typer.Option(None, "--group-by", help="Group trials by a metadata key, or id~REGEX on their ids (e.g. 'id~^[^-]+')."),
     within: bool = typer.Option(False, "--within", help="With --leave-one-out: fit on the other trials of the held-out one's group only."),
@@ -33,16 +33,17 @@ def crossval(
 
     Example: needle crossval configs/real/em_tracker.yaml --observer open_loop --leave-one-out --group-by 'id~^[^-]+' --within
     """
+    from needlecli.errors import shown
     from needlecli.experiments.studies.crossval import check_args
     from needlecli.experiments.studies.crossval import crossval as run_crossval
     from needlecli.reports.crossval import crossval_plot, crossval_tables
     from needlecli.reports.tables import to_markdown, write_table
 
     setup_logging(quiet)
-    check_args(leave_one_out, within, folds)
+    check_args(leave_one_out, within, folds, group_by)  # the options alone, before anything is read or written
     depths = _depths(from_depths)
     with progress_bar(not quiet) as bar:
-        result = run_crossval(config, observers=observer, model=model, folds=folds if folds is not None else 5,
+        result = run_crossval(config, observers=observer, model=model, folds=folds,
                               leave_one_out=leave_one_out, group_by=group_by, within=within, out_dir=out,
                               overrides=set_, progress=bar, from_depths=depths, pose_from=pose_from)
     tables = crossval_tables(result.results)  # from the folds' results files alone
@@ -70,7 +71,7 @@ def crossval(
             typer.echo("")
     crossval_plot(tables["by_depth"], result.out_dir / "crossval_by_depth.png",
                   f"held-out trials ({how}): mean position error against depth")
-    typer.echo(f"tables: {result.out_dir}")
+    typer.echo(f"tables: {shown(result.out_dir)}")
 
 
 def _depths(text: str) -> list[float]:

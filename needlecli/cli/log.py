@@ -7,6 +7,7 @@ from pathlib import Path
 import typer
 
 from needlecli.cli.common import setup_logging, user_errors
+from needlecli.errors import shown
 
 log_app = typer.Typer(help="Log files of recorded insertions: import, convert, inspect.\n\n"
                            "Example: needle log info datasets/seed003_like.h5", no_args_is_help=True)
@@ -34,7 +35,7 @@ def import_csv_cmd(
     write_log(out, log, source=mapping)
     for line in axis_warnings(log.trials):
         warn.warning("warning: %s", line)
-    typer.echo(f"log: {out} ({len(log.trials)} trial(s))")
+    typer.echo(f"log: {shown(out)} ({len(log.trials)} trial(s))")
 
 
 @log_app.command("from-results")
@@ -59,7 +60,7 @@ def from_results_cmd(
     check_output_file(out, what="the log file")
     log = log_from_results(read_results(results), description=description, truth_every=truth_every, prefix=prefix)
     write_log(out, log, source=results)
-    typer.echo(f"log: {out} ({len(log.trials)} trial(s), synthetic)")
+    typer.echo(f"log: {shown(out)} ({len(log.trials)} trial(s), synthetic)")
 
 
 @log_app.command("export-csv")
@@ -79,11 +80,13 @@ def export_csv_cmd(
     Example: needle log export-csv results/default_log.h5 --out results/exports --tracker-pose 10,80,25,120,-40,15
     """
     setup_logging(quiet)
+    from needlecli.io.atomic import check_output_dir
     from needlecli.io.csv_export import export_lab_csv
     from needlecli.io.logs import read_log
 
+    check_output_dir(out, what="the exports")
     files = export_lab_csv(read_log(log_file), out, sensor=sensor, pose=tracker_pose, roll_deg=sensor_roll)
-    typer.echo(f"exports: {out} ({len(files) - 1} files and mapping.yaml)")
+    typer.echo(f"exports: {shown(out)} ({len(files) - 1} files and mapping.yaml)")
 
 
 @log_app.command("info")
@@ -104,7 +107,7 @@ def info_cmd(
 
     setup_logging(False, level=logging.WARNING)
     log = read_log(log_file)
-    typer.echo(f"{log_file}: {len(log.trials)} trial(s); {log.attrs.get('description', '')}")
+    typer.echo(f"{shown(log_file)}: {len(log.trials)} trial(s); {log.attrs.get('description', '')}")
     if log.attrs.get("synthetic"):
         typer.echo(f"  synthetic: {log.attrs.get('source', '')}")
     for tr in log.trials:
@@ -224,4 +227,4 @@ def merge_cmd(
     check_output_file(out, what="the merged log")
     merged = merge_logs([read_log(p) for p in logs], description=description)
     write_log(out, merged, source=", ".join(str(p) for p in logs))
-    typer.echo(f"log: {out} ({len(merged.trials)} trial(s))")
+    typer.echo(f"log: {shown(out)} ({len(merged.trials)} trial(s))")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import typer
@@ -10,7 +11,7 @@ from needlecli.cli.common import fail, log, progress_bar, setup_logging, user_er
 from needlecli.errors import Interrupted
 
 
-@user_errors
+@user_errors(outputs="each")  # each cell kept when complete, for --resume
 def sweep(
     config: Path = typer.Argument(..., help="Experiment config (YAML): the base of every cell."),
     grid: Path = typer.Option(..., "--grid", "-g", help="Grid file: axes, cells or random samples of dotted overrides."),
@@ -27,7 +28,8 @@ def sweep(
 ) -> None:
     """Run one experiment per cell of a grid (each validated first), write DIR/cells/ID.h5, the table
     DIR/sweep.csv and DIR/sweep.md (one row per cell and observer) and a plot of a metric against a
-    parameter. Exit code 1 when a cell failed (the others still ran), 2 for a bad config or grid.
+    parameter; print the table's main columns, as many as the terminal's width holds. Exit code 1 when a
+    cell failed (the others still ran), 2 for a bad config or grid.
 
     Example: needle sweep configs/seed003/table1.yaml --grid configs/sweeps/seed003_q_kappa.yaml --workers 2
     """
@@ -39,7 +41,7 @@ def sweep(
         plot_sweep,
         run_sweep,
     )
-    from needlecli.reports.tables import to_markdown
+    from needlecli.reports.tables import to_terminal
 
     setup_logging(quiet)
     if executor not in ("local", "dask", "inline"):
@@ -77,8 +79,9 @@ def sweep(
     if plot is None and (plot_metric or plot_param):
         fail("nothing to plot: no cell succeeded" if not (table["status"] == "ok").any() else
              "nothing to plot: the sweep varies no parameter besides runs.seed")
-    if not quiet:
-        typer.echo(to_markdown(table) + "\n")
+    if not quiet:  # as much of the table as the terminal holds; all of it is in the files
+        typer.echo(to_terminal(table, shutil.get_terminal_size((120, 24)).columns, terminal_columns(table),
+                               more=f"in {out_dir / 'sweep.csv'}") + "\n")
         typer.echo(f"cells: {len(cells)} ({result.ran} run, {result.skipped} skipped as complete, "
                    f"{result.failed} failed) in {result.seconds:.1f} s")
         for o in result.outcomes.values():
@@ -89,3 +92,14 @@ def sweep(
         typer.echo(f"plot: {plot}")
     if result.failed:
         raise typer.Exit(1)
+
+
+def terminal_columns(table) -> list:
+    """The sweep table's columns in their order of importance for a terminal: the cell, its parameters,
+    status and observer, the first error's mean (E_xyz), the failed runs, the other errors' means, then
+    the rest; errors and failures only where a cell has some."""
+    params = list(table.attrs.get("params", []))
+    means = [c for c in table.columns if c.endswith("_mean")]
+    first = ["cell", *params, "status", "observer", *means[:1], "runs_failed", *means[1:]]
+    notes = [c for c in ("error", "failures") if c in table.columns and table[c].astype(str).str.len().gt(0).any()]
+    return [*first, *notes, *[c for c in table.columns if c not in first and c not in notes]]

@@ -194,8 +194,9 @@ def read_csv(path: Path, columns: list[str]) -> dict[str, np.ndarray]:
     error (a row of empty cells, ``,,,``, is how a lost sample is written: a blank line could be one, or
     a pasted gap, and a time from the row index would shift by it). A column the mapping reads must be
     named once in the header (two ``px``: which one is x would be a guess)."""
-    if not path.exists():
-        raise DataError(f"{path}: no such CSV file")
+    from needlecli.io.inputs import check_kind
+
+    check_kind(path, "a CSV file")  # a regular file (never a FIFO that would wait for ever)
     try:
         with path.open(newline="", encoding="utf-8") as f:
             rows = list(csv.reader(f))
@@ -446,7 +447,7 @@ def _stream_time(mp, spec, default_time, meta, src, loc):
 def _check_formula_names(path: Path, formula, tcols: list[str], meta: dict) -> None:
     """A name of a time formula that is neither the row, the trial's metadata nor a column of the file:
     one error saying all three (before the CSV is read)."""
-    if formula is None or not tcols or not path.exists():
+    if formula is None or not tcols or not path.is_file():
         return
     try:
         with path.open(newline="", encoding="utf-8") as f:

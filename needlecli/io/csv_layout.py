@@ -168,8 +168,9 @@ def read_meta_file(path: Path) -> dict[str, MetaValue]:
       error naming its two lines.
 
     ``#`` comment lines and blank lines are skipped anywhere; line numbers in errors are the file's."""
-    if not path.exists():
-        raise DataError(f"{path}: no such command file")
+    from needlecli.io.inputs import check_kind
+
+    check_kind(path, "a command file")  # a regular file (never a FIFO that would wait for ever)
     try:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as e:
@@ -507,8 +508,11 @@ def start_trial(trial, mode: str, stream: str, rotations: dict, report: dict) ->
     times shifted so that it is t = 0 (an input keeps the value in effect then); ``trim``: that stream's
     leading invalid rows are dropped, the clock kept; ``keep``: as recorded."""
     first = _first_valid(trial, stream)
-    if first is None:
-        raise DataError(f"trial {trial.id}: stream {stream!r} has no valid sample")
+    if first is None:  # named with the stream's file, as read for this trial (a header only: 0 rows)
+        read = (report.get("streams") or {}).get(stream) or {}
+        rows = f" ({read['rows']} row(s) read)" if "rows" in read else ""
+        raise DataError(f"{read.get('file') or report.get('mapping', 'the mapping')}: [trial {trial.id} -> {stream}] "
+                        f"has no valid sample{rows}: nothing to start the trial at")
     t0, row = first
     rep: dict = {"mode": mode, "stream": stream, "first_valid_row": row, "first_valid_time_s": t0}
     if mode == "keep" or (row == 0 and (mode == "trim" or t0 == 0.0)):

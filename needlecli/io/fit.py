@@ -18,12 +18,15 @@ config takes it: :mod:`needlecli.experiments.config.from_fit`."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import h5py
 import numpy as np
 
-from needlecli.errors import DataError
-from needlecli.io.layout import FIT, check_layout
+from needlecli.errors import DataError, shown
+
+if TYPE_CHECKING:
+    import h5py
+from needlecli.io.layout import FIT, _what, check_layout, root_attribute
 from needlecli.io.results import Group, _one_line, _read
 
 FIT_FORMAT = "needlecli-fit"
@@ -57,25 +60,25 @@ def verdict_text(verdict: str, z: float = np.nan) -> str:
 
 def is_fit_file(path: str | Path) -> bool:
     """Whether ``path`` is an HDF5 file with the fit format (False for anything else, unreadable too)."""
-    try:
-        with h5py.File(path, "r") as f:
-            fmt = f.attrs.get("format")
-            return (fmt.decode() if isinstance(fmt, bytes) else fmt) == FIT_FORMAT
-    except (OSError, ValueError):
-        return False
+    from needlecli.io.inputs import root_format
+
+    return root_format(path) == "fit"
 
 
 def read_fit(path: str | Path) -> Group:
-    """Load a fit file completely. Raises :class:`DataError` for missing, corrupt or newer files."""
+    """Load a fit file completely, its kind and format checked first (:mod:`needlecli.io.inputs`). Raises
+    :class:`DataError` for missing, corrupt or newer files and files of another kind."""
+    from needlecli.io.inputs import describe, open_hdf5
+
     path = Path(path)
-    if not path.exists():
-        raise DataError(f"{path}: no such fit file")
     try:
-        with h5py.File(path, "r") as f:
-            fmt = f.attrs.get("format")
-            fmt = fmt.decode() if isinstance(fmt, bytes) else fmt
-            if fmt != FIT_FORMAT or "fit" not in f or "time" not in f:
-                raise DataError(f"{path}: not a needlecli fit file (format {fmt!r}, no /fit or /time)")
+        with open_hdf5(path, "a fit file") as f:
+            fmt = root_attribute(f, "format", "any", path)
+            if isinstance(fmt, np.ndarray):  # an array where the documented text is: named with its path
+                root_attribute(f, "format", "str", path)
+            if not isinstance(fmt, str) or fmt != FIT_FORMAT or "fit" not in f or "time" not in f:
+                raise DataError(f"{shown(path)}: not a needlecli fit file: it is {describe(path)} (format "
+                                f"{_what(fmt) if fmt is not None else 'none'}, no /fit or /time)")
             version = f.attrs.get("version", 0)
             if not isinstance(version, (int, np.integer)):
                 raise DataError(f"{path}: [/ attribute version] should be an integer, is {version!r:.40}")

@@ -28,7 +28,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from needlecli.errors import DataError
+from needlecli.errors import DataError, shown
 
 MAX_DEPTH = 8
 _KINDS = {"float": "fiub", "num": "fiub", "int": "iu", "bool": "b", "str": "OSU", "any": None}
@@ -241,7 +241,7 @@ class _Check:
         self.seen: set = set()
 
     def fail(self, where: str, msg: str) -> DataError:
-        return DataError(f"{self.path}: [{where or '/'}] {' '.join(msg.split())}")
+        return DataError(f"{shown(self.path)}: [{where or '/'}] {' '.join(msg.split())}")
 
     # ---- attributes
     def attrs(self, obj, spec: dict, where: str, env: dict) -> None:
@@ -503,3 +503,22 @@ def _reason(e: BaseException) -> str:
 def check_layout(f: h5py.File, layout: G, path: str | Path) -> None:
     """Check an open HDF5 file against ``layout``; raise :class:`DataError` at the first problem."""
     _Check(Path(path)).group(f, layout, "", {}, 0)
+
+
+def root_attribute(f: h5py.File, name: str, kind: str, path: str | Path):
+    """The root attribute ``name`` of an open file (decoded; a numpy scalar as a Python one), None when
+    absent; one of the wrong type (an array where a text or an integer is documented, a list ``config``)
+    is a :class:`DataError` naming it: ``r.h5: [/ attribute format] should be an integer, is an array of
+    shape (2,) (integers)``. ``kind``: as :class:`A`'s (``int``, ``str``, ``num``, ``any``)."""
+    check = _Check(Path(path))
+    try:
+        if name not in f.attrs:
+            return None
+        v = f.attrs[name]
+    except (OSError, RuntimeError, KeyError, TypeError, ValueError) as e:
+        raise check.fail("/ attribute " + name, f"cannot be read ({_reason(e)})") from None
+    check.attr_value(v, A(kind), f"/ attribute {name}", {})
+    v = _decode(v)
+    if isinstance(v, np.ndarray) and v.shape == ():
+        v = v.item()
+    return v.item() if isinstance(v, np.generic) else v

@@ -245,12 +245,12 @@ def filter_settings(ctx: ComparisonContext) -> dict[str, Any]:
     * ``p0``: sigma^2 of the first measurement (times (1 + a)^2 with growth), the init std^2, for the
       curvature (param_std or 25 % of the nominal value)^2, for a state at the nominal start the truth's
       ``initial_std``^2, at least 1e-6;
-    * ``q`` per tick of the grid: the truth's process noise times sqrt(dt) (a replay, whose truth's is
+    * ``q`` (per square-root second, as every observer's): the truth's process noise (a replay, whose truth's is
       unknown: for a state a channel measures directly, the one its samples show,
       :func:`measured_process_std`), with the rate error that the
       spread of a model constant which is not a state causes (:func:`parameter_rate_std`, times
-      sqrt(dt)) added in quadrature, at least 1e-3 mm for positions, 1e-5 rad for angles, 4e-4 times the
-      nominal curvature, 1e-4 for other states;
+      sqrt(dt)) added in quadrature, at least the floor of a grid step ``dt`` over ``sqrt(dt)`` (per step:
+      1e-3 mm for positions, 1e-5 rad for angles, 4e-4 times the nominal curvature, 1e-4 for other states);
     * ``predict_at_depths``: [25 % of the insertion length].
 
     Raises
@@ -318,7 +318,7 @@ def filter_settings(ctx: ComparisonContext) -> dict[str, Any]:
             floor = 1e-3 * length
         else:
             floor = 1e-4
-        q[k] = float(max(np.hypot(proc.get(k, 0.0), model_error.get(k, 0.0)) * root_dt, floor))
+        q[k] = float(max(np.hypot(proc.get(k, 0.0), model_error.get(k, 0.0)) * root_dt, floor)) / root_dt  # per step, as a std per sqrt(s)
     out: dict[str, Any] = {
         "q": q, "p0": p0, "measurements": meas,
         "init": {"from": "truth" if ctx.initial_truth_recorded else "nominal", "std": std, "values": values,

@@ -48,7 +48,7 @@ class OpenLoop(Observer):
     Settings = OpenLoopSettings
     takes_common_start = True
     model_only = True  # the reference every filter must beat (needle compare warns when one does not)
-    fit_takes = FitTakes(q="per_root_second", measurements=False, sensor_states=False)
+    fit_takes = FitTakes(measurements=False, sensor_states=False)
 
     @classmethod
     def derived_settings(cls, ctx):

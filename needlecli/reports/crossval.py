@@ -169,26 +169,25 @@ def from_pose_table(paths: list[Path]) -> pd.DataFrame:
 def crossval_plot(by_depth: pd.DataFrame, path: Path, title: str) -> Path | None:
     """Mean held-out position error against inserted depth (the by-depth table, drawn at each bin's
     centre): one colour per observer, one line style per held-out group (solid: all trials)."""
-    from needlecli.reports.plots import CASE_STYLES, save_figure, subplots
+    from needlecli.reports.plots import CASE_STYLES, observer_style, outside_legend, save_figure, subplots
 
     if by_depth.empty:
         return None
     bins = [c for c in by_depth.columns if c.endswith(" mm")]
     centres = np.array([np.mean([float(x) for x in c[:-3].split("-")]) for c in bins])
-    observers = list(dict.fromkeys(by_depth["Observer"]))
     groups = list(dict.fromkeys(by_depth["Held-out group"])) if "Held-out group" in by_depth else ["all"]
     fig, ax = subplots(1, 1, figsize=(7.5, 4.2))
     for _, row in by_depth.iterrows():
         g = row.get("Held-out group", "all")
         v = row[bins].to_numpy(dtype=float)
         fin = np.isfinite(v)
-        ax.plot(centres[fin], v[fin], marker="o", ms=3.5, lw=1.4 if g == "all" else 1.0,
-                color=f"C{observers.index(row['Observer']) % 10}", ls=CASE_STYLES[groups.index(g) % len(CASE_STYLES)],
-                label=f"{row['Observer']} ({g})", gid=f"observer:{row['Observer']}")
+        st = observer_style(row["Observer"], line=False)
+        ax.plot(centres[fin], v[fin], ms=3.5, lw=1.4 if g == "all" else 1.0,
+                ls=CASE_STYLES[groups.index(g) % len(CASE_STYLES)], label=f"{row['Observer']} ({g})", **st)
     ax.set_xlabel("inserted depth [mm] (bin centres)")
     ax.set_ylabel("mean position error, held out [mm]")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize="small", ncol=2)
+    outside_legend(fig, *ax.get_legend_handles_labels(), ncol=3)
     ax.set_title(title, fontsize=9)
     return save_figure(fig, path)
 

@@ -15,9 +15,9 @@ open loop, and any plug-in that declares it; a subclass takes what its parent ta
 the trials whose fit is ``ok`` (``pick: median`` / ``mean`` element-wise over them, or ``pick: trial``
 with ``trial:`` an index or a trial id):
 
-* ``q``: the standard deviation of each state's process noise, ``sqrt(Q_ii)`` per square-root second
-  (``FitTakes.q: per_root_second``: the EKF, EKS, open loop) or per filter tick, ``sqrt(Q_ii dt_tick)``
-  (``per_tick``: the UKF); the fit's correlations are dropped (these observers take a diagonal ``Q``);
+* ``q``: the standard deviation of each state's process noise per square-root second, ``sqrt(Q_ii)`` (the
+  meaning of ``q`` in every observer); the fit's correlations are dropped (these observers take a
+  diagonal ``Q``);
 * ``measurements.<channel>.sigma``: ``sqrt(diag R_j)`` of each fitted channel the observer has a sensor
   for (``FitTakes.measurements``; not the open loop); a measured direction's R is in its tangent plane
   and is not taken;
@@ -384,13 +384,7 @@ def _apply(obs: dict, takes: FitTakes, v: dict, data: dict, source: str, loc: tu
     for key in ("q", "params"):
         if key in obs:
             raise ConfigError(source, loc + (key,), "from_fit sets it: give one of them")
-    if takes.q == "per_tick":
-        dt = float((data.get("simulation") or {}).get("dt", 0.01))
-        rate = obs.get("rate")
-        stride = 1 if rate is None else max(1, int(round(1.0 / (float(rate) * dt))))
-        obs["q"] = {s: float(np.sqrt(max(q, 0.0) * stride * dt)) for s, q in v["q_var"].items()}
-    else:
-        obs["q"] = {s: float(np.sqrt(max(q, 0.0))) for s, q in v["q_var"].items()}
+    obs["q"] = {s: float(np.sqrt(max(q, 0.0))) for s, q in v["q_var"].items()}
     obs["params"] = dict(v["params"])
     taken = ["q", "params"]
     if takes.measurements:

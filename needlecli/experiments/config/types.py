@@ -186,9 +186,19 @@ class ModelSpec(Strict):
     param_cases: ParamCases | None = Field(None, description="per-run parameter cases (design factor)")
 
 
+#: the format of the configs this version reads (a config's ``format:``): 2, process noise ``q`` per
+#: square-root second in every observer. Format 1 (a config without ``format:``) gave the UKF's ``q`` per
+#: filter tick; :func:`needlecli.experiments.config.load.load_config` converts such a config on loading.
+CONFIG_FORMAT = 2
+
+
 class ExperimentConfig(Strict):
     """A validated experiment config (the static type of every ``cfg``)."""
 
+    format: Literal[1, 2] = Field(
+        CONFIG_FORMAT, description="the config's format: 2, the current (q of every observer per square-root "
+        "second). A file without format: is read as format 1, whose unscented filter's q was per filter tick, "
+        "and converted on loading to 2, with one note per observer converted (the results file keeps the converted config)")
     name: str = Field("experiment", pattern=NAME_PATTERN, max_length=100, description="names the results file: results/<name>.h5")
     description: str = Field("", description="what the experiment is, in words")
     model: ModelSpec = Field(description="the needle model: its type, parameters and initial state")

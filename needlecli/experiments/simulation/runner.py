@@ -73,7 +73,7 @@ def build_problem(cfg: ExperimentConfig, truth: Truth, sensors, streams: dict[st
         if per_sample:
             nominal = np.broadcast_to(np.asarray(st.attrs["nominal_sigma"], dtype=float), (len(st.names),)).copy()
         meas, ctx = context_columns(sensor)  # what each sample measures, and what is known with it
-        sub = (lambda a: a) if ctx is None else (lambda a: np.ascontiguousarray(a[..., meas]))
+        sub = (lambda a: a) if ctx is None else (lambda a, _m=meas: np.ascontiguousarray(a[..., _m]))
         channels[sensor.name] = Channel(
             name=sensor.name, sensor_type=sensor.registered_name, t=st.t, t_available=st.t_available,
             index=st.index, value=sub(st.value), valid=st.valid, names=_pick(st.names, meas, ctx),

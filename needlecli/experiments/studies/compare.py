@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -46,7 +47,7 @@ import numpy as np
 import yaml
 from pydantic import ValidationError
 
-from needlecli.errors import ComponentError, ConfigError, DataError, NeedleError
+from needlecli.errors import ComponentError, ConfigError, DataError, NeedleError, shown
 from needlecli.observers.defaults import PREDICTION_FRACTION, ComparisonContext, NotApplicable
 
 if TYPE_CHECKING:
@@ -54,23 +55,15 @@ if TYPE_CHECKING:
     from needlecli.io.results import Group
 
 Progress = Callable[[str, int, int], None]
+log = logging.getLogger("needlecli")
 
 
 # ---------------------------------------------------------------------------------------------- config
 def is_log(path: str | Path) -> bool:
     """Whether ``path`` is an HDF5 log file (format needlecli-log)."""
-    import h5py
+    from needlecli.io.inputs import root_format
 
-    p = Path(path)
-    if not p.is_file() or not h5py.is_hdf5(p):
-        return False
-    try:
-        with h5py.File(p, "r") as f:
-            fmt = f.attrs.get("format")
-        fmt = fmt.decode() if isinstance(fmt, bytes) else fmt
-        return fmt == "needlecli-log"
-    except OSError:
-        return False
+    return root_format(path) == "log"
 
 
 def load_compare_config(
@@ -84,15 +77,14 @@ def load_compare_config(
     """The experiment to compare on: a config (``runs``, ``seed``, ``overrides`` as in ``needle
     simulate``), or a log file replayed with ``model`` (``runs``: its first trials). Returns
     ``(config, text, source)``."""
-    import h5py
-
     from needlecli.experiments.config.load import load_config
+    from needlecli.io.inputs import describe, root_format
     from needlecli.models import MODELS
 
     path = Path(path)
     if not is_log(path):
-        if path.is_file() and h5py.is_hdf5(path):
-            raise DataError(f"{path}: an HDF5 file that is not a log (format needlecli-log); give a config or a log")
+        if root_format(path) is not None:
+            raise DataError(f"{shown(path)}: is {describe(path)}, not a log (format needlecli-log); give a config or a log")
         if model is not None:
             raise ConfigError(str(path), (), "--model is for log files; a config names its model")
         cfg, text = load_config(path, overrides=overrides, runs=runs, seed=seed)
@@ -270,6 +262,7 @@ def prepare_comparison(
     simulate (or replay) it once, choose the observers (:func:`candidates`) and make the common start
     (:func:`common_start`): everything :func:`compare_observers` runs, nothing run yet."""
     from needlecli.experiments.config.load import load_config
+    from needlecli.experiments.config.types import CONFIG_FORMAT
     from needlecli.experiments.simulation.replay import replay_truth
     from needlecli.experiments.simulation.runner import build_problem, simulate_and_measure
     from needlecli.io.yamlfile import parse_yaml
@@ -295,6 +288,7 @@ def prepare_comparison(
     skipped = [c for c in cands if c.skip]
     data = copy.deepcopy(raw)
     data["observers"] = [c.settings for c in chosen]
+    data["format"] = CONFIG_FORMAT  # the derived settings' meaning (the config's own are converted in text)
     cfg1, text1 = load_config(source, text=yaml.safe_dump(data, sort_keys=False))
     problem = build_problem(cfg1, truth, sensors, streams)
     start, start_text = common_start(ctx, chosen, cfg1, problem, cfg.runs.seed)
@@ -318,6 +312,7 @@ def compare_observers(
     file ``<out_dir>/<name>_compare.h5`` with the comparison's ``/compare`` group (the tables of
     :mod:`needlecli.reports.compare` read it)."""
     from needlecli.experiments.simulation import components
+    from needlecli.experiments.simulation.observability import unobservable_states
     from needlecli.experiments.simulation.runner import results_tree
     from needlecli.experiments.simulation.truth import stream
     from needlecli.io.atomic import check_output_dir, raised_signal
@@ -325,6 +320,8 @@ def compare_observers(
 
     loaded = load_compare_config(config, model=model, runs=runs, seed=seed, overrides=overrides)
     name = loaded[0].name
+    for u in unobservable_states(loaded[0]):  # what no observer can estimate with these sensors, before the table
+        log.warning("%s: [sensors] %s", loaded[2], u.message())
     out = Path(out_dir) if out_dir is not None else Path("results") / f"{name}_compare"
     check_output_dir(out, what="the comparison")
     cmp = prepare_comparison(config, observers=observers, progress=progress, loaded=loaded)

@@ -42,7 +42,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import yaml
 
-from needlecli.errors import ConfigError, DataError
+from needlecli.errors import ConfigError, DataError, shown
 from needlecli.io.tree import Group
 
 if TYPE_CHECKING:
@@ -75,42 +75,56 @@ class CrossvalResult:
     out_dir: Path
 
 
-def group_of(trial_id: str, meta: dict, spec: str | None) -> str:
-    """A trial's group under ``spec``: ``id~REGEX`` (first match in the id) or a metadata key."""
+def group_of(trial_id: str, meta: dict, spec: str | None, where: str = "") -> str:
+    """A trial's group under ``spec``: ``id~REGEX`` (first match in the id) or a metadata key (``where``:
+    the file the trials come from, for the message when a trial lacks it)."""
     if spec is None:
         return trial_id
     if spec.startswith("id~"):
         m = re.search(spec[3:], trial_id)
         return m.group(0) if m else trial_id
     if spec not in meta:
-        raise ConfigError("--group-by", (), f"trial {trial_id!r} has no metadata {spec!r}; it has "
-                          f"{', '.join(sorted(meta)) or 'none'} (or use id~REGEX)")
+        where = f" of {shown(meta['log'])}" if isinstance(meta.get("log"), str) else f" of {shown(where)}" if where else ""
+        raise ConfigError("--group-by", (), f"trial {trial_id!r}{where} has no metadata {spec!r}; it has "
+                          f"{', '.join(sorted(k for k in meta if k != 'log')) or 'none'} (or use id~REGEX)")
     return str(meta[spec])
 
 
-def make_folds(ids: list[str], groups: list[str], *, k: int | None, leave_one_out: bool, within: bool) -> list[Fold]:
+def make_folds(ids: list[str], groups: list[str], *, k: int | None, leave_one_out: bool, within: bool,
+               k_given: bool = True) -> list[Fold]:
     """The folds: leave-one-out (training: every other trial, or with ``within`` the other trials of its
-    group), or ``k`` folds of whole groups (round-robin over the groups in order of appearance)."""
+    group), or ``k`` folds of whole groups (round-robin over the groups in order of appearance). A problem
+    names the option that was given (``k_given``: whether ``k`` came from ``--folds`` or is its default)."""
     if leave_one_out:
         out = []
         for i, t in enumerate(ids):
             train = [u for j, u in enumerate(ids) if j != i and (not within or groups[j] == groups[i])]
-            if not train:
+            if not train and within:
                 raise ConfigError("--within", (), f"trial {t!r} is alone in its group {groups[i]!r}: nothing to fit on")
+            if not train:
+                raise ConfigError("--leave-one-out", (), f"trial {t!r} is the only trial: nothing to fit on when it "
+                                  "is held out")
             out.append(Fold(i, train, [t]))
         return out
     order = list(dict.fromkeys(groups))
+    option = "--folds" if k_given else f"--folds (default {k}, not given)"
     if k is None or k < 2:
-        raise ConfigError("--folds", (), "needs at least 2 folds")
+        raise ConfigError(option, (), "needs at least 2 folds")
+    what = "group(s) of trials" if len(set(groups)) < len(groups) else "trial(s)"
+    if len(order) < 2:
+        raise ConfigError(option, (), f"{len(order)} {what}: folds need at least 2")
     if k > len(order):
-        raise ConfigError("--folds", (), f"{k} folds for {len(order)} group(s) of trials: at most {len(order)}")
+        raise ConfigError(option, (), f"{k} folds for {len(order)} {what}: give --folds {len(order)} or fewer"
+                          + (" (or --leave-one-out)" if not k_given else ""))
     fold_of = {g: i % k for i, g in enumerate(order)}
     return [Fold(f, [t for t, g in zip(ids, groups) if fold_of[g] != f], [t for t, g in zip(ids, groups) if fold_of[g] == f])
             for f in range(k)]
 
 
-def _replay_base(cfg_path: Path, data: dict, out_dir: Path, progress) -> tuple[dict, list[tuple[str, dict]], Path]:
-    """The replay config every fold derives from (absolute log paths), and the trials ``(id, meta)``."""
+def _replay_base(cfg_path: Path, data: dict, out_dir: Path, progress):
+    """The replay config every fold derives from (absolute log paths), the trials ``(id, meta)``, the
+    config's folder and, for a simulated config, the log of its runs still to be written (at
+    ``base["source"]["logs"][0]``, once the folds are known to be possible)."""
     from needlecli.io.logs import read_log
 
     base_dir = cfg_path.parent
@@ -120,7 +134,7 @@ def _replay_base(cfg_path: Path, data: dict, out_dir: Path, progress) -> tuple[d
         trials = []
         for p in logs:
             for tr in read_log(p).trials:
-                trials.append((tr.id, dict(tr.meta)))
+                trials.append((tr.id, {**tr.meta, "log": p}))
         if wanted:
             have = {t for t, _ in trials}
             missing = [t for t in wanted if t not in have]
@@ -130,11 +144,11 @@ def _replay_base(cfg_path: Path, data: dict, out_dir: Path, progress) -> tuple[d
             trials = [(t, meta[t]) for t in dict.fromkeys(wanted)]
         base = copy.deepcopy(data)
         base["source"] = {**base["source"], "logs": logs}
-        return base, trials, base_dir
+        return base, trials, base_dir, None
     # a simulated config: simulate once, its runs become the trials of a log
     from needlecli.experiments.config.load import load_config
     from needlecli.experiments.simulation.runner import run_experiment
-    from needlecli.io.logs import log_from_results, write_log
+    from needlecli.io.logs import log_from_results
     from needlecli.io.results import read_results
 
     sim = copy.deepcopy(data)
@@ -144,14 +158,14 @@ def _replay_base(cfg_path: Path, data: dict, out_dir: Path, progress) -> tuple[d
                               progress=progress).path
     log = log_from_results(read_results(res_path), description=f"{cfg.name}: the simulated trials of crossval",
                            prefix="run")
-    log_path = write_log(out_dir / "trials.log.h5", log)
+    log_path = out_dir / "trials.log.h5"
     base = {k: v for k, v in copy.deepcopy(data).items() if k not in _SIMULATION_ONLY}
     model = dict(base.get("model") or {})
     for k in ("param_cases", "param_std", "initial_std"):
         model.pop(k, None)
     base["model"] = model
     base["source"] = {"logs": [str(log_path.resolve())]}
-    return base, [(t.id, dict(t.meta)) for t in log.trials], base_dir
+    return base, [(t.id, dict(t.meta)) for t in log.trials], base_dir, log
 
 
 def _tuned_copy(obs: dict, fit_file: Path, model: str) -> dict:
@@ -170,7 +184,7 @@ def crossval(
     *,
     observers: list[str],
     model: str | None = None,
-    folds: int | None = 5,
+    folds: int | None = None,
     leave_one_out: bool = False,
     group_by: str | None = None,
     within: bool = False,
@@ -181,21 +195,24 @@ def crossval(
     pose_from: tuple[str, ...] | list[str] = ("truth",),
 ) -> CrossvalResult:
     """Cross-validate EM-tuned copies of ``observers`` against the config's hand-tuned observers (module
-    docstring); with ``from_depths``, also predict from each held-out trial's pose at those depths
-    (``pose_from``: ``truth``, the recorded pose, or observers' estimates; :func:`pose_predictions`).
-    Every setting is checked before the first fit."""
+    docstring). ``folds``: None is 5 (an error then says the default was taken); with ``from_depths``, also predict from
+    each held-out trial's pose at those depths (``pose_from``: ``truth``, the recorded pose, or observers'
+    estimates; :func:`pose_predictions`). Every option is checked
+    before anything is read, every setting before the first fit, the folds before anything is written;
+    everything is written into ``out_dir`` by :func:`~needlecli.io.atomic.atomic_path`, so that the
+    command's set of outputs (:func:`~needlecli.io.atomic.output_set`) is renamed into place when complete."""
     from needlecli.experiments.config.load import load_config
     from needlecli.experiments.config.overrides import apply_overrides
     from needlecli.experiments.studies.fit import fit_tree, fit_trials, load_trials, take_fit
+    from needlecli.io.atomic import check_output_dir, write_text_atomic
+    from needlecli.io.logs import write_log
     from needlecli.io.results import write_atomic
-    from needlecli.io.yamlfile import parse_yaml
+    from needlecli.io.yamlfile import parse_yaml, read_text
 
+    check_args(leave_one_out, within, folds, group_by)
     cfg_path = Path(config)
     source = str(cfg_path)
-    try:
-        text = cfg_path.read_text(encoding="utf-8")
-    except OSError as e:
-        raise ConfigError(source, (), f"cannot read the file: {e}") from None
+    text = read_text(cfg_path)  # a config: a regular file of YAML text (a results file or a log is named as such)
     data = parse_yaml(text, source)
     apply_overrides(data, overrides, source)
     cfg0, _ = load_config(cfg_path, text=yaml.safe_dump(data, sort_keys=False))  # the whole config, checked
@@ -214,11 +231,16 @@ def crossval(
     depths = check_pose_args(from_depths, pose_from, names + [f"{o}_em" for o in observers])
     pose_from = tuple(dict.fromkeys(pose_from))
     out = Path(out_dir) if out_dir is not None else Path("results") / f"{cfg0.name}_crossval"
-    (out / "folds").mkdir(parents=True, exist_ok=True)
-    base, trials, base_dir = _replay_base(cfg_path, data, out, progress)
+    check_output_dir(out, what="the cross-validation")
+    # the folds are checked before anything is written (a simulated config's runs are simulated first, in
+    # memory and in the command's set of outputs, which is renamed into place only when all of it succeeded)
+    base, trials, base_dir, sim_log = _replay_base(cfg_path, data, out, progress)
     ids = [t for t, _ in trials]
-    groups = [group_of(t, m, group_by) for t, m in trials]
-    plan = make_folds(ids, groups, k=None if leave_one_out else folds, leave_one_out=leave_one_out, within=within)
+    groups = [group_of(t, m, group_by, source) for t, m in trials]
+    plan = make_folds(ids, groups, k=None if leave_one_out else (folds if folds is not None else 5),
+                      leave_one_out=leave_one_out, within=within, k_given=folds is not None)
+    if sim_log is not None:
+        write_log(Path(base["source"]["logs"][0]), sim_log)
     results, fits = [], []
     tuned = {f"{o}_em": o for o in observers}
     group_of_id = dict(zip(ids, groups))
@@ -228,7 +250,7 @@ def crossval(
     every["source"]["trials"] = fitted
     every["observers"] = []
     every_path = out / "folds" / "all_train.yaml"
-    every_path.write_text(yaml.safe_dump(every, sort_keys=False))
+    write_text_atomic(every_path, yaml.safe_dump(every, sort_keys=False))
     em_cb = (lambda ph, k, n: progress(f"EM of {len(fitted)} training trials", k, n)) if progress else None
     fo_all = fit_trials(load_trials(every_path), models=[fit_model], progress=em_cb)
     for fd in plan:
@@ -236,7 +258,7 @@ def crossval(
         train["source"]["trials"] = fd.train
         train["observers"] = []
         train_path = out / "folds" / f"fold{fd.index}_train.yaml"
-        train_path.write_text(yaml.safe_dump(train, sort_keys=False))
+        write_text_atomic(train_path, yaml.safe_dump(train, sort_keys=False))
         fo = take_fit(fo_all, load_trials(train_path), [fitted.index(t) for t in fd.train])
         fit_path = write_atomic(out / "folds" / f"fold{fd.index}_fit.h5", fit_tree(fo))
         fits.append(fit_path)
@@ -300,11 +322,25 @@ def _run_common_start(cfg: ExperimentConfig, text, path: Path, base_dir: Path, p
     return write_atomic(path, tree)
 
 
-def check_args(leave_one_out: bool, within: bool, folds: int | None) -> None:
+def check_args(leave_one_out: bool, within: bool, folds: int | None, group_by: str | None = None) -> None:
+    """The options of ``needle crossval`` alone, before anything is read or written: each problem names the
+    option given."""
     if within and not leave_one_out:
         raise ConfigError("--within", (), "is for --leave-one-out (the training trials: the others of the held-out one's group)")
     if folds is not None and leave_one_out:
-        raise DataError("--folds and --leave-one-out: give one of them")
+        raise ConfigError("--folds", (), "and --leave-one-out both given: give one of them")
+    if folds is not None and folds < 2:
+        raise ConfigError("--folds", (), f"{folds}: needs at least 2 folds")
+    if group_by is not None:
+        if not group_by.strip():
+            raise ConfigError("--group-by", (), "is empty: give a metadata key of the trials, or id~REGEX")
+        if group_by.startswith("id~"):
+            if not group_by[3:]:
+                raise ConfigError("--group-by", (), "id~ needs a regular expression after it (e.g. 'id~^[^-]+')")
+            try:
+                re.compile(group_by[3:])
+            except re.error as e:
+                raise ConfigError("--group-by", (), f"{group_by[3:]!r} is not a regular expression: {e}") from None
 
 
 # ---------------------------------------------------------------------------------------------- from a pose

@@ -16,7 +16,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import h5py
 import numpy as np
 
 from needlecli import kernels, platform
@@ -116,24 +115,21 @@ def load_trials(path: str | Path, *, overrides: list[str] | None = None) -> Tria
 
 
 def _not_a_config(path: Path) -> str:
-    if not path.exists():
-        return f"{path}: no such file (fit-em takes experiment configs, .yaml)"
-    kind = ""
-    try:
-        with h5py.File(path, "r") as f:
-            fmt = f.attrs.get("format")
-            fmt = fmt.decode() if isinstance(fmt, bytes) else fmt
-            kind = "log" if fmt == "needlecli-log" else "fit" if fmt == FIT_FORMAT else "results" if "truth" in f else "hdf5"
-    except (OSError, ValueError):
-        pass
+    from needlecli.errors import shown
+    from needlecli.io.inputs import describe, root_format
+
+    if not (path.exists() or path.is_symlink()):
+        return f"{shown(path)}: no such file (fit-em takes experiment configs, .yaml)"
+    kind = root_format(path) or ""
     if kind == "log":
-        return (f"{path}: is a log file; fit-em takes a config: write one with `source: {{logs: [{path.name}]}}`, "
+        return (f"{shown(path)}: is a log file; fit-em takes a config: write one with `source: {{logs: [{path.name}]}}`, "
                 "the model and a `fit:` section (see configs/replay/seed004_like.yaml) and pass that")
     if kind == "results":
-        return f"{path}: is a results file; fit-em takes the experiment's config (.yaml)"
+        return f"{shown(path)}: is a results file; fit-em takes the experiment's config (.yaml)"
     if kind == "fit":
-        return f"{path}: is a fit file already; evaluate it with `needle evaluate {path}`"
-    return f"{path}: not an experiment config (.yaml); fit-em takes configs (recorded trials through `source: logs`)"
+        return f"{shown(path)}: is a fit file already; evaluate it with `needle evaluate {path}`"
+    return (f"{shown(path)}: is {describe(path)}, not an experiment config (.yaml); fit-em takes configs (recorded "
+            "trials through `source: logs`)")
 
 
 def em_options(fit: FitSettings, system: System) -> EMOptions:

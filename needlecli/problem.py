@@ -47,7 +47,8 @@ class Channel:
         :func:`needlecli.sensors.base.inequality_function`): ``bound(x, value) -> (g, side)``, each sample
         saying ``side * g(x) >= 0``; None for ordinary channels and models it cannot bound
     context : (N, M, k) what is known with each sample besides what it measures (a transverse image plane's
-        pose: :attr:`~needlecli.sensors.base.Sensor.context_channels`), NaN where not ``valid``; None for
+        pose: :attr:`~needlecli.sensors.base.Sensor.context_channels`), finite everywhere (a sample that is
+        not ``valid`` has the sensor's :attr:`~needlecli.sensors.base.Sensor.neutral_context`); None for
         ordinary channels. ``h`` then takes it: ``h(x (..., n), context (..., k)) -> (..., m)``, and
         ``value``, ``names``, ``units``, ``sigma`` and ``angle`` are those of the measured channels only
     context_names : (k,) the names of the context's channels

@@ -118,7 +118,7 @@ def build_system(
                               tuple(ch.names), tuple(ch.units), bool(ch.unit_vector), scale, frame,
                               model.tangent if frame == "needle" or name in offsets else None,
                               offset_index=dm.names.index(f"{name}_offset") if name in offsets else None,
-                              kernels=problem.kernels)
+                              kernels=problem.kernels, context=ch.context)
         meas.append(mm)
         sigma = spec.sigma if spec is not None and spec.sigma is not None else ch.sigma
         sig = np.asarray(sigma, dtype=float)

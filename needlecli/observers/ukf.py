@@ -158,22 +158,6 @@ def _components(sensor, reading: str | None) -> int:
     return len(_component_names(sensor, reading))
 
 
-#: the context of an invalid sample (NaN as stored): a plane through the origin, the world's x and y its axes,
-#: so that ``h`` stays finite for the runs it is masked out of
-_NEUTRAL_CONTEXT = np.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0])
-
-
-def _finite_context(ctx: np.ndarray) -> np.ndarray:
-    """A channel's context ``(N, M, k)`` with the entries of invalid samples made finite (masked out of the
-    gain anyway; NaN would survive the mask as ``NaN * 0``)."""
-    ok = np.isfinite(ctx).all(-1, keepdims=True)
-    if ok.all():
-        return ctx
-    k = ctx.shape[-1]
-    fill = _NEUTRAL_CONTEXT if k == _NEUTRAL_CONTEXT.size else np.zeros(k)
-    return np.where(ok, ctx, fill)
-
-
 def _predicted(c: dict, X: np.ndarray, jsel: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """``h`` of channel ``c`` at sigma points ``X (N, S, n)``, each run's for its sample ``jsel (N,)``: with the
     sample's context (a transverse plane's pose), and carried back to the sample's acquisition where the
@@ -699,7 +683,7 @@ class UnscentedKalmanFilter(Observer):
                 "axis": AXES.index(spec.across_axis) if spec and spec.across_axis else None,
             })
             c = out[-1]
-            c["context"] = None if ch.context is None else _finite_context(ch.context)
+            c["context"] = ch.context
             c["delayed"] = spec is not None and spec.delayed == "acquisition" and bool(np.any(ch.t_available > ch.t))
             c["index"] = np.asarray(ch.index)
             c["retro"] = None  # set by _retrodiction once the ticks are known

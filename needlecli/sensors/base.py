@@ -104,6 +104,10 @@ class Sensor:
     #: :mod:`needlecli.sensors.transverse`): observers compare ``h`` with the other channels only and pass
     #: these to ``h`` as its ``context`` (:func:`context_columns`; the results file keeps every channel)
     context_channels: ClassVar[tuple[str, ...]] = ()
+    #: the context given to ``h`` for a sample that is not valid (its stored context is NaN; masked out of
+    #: every update, but NaN would survive the mask as ``NaN * 0``): one value per context channel, or empty
+    #: for zeros
+    neutral_context: ClassVar[tuple[float, ...]] = ()
     #: other readings of the same samples, by name: ``(method, extra)``, the name of a method ``(x, context) ->
     #: (..., m + len(extra))`` like :meth:`h` whose first ``m`` components predict the measured channels and
     #: whose ``extra`` ones are constraints the reading says are zero. An observer may choose one per channel
@@ -322,6 +326,18 @@ def with_constraints(h, value: np.ndarray, names: tuple[str, ...]) -> tuple[np.n
     nan = ~np.isfinite(value).all(-1, keepdims=True)
     zeros = np.where(nan, np.nan, np.zeros(value.shape[:-1] + (len(extra),)))
     return np.concatenate([value, zeros], -1), (*names, *extra)
+
+
+def sample_context(sensor, value: np.ndarray) -> np.ndarray | None:
+    """The context of a sensor's samples ``value (N, M, channels)``: ``(N, M, k)``, finite everywhere (a
+    sample without one, not valid, gets :attr:`~Sensor.neutral_context`); None for a sensor without
+    :attr:`~Sensor.context_channels`."""
+    _, ctx = context_columns(sensor)
+    if ctx is None:
+        return None
+    c = np.asarray(value, dtype=float)[..., ctx]
+    fill = np.asarray(sensor.neutral_context or np.zeros(len(ctx)), dtype=float)
+    return np.ascontiguousarray(np.where(np.isfinite(c).all(-1, keepdims=True), c, fill))
 
 
 def context_columns(sensor) -> tuple[np.ndarray, np.ndarray | None]:

@@ -123,6 +123,7 @@ class TransverseSensor(Sensor):
     Settings = TransverseSettings
     requires = ("tip_position", "tip_rotation")
     context_channels = POSE
+    neutral_context = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0)  # the world's x-y plane
     readings = {"tip": ("h_tip", ("w",))}
 
     def __init__(self, settings, model):

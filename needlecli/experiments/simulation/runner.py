@@ -21,7 +21,7 @@ from needlecli.io.results import Group, root_attrs, write_atomic
 from needlecli.observers import OBSERVERS, Channel, EstimationProblem, Posterior
 from needlecli.observers.base import cov_steps
 from needlecli.sensors import MeasurementStream
-from needlecli.sensors.base import context_columns, inequality_function, measurement_function
+from needlecli.sensors.base import context_columns, inequality_function, measurement_function, sample_context
 
 if TYPE_CHECKING:
     from needlecli.experiments.config.types import ExperimentConfig
@@ -81,7 +81,7 @@ def build_problem(cfg: ExperimentConfig, truth: Truth, sensors, streams: dict[st
             h_for=lambda model, reading=None, _s=sensor: measurement_function(_s, model, reading),
             unit_vector=sensor.unit_vector, sample_sigma=sub(st.sigma) if per_sample else None,
             bound_for=lambda model, _s=sensor: inequality_function(_s, model),
-            context=None if ctx is None else np.ascontiguousarray(st.value[..., ctx]),
+            context=sample_context(sensor, st.value),
             context_names=() if ctx is None else _pick(st.names, ctx, ctx),
         )
     n_runs = truth.states.shape[0]

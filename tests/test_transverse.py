@@ -1,0 +1,151 @@
+"""The transverse-plane sensor (needlecli.sensors.transverse): its h, the crossing of the needle's past
+path with the image plane, against an independent closed-form crossing of a circle and a plane; its
+emulation against its h; the readings an observer may choose."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from needlecli.models import MODELS
+from needlecli.sensors import SENSORS
+from needlecli.sensors.base import measurement_function, sample_context
+
+
+def _model(name="unicycle", kappa=0.01):
+    cls = MODELS.get(name)
+    return cls(cls.Params(kappa=kappa))
+
+
+def _sensor(model, **kw):
+    cls = SENSORS.get("transverse")
+    return cls(cls.Settings(type="transverse", name="us", rate=10.0, **kw), model)
+
+
+def _path(model, x0, v=1.5, dt=0.01, steps=4000):
+    """The tip's positions ``(steps + 1, 3)`` and final state, integrated forward by the model (pure insertion)."""
+    x = np.array(x0, dtype=float)
+    u = np.array([v, 0.0])
+    p = model.param_arrays()
+    pos = [model.tip_position(x)]
+    for _ in range(steps):
+        x = model.step(x, u, p, dt)
+        pos.append(model.tip_position(x))
+    return np.array(pos), x
+
+
+def _circle(a, b, c):
+    """Centre, radius and the orthonormal pair ``(e1, e2)`` of the circle through three points, ``e1`` from
+    the centre to ``c`` and ``e2`` the direction of travel at ``c`` (from ``a`` through ``b`` to ``c``)."""
+    ab, ac = b - a, c - a
+    w = np.cross(ab, ac)
+    centre = a + (np.dot(ac, ac) * np.cross(w, ab) + np.dot(ab, ab) * np.cross(ac, w)) / (2.0 * np.dot(w, w))
+    r = np.linalg.norm(c - centre)
+    e1 = (c - centre) / r
+    e2 = np.cross(w / np.linalg.norm(w), e1)
+    if np.dot(e2, c - b) < 0:
+        e2 = -e2
+    return centre, r, e1, e2
+
+
+def _closed_form(centre, r, e1, e2, o, n, theta_near):
+    """The point of the circle ``centre + r (cos t e1 + sin t e2)`` on the plane ``n . (X - o) = 0``: the
+    root of ``A cos t + B sin t = C`` nearest ``theta_near``."""
+    A, B, C = r * np.dot(n, e1), r * np.dot(n, e2), -np.dot(n, centre - o)
+    phi, rho = np.arctan2(B, A), np.hypot(A, B)
+    roots = phi + np.array([1.0, -1.0]) * np.arccos(C / rho)
+    roots = (roots + np.pi) % (2 * np.pi) - np.pi
+    t = roots[np.argmin(np.abs(roots - theta_near))]
+    return centre + r * (np.cos(t) * e1 + np.sin(t) * e2)
+
+
+def _plane(normal, tilt, spin):
+    """Unit image axes and normal of a plane whose normal is ``normal`` tilted by ``tilt`` about a direction
+    at angle ``spin`` across it."""
+    n = normal / np.linalg.norm(normal)
+    a = np.cross(n, [0.3, 0.5, 0.8])
+    a /= np.linalg.norm(a)
+    b = np.cross(n, a)
+    axis = np.cos(spin) * a + np.sin(spin) * b
+    nt = np.cos(tilt) * n + np.sin(tilt) * np.cross(axis, n)
+    eu = axis
+    ev = np.cross(nt, eu)
+    return eu, ev, nt
+
+
+@pytest.mark.parametrize("model_name", ["unicycle", "modified_unicycle"])
+def test_h_is_the_closed_form_crossing_of_the_travelled_circle(model_name):
+    model = _model(model_name, kappa=0.01)  # radius 100 mm; 60 mm travelled: 0.6 rad of arc
+    rng = np.random.default_rng(3)
+    x0 = model.initial_state(model.param_arrays()).astype(float)
+    x0[3:6] = [0.3, -0.2, 1.1]
+    if model_name == "modified_unicycle":
+        x0[6] = 0.01
+    path, tip = _path(model, x0)
+    centre, r, e1, e2 = _circle(path[0], path[len(path) // 2], path[-1])
+    assert abs(r - 100.0) < 1e-6  # the path is the circle of radius 1 / kappa (RK4 to rounding)
+    sensor = _sensor(model)
+    h = measurement_function(sensor, model)
+    contexts, expected = [], []
+    for back in (0.0, 3.0, 12.5, 30.0, 55.0, -4.0):  # mm behind the tip (negative: a plane ahead of it)
+        theta = -back / r
+        on = centre + r * (np.cos(theta) * e1 + np.sin(theta) * e2)
+        tangent = -np.sin(theta) * e1 + np.cos(theta) * e2
+        for tilt, spin, shift in ((0.0, 0.0, 0.0), (0.5, 1.0, 0.7), (-0.9, 2.5, -1.3)):
+            eu, ev, n = _plane(tangent, tilt, spin)
+            o = on + shift * n + rng.normal(0.0, 2.0) * eu + rng.normal(0.0, 2.0) * ev  # origin anywhere on it
+            X = _closed_form(centre, r, e1, e2, o, n, theta)
+            contexts.append(np.concatenate([o, eu, ev]))
+            expected.append([np.dot(eu, X - o), np.dot(ev, X - o)])
+    contexts = np.array(contexts)
+    got = h(np.broadcast_to(tip, (len(contexts), tip.size)), contexts)
+    np.testing.assert_allclose(got, np.array(expected), atol=1e-8)
+
+
+def test_the_tip_reading_is_the_tip_in_the_planes_coordinates():
+    model = _model()
+    sensor = _sensor(model)
+    tip_h = measurement_function(sensor, model, "tip")
+    x = np.array([1.0, -2.0, 30.0, 0.2, 0.1, 0.4])
+    o, eu, ev = np.array([0.5, 0.5, 25.0]), np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])
+    np.testing.assert_allclose(tip_h(x, np.concatenate([o, eu, ev])), [0.5, -2.5, 5.0])
+    assert tip_h.extra == ("w",)
+    with pytest.raises(ValueError, match="no reading 'nope'"):
+        measurement_function(sensor, model, "nope")
+
+
+@pytest.mark.parametrize("motion", ["follow", "scan", "fixed"])
+def test_emulated_samples_are_h_of_the_truth(motion, tmp_path):
+    """With no noise, each emulated sample (the truth's recorded path crossed with the probe's plane,
+    linear between grid steps) is h of the true state at its time: the emulation and the observers'
+    measurement function agree."""
+    from needlecli.experiments.config.load import load_config
+    from needlecli.experiments.simulation.runner import build_sensors
+    from needlecli.experiments.simulation.truth import simulate_truth
+
+    cfg_text = f"""
+format: 2
+name: t
+model: {{type: unicycle, params: {{kappa: 0.008}}, initial_state: {{alpha: 0.2, beta: -0.1, gamma: 0.7}}}}
+inputs: {{v: 1.5, u: 0.0}}
+sensors:
+  - {{name: us, type: transverse, rate: 2.0, sigma: 0.0,
+      probe: {{motion: {motion}, lag: 3.0, offset: {10.0 if motion == 'fixed' else -4.0}, amplitude: 5.0, period: 9.0, tilt: 15.0}}}}
+observers: []
+runs: {{count: 3, seed: 1}}
+stop: {{depth: 40.0}}
+simulation: {{dt: 0.01}}
+output: {{path: {tmp_path / 'x.h5'}}}
+"""
+    cfg, _ = load_config(text=cfg_text)
+    truth = simulate_truth(cfg)
+    (sensor,) = build_sensors(cfg, truth.model)
+    stream = sensor.measure(truth, np.random.default_rng(0))
+    assert stream.valid.sum() > 10
+    x = truth.states[:, stream.index]
+    want = sensor.h(x, sample_context(sensor, stream.value))
+    got = stream.value[..., :2]
+    # linear between grid steps of 0.015 mm on a 125 mm radius: below 1e-6 mm
+    np.testing.assert_allclose(got[stream.valid], want[stream.valid], atol=1e-6)
+    if motion == "fixed":  # the tip short of the plane (before it reaches it, 10 mm: 6.7 s) is lost
+        assert not stream.valid[:, :13].any() and stream.valid[:, 14:].all()

@@ -149,3 +149,40 @@ output: {{path: {tmp_path / 'x.h5'}}}
     np.testing.assert_allclose(got[stream.valid], want[stream.valid], atol=1e-6)
     if motion == "fixed":  # the tip short of the plane (before it reaches it, 10 mm: 6.7 s) is lost
         assert not stream.valid[:, :13].any() and stream.valid[:, 14:].all()
+
+
+def _data_dir():
+    import os
+    from pathlib import Path
+
+    from needlecli.io import ultrasteer as us_io
+
+    env = os.environ.get(us_io.ENV_VAR)
+    return Path(env) if env else Path(__file__).resolve().parents[2] / "shared" / "real-data" / "ultrasteer"
+
+
+@pytest.mark.skipif(not (_data_dir() / "resultsOrig").is_dir(), reason="real data set not found")
+def test_ultrasteer_import_gives_the_plane_pose_of_every_frame():
+    """resultsOrig's ``transverse`` channel: the crossing ``(u, v)`` placed back in 3D with the frame's pose,
+    ``o + u e_u + v e_v``, is the ultrasound point (``us``, from MeasPos); the axes are unit and orthogonal, the
+    normal along the insertion, and ``u`` is MeasUv's first image coordinate (its second
+    is ``v`` offset by 0.80-0.86 mm)."""
+    from needlecli.io import ultrasteer as us_io
+
+    raws = us_io.find_trials(_data_dir())
+    al = us_io.estimate_alignment(raws)
+    raw = next(r for r in raws if r.id == "resultsOrig")
+    tr = us_io.to_trial(raw, al[raw.session])
+    tv, us = tr.sensors["transverse"], tr.sensors["us"]
+    assert tv.settings["type"] == "transverse"
+    np.testing.assert_array_equal(tv.valid, us.valid)
+    u, v, o, eu, ev = tv.value[:, :1], tv.value[:, 1:2], tv.value[:, 2:5], tv.value[:, 5:8], tv.value[:, 8:11]
+    ok = tv.valid
+    # the recorded axes are orthogonal to 1.4e-4: 15 mm into the image that is 2e-3 mm
+    np.testing.assert_allclose((o + u * eu + v * ev)[ok], us.value[ok], atol=0.01)
+    np.testing.assert_allclose(np.linalg.norm(eu[ok], axis=-1), 1.0, atol=1e-9)
+    np.testing.assert_allclose(np.sum(eu * ev, -1)[ok], 0.0, atol=2e-4)
+    assert np.median(np.cross(eu, ev)[ok][:, 2] ** 2) > 0.8  # the plane across the insertion (trial z)
+    uv = us_io.read_numbers(_data_dir() / "resultsOrig" / "MeasUv.dat").reshape(2, -1).T
+    keep = slice(int(np.nonzero(raw.ok)[0][0]), int(np.nonzero(raw.ok)[0][-1]) + 1)
+    np.testing.assert_allclose(u[ok, 0], uv[keep][ok, 0], atol=0.01)

@@ -58,6 +58,11 @@ Each trial becomes one log trial with
   unit normal ``nx, ny, nz`` (``MeasBx x MeasBy``, turned along the insertion), its signed position along
   it ``d = n . MeasFul`` (mm) and ``seen`` (1 where ``us`` is valid, 0 where lost): a one-sided bound on
   the tip (:mod:`needlecli.sensors.plane`), valid wherever the plane's axes are;
+* sensor ``transverse`` (``transverse``, resultsOrig only): the same ultrasound frames as a transverse
+  image plane that sees the shaft (:mod:`needlecli.sensors.transverse`): the needle's crossing in the
+  image's coordinates ``u, v`` (mm, ``MeasPos`` projected on the image axes: it lies in the plane) and the
+  plane's pose of every frame, origin ``ox, oy, oz`` (``MeasFul``) and unit axes ``ux .. uz``, ``vx .. vz``
+  (``MeasBx``, ``MeasBy``); valid where ``us`` is;
 * input ``v`` (mm/s): ``V.dat`` where present (``V[k]`` drives ``(t_{k-1}, t_k]``), else the folder's
   speed (``05mm`` -> 0.5, ``1mm`` -> 1, ...); input ``u`` (rad/s) from the differences of ``Thetas.dat``
   over ``dts`` where present; the trials have no rotation record (``u`` absent: zero in replay);
@@ -182,6 +187,7 @@ class RawTrial:
     us_lost: np.ndarray | None = None  # (N,) bool
     us_reasons: dict[str, int] = field(default_factory=dict)
     plane: tuple[np.ndarray, np.ndarray] | None = None  # (N, 3) a corner, (N, 3) unit normal along the insertion
+    image_axes: tuple[np.ndarray, np.ndarray] | None = None  # (N, 3) unit MeasBx, MeasBy (NaN where not usable)
     rho: float | None = None
     dt_source: str = "nominal 0.177 s"
     same_as: str | None = None  # a trial of trials/ holding the same tracker record
@@ -288,7 +294,20 @@ def read_trial(folder: Path, *, trial_id: str, session: str, speed_folder: str |
             raise DataError(f"{meas}: {len(us)} frames, the tracker has {N}")
         raw.us, raw.us_lost, raw.us_reasons = us, *_us_lost(folder, us)
         raw.plane = _image_plane(folder, N)
+        raw.image_axes = _image_axes(folder, N) if raw.plane is not None else None
     return raw
+
+
+def _image_axes(folder: Path, N: int) -> tuple[np.ndarray, np.ndarray]:
+    """The image's unit axes ``MeasBx``, ``MeasBy`` of each frame ``(N, 3)`` each (NaN where not finite or
+    of no length); the plane's origin is ``MeasFul`` (:func:`_image_plane`)."""
+    out = []
+    for f in ("MeasBx.dat", "MeasBy.dat"):
+        a = _rows(folder / f, 3)
+        with np.errstate(all="ignore"):
+            norm = np.linalg.norm(a, axis=-1, keepdims=True)
+            out.append(np.where(np.isfinite(a).all(-1, keepdims=True) & (norm > 0), a / norm, np.nan))
+    return out[0], out[1]
 
 
 def _image_plane(folder: Path, N: int) -> tuple[np.ndarray, np.ndarray] | None:
@@ -516,6 +535,18 @@ def to_trial(raw: RawTrial, al: Alignment, *, frame: str = "trial") -> Trial:
         tr.sensors["plane"] = SensorStream(
             t=t, value=np.where(ok_plane[:, None], value, 0.0), valid=ok_plane, names=("nx", "ny", "nz", "d", "seen"),
             units=("1", "1", "1", "mm", "1"), settings={"type": "image_plane", "name": "plane", "rate": rate})
+    if raw.plane is not None and raw.image_axes is not None and raw.us is not None:
+        o, _ = express(G, p0, raw.plane[0][keep])
+        eu, ev = raw.image_axes[0][keep] @ G.T, raw.image_axes[1][keep] @ G.T
+        us, _ = express(G, p0, raw.us[keep])
+        d = us - o  # MeasPos lies in the image plane (to 1e-5 mm on resultsOrig): its image coordinates
+        uv = np.stack([np.sum(eu * d, -1), np.sum(ev * d, -1)], -1)
+        pose = np.concatenate([uv, o, eu, ev], -1)
+        ok_t = np.isfinite(pose).all(-1) & ~raw.us_lost[keep]
+        tr.sensors["transverse"] = SensorStream(
+            t=t, value=np.where(np.isfinite(pose), pose, 0.0), valid=ok_t,
+            names=("u", "v", "ox", "oy", "oz", "ux", "uy", "uz", "vx", "vy", "vz"), units=("mm",) * 5 + ("1",) * 6,
+            settings={"type": "transverse", "name": "transverse", "rate": rate, "sigma": 0.5})
     # inputs, cut to the kept frames and shifted to t = 0
     vt, vv = raw.v
     sel = (vt >= raw.t[a] - 1e-9) & (vt < raw.t[b] - 1e-9)

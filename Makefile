@@ -3,7 +3,7 @@ PY ?= python
 
 STUDIES := results/studies
 
-.PHONY: help install demo test bench lint docs clean seed000 seed001 seed003 seed004 datasets regress real real-tau real-plane real-poses owndata faults papers seed000-numbers seed001-numbers seed003-numbers seed004-numbers
+.PHONY: help install demo test bench lint docs clean seed000 seed001 seed003 seed004 datasets regress real real-tau real-plane real-poses shaft owndata faults papers seed000-numbers seed001-numbers seed003-numbers seed004-numbers
 
 help:
 	@echo "make install  - install needlecli with test extras (editable)"
@@ -23,6 +23,7 @@ help:
 	@echo "make real-tau - after make real: the ultrasound's likelihood against the image plane offset's time constant"
 	@echo "make real-plane - after make real: the image plane's bound with margins 0-8 mm and lost frames only (tip error against the tracker)"
 	@echo "make real-poses - after make real: the held-out tracker trials predicted from the start and from their own pose at 0-60 mm"
+	@echo "make shaft    - the transverse-plane studies: a probe scanning around the tip, shaft-crossing vs tip model; latency (in $(SHAFT))"
 	@echo "make seed004  - seed 004's synthetic study and T2prelim: EM fits, Tables 1-3, Figs. 5, 10 (in $(STUDIES))"
 	@echo "make owndata  - a lab's exports made by needlecli, imported by a mapping, fitted with and without the slip (in $(OWN))"
 	@echo "make clean    - remove results/ and caches"
@@ -117,6 +118,16 @@ faults:
 
 # Recorded insertions (issue 8): the data stay outside the repository; not part of CI (about 4 minutes
 # on 2 cores, most of it EM). NEEDLECLI_REAL_DATA overrides where they are.
+# The transverse-plane studies (docs/guide/observers.md, "Transverse planes"): the
+# scanning probe read as the shaft's crossing and as the tip (configs/shaft/scan.yaml). Tables in $(SHAFT).
+SHAFT := results/shaft
+
+shaft:
+	@mkdir -p $(SHAFT)
+	needle simulate configs/shaft/scan.yaml --out $(SHAFT)/scan.h5 --quiet > /dev/null
+	needle evaluate $(SHAFT)/scan.h5 --out $(SHAFT)/scan --tables summary,consistency --no-plots --quiet
+	@echo "tables: $(SHAFT)/scan"
+
 REAL := results/real
 REAL_DATA ?= $(or $(NEEDLECLI_REAL_DATA),../shared/real-data/ultrasteer)
 

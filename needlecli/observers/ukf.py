@@ -588,6 +588,11 @@ class UnscentedKalmanFilter(Observer):
     @staticmethod
     def _counts(rec: RunRecorder, chans: list[dict], bounds: list[dict]) -> _Counts:
         """The filter's counters, kept by ``rec`` under their names in the results file."""
+        # the NIS's degrees of freedom per run (N,) where they are not the stored channel's count (a transverse
+        # plane's pose is known, not measured; a reading adds its constraints)
+        for c in chans:
+            if c["m"] != len(c["channel"].names) + len(c["channel"].context_names):
+                rec.extras[f"nis_dof/{c['name']}"] = np.full(len(c["valid"]), c["m"])
         return _Counts(
             repairs=rec.counter("cholesky_repairs"), hits=rec.counter("constraint_hits"),
             resets=rec.counter("kappa_resets"),

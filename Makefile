@@ -119,14 +119,22 @@ faults:
 # Recorded insertions (issue 8): the data stay outside the repository; not part of CI (about 4 minutes
 # on 2 cores, most of it EM). NEEDLECLI_REAL_DATA overrides where they are.
 # The transverse-plane studies (docs/guide/observers.md, "Transverse planes"): the
-# scanning probe read as the shaft's crossing and as the tip (configs/shaft/scan.yaml). Tables in $(SHAFT).
+# scanning probe read as the shaft's crossing and as the tip (configs/shaft/scan.yaml); a tip sensor's late
+# samples used at their arrival or their acquisition (configs/shaft/latency.yaml). Tables in $(SHAFT).
 SHAFT := results/shaft
 
 shaft:
 	@mkdir -p $(SHAFT)
 	needle simulate configs/shaft/scan.yaml --out $(SHAFT)/scan.h5 --quiet > /dev/null
 	needle evaluate $(SHAFT)/scan.h5 --out $(SHAFT)/scan --tables summary,consistency --no-plots --quiet
-	@echo "tables: $(SHAFT)/scan"
+	@# delayed samples used at their arrival or their acquisition (configs/shaft/latency.yaml), latency in s
+	@for L in 0 0.04 0.1 0.3; do \
+	  needle simulate configs/shaft/latency.yaml --set sensors.0.latency=$$L --out $(SHAFT)/latency_$$L.h5 --quiet \
+	    > /dev/null && \
+	  needle evaluate $(SHAFT)/latency_$$L.h5 --out $(SHAFT)/latency_$$L --tables summary,consistency --no-plots \
+	    --quiet || exit 1; \
+	done
+	@echo "tables: $(SHAFT)/scan, $(SHAFT)/latency_*"
 
 REAL := results/real
 REAL_DATA ?= $(or $(NEEDLECLI_REAL_DATA),../shared/real-data/ultrasteer)

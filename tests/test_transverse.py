@@ -247,3 +247,22 @@ def test_scanning_probe_study_shaft_model_beats_the_tip_model(tmp_path):
     row = c.loc[("shaft", "ANEES", "all states (x, y, z, alpha, beta, gamma, kappa)")]
     assert row["95% low"] <= row["Mean"] <= row["95% high"]
     assert c.loc[("shaft", "ANIS", "us"), "Dof"] == 2 and c.loc[("tip", "ANIS", "us"), "Dof"] == 3
+
+
+@pytest.mark.parametrize("model_name", ["unicycle", "modified_unicycle"])
+def test_insertion_h_is_the_length_travelled_from_the_entry(model_name):
+    """Sensor insertion: h of the tip after the model carried it ``L`` along its circle from the entry pose
+    is ``L`` (the integration's own travelled length, 1.5 mm/s for t s), for 0-60 mm (0.6 rad of arc)."""
+    model = _model(model_name, kappa=0.01)
+    x0 = model.initial_state(model.param_arrays()).astype(float)
+    x0[0:6] = [2.0, -1.0, 3.0, 0.3, -0.2, 1.1]
+    if model_name == "modified_unicycle":
+        x0[6] = 0.01
+    cls = SENSORS.get("insertion")
+    sensor = cls(cls.Settings(type="insertion", name="robot", rate=10.0), model)
+    t0 = model.tangent(x0)
+    entry = np.concatenate([model.tip_position(x0), t0 / np.linalg.norm(t0)])
+    h = measurement_function(sensor, model)
+    for steps in (1, 700, 2000, 4000):
+        _, tip = _path(model, x0, steps=steps)
+        np.testing.assert_allclose(h(tip, entry), [1.5 * 0.01 * steps], atol=1e-8)

@@ -279,6 +279,17 @@ class GaussianPipeline(Pipeline):
         return value, valid, np.ascontiguousarray(sigma)
 
 
+class _NoPipeline:
+    """What :meth:`Sensor._stream` reads of a pipeline, for sensors that make their samples themselves (a
+    transverse plane's crossing, the inserted length): no extra arrays."""
+
+    extras: dict = {}
+
+
+#: the stand-in pipeline of sensors that make their samples themselves
+NO_PIPELINE = _NoPipeline()
+
+
 def measurement_function(sensor, model, reading: str | None = None):
     """``h`` of ``sensor`` for the state of ``model`` (which may be an observer's own), or None; with
     ``reading`` (one of the sensor's :attr:`~Sensor.readings`) that reading of the samples instead. A sensor

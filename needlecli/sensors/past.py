@@ -75,6 +75,9 @@ def body_twist(model, x: np.ndarray, params) -> tuple[np.ndarray, np.ndarray]:
     equations are analytic: their default Jacobian is a complex step too). ``params``: the model's parameters
     (name -> array broadcastable to ``x.shape[:-1]``)."""
     x = np.asarray(x, dtype=float)
+    if x.ndim == 1:  # the models' in-place kernels want a batch axis
+        omega, nu = body_twist(model, x[None], params)
+        return omega[0], nu[0]
     u = np.zeros(model.m)
     u[model.input_slice(model.insertion_input)] = 1.0
     h = 1e-20

@@ -38,7 +38,7 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from needlecli.schema import NonNeg, Positive, Strict
-from needlecli.sensors.base import SENSORS, MeasurementStream, Sensor, SensorSettings
+from needlecli.sensors.base import NO_PIPELINE, SENSORS, MeasurementStream, Sensor, SensorSettings
 from needlecli.sensors.past import body_twist, plane_crossing
 
 POSE = ("ox", "oy", "oz", "ux", "uy", "uz", "vx", "vy", "vz")
@@ -219,8 +219,4 @@ class TransverseSensor(Sensor):
         value = np.concatenate([uv, o, eu, ev], -1)
         valid = found & np.isfinite(value).all(-1)
         sigma = np.broadcast_to(self.sigma(truth, idx), value.shape).copy()
-        return self._stream(truth, idx, _NoExtras, value, valid, sigma, rng)
-
-
-class _NoExtras:
-    extras: dict = {}
+        return self._stream(truth, idx, NO_PIPELINE, value, valid, sigma, rng)

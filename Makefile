@@ -159,6 +159,13 @@ real:
 	needle evaluate $(REAL)/em_resultsorig.h5 --out $(REAL)/tables --tables identifiability,em_per_trial --no-plots --quiet
 	needle simulate configs/real/ukf_resultsorig_em.yaml --out $(REAL)/ukf_resultsorig_em.h5 --quiet > /dev/null
 	needle evaluate $(REAL)/ukf_resultsorig_em.h5 --out $(REAL)/tables --quiet
+	@# (a3) the ultrasound read as a plane that sees the shaft, with the inserted length: EM for the sensors'
+	@# noise (the needle's motion held by its physics), the causal UKF, the fixed-lag smoother, side by side
+	needle fit-em configs/real/em_resultsorig_shaft.yaml --out $(REAL)/em_resultsorig_shaft.h5 --quiet
+	needle fit-em configs/real/em_resultsorig_shaft_start.yaml --out $(REAL)/em_resultsorig_shaft_start.h5 --quiet
+	needle simulate configs/real/ukf_resultsorig_shaft.yaml --out $(REAL)/ukf_resultsorig_shaft.h5 --quiet > /dev/null
+	needle evaluate $(REAL)/ukf_resultsorig_shaft.h5 --out $(REAL)/tables --tables real_tip_error,real_error_along_across \
+	  --no-plots --quiet
 	@# (d) the tracker trials cross-validated: EM on the other trials of the day, the held-out path from its first pose
 	needle crossval configs/real/em_tracker.yaml --observer open_loop --leave-one-out --group-by 'id~^[^-]+' --within \
 	  --out $(REAL)/crossval --quiet > /dev/null

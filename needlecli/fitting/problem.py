@@ -230,7 +230,7 @@ def check_channels(setup: KalmanSetup, model_cls: type[Model], sensors: dict) ->
         if measurement_function(sensors[name], own) is None:
             out.append((("measurements", name), f"model {model_cls.registered_name!r} cannot predict what sensor {name!r} measures"))
             continue
-        m = len(sensors[name].channel_names)
+        m = len(sensors[name].channel_names) - len(sensors[name].context_channels)  # the measured ones
         if spec.sigma is not None and np.size(spec.sigma) not in (1, m):
             out.append((("measurements", name, "sigma"), f"has {np.size(spec.sigma)} entries for {m} components"))
         if spec.frame == "needle" and (tuple(sensors[name].channel_names) != ("x", "y", "z") or not own.provides("tangent")):

@@ -147,6 +147,9 @@ class FitSettings(KalmanSetup):
                               description="models fitted by default (needle fit-em --model)")
     hold: list[str] = Field(default_factory=list, description="states whose process noise, and constants, held at "
                             "their initial guess, not fitted (e.g. taken from another fit with from_fit)")
+    hold_reason: str = Field("", description="why hold holds what it does (written to the fit file, /fit/<model> "
+                             "attribute hold_reason): e.g. the needle's along-needle process noise fixed by its physics "
+                             "on other insertions rather than traded by the likelihood against the probe's motion")
     isotropic: list[str] = Field(
         default_factory=list, description="blocks of Q by their stem (h for hx, hy, hz) fitted as a multiple of the "
         "identity over the block's states with process noise, uncorrelated with the other states: for a unit "

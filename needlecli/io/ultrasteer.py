@@ -63,6 +63,12 @@ Each trial becomes one log trial with
   image's coordinates ``u, v`` (mm, ``MeasPos`` projected on the image axes: it lies in the plane) and the
   plane's pose of every frame, origin ``ox, oy, oz`` (``MeasFul``) and unit axes ``ux .. uz``, ``vx .. vz``
   (``MeasBx``, ``MeasBy``); valid where ``us`` is;
+* sensor ``inserted`` (``insertion``, resultsOrig only): the inserted length since the first ultrasound frame
+  that saw the needle, the commanded speed ``V.dat`` over the frame intervals
+  (:mod:`needlecli.sensors.insertion`), its reference pose that frame's ultrasound point and the trial's
+  initial insertion direction (``z`` of the trial frame); valid from that frame on; and ``inserted_from_start``,
+  the same length from the trial's start with the tip's pose at ``t = 0`` as its reference (what a robot's
+  needle guide gives; in this recording the tracker's first frame);
 * input ``v`` (mm/s): ``V.dat`` where present (``V[k]`` drives ``(t_{k-1}, t_k]``), else the folder's
   speed (``05mm`` -> 0.5, ``1mm`` -> 1, ...); input ``u`` (rad/s) from the differences of ``Thetas.dat``
   over ``dts`` where present; the trials have no rotation record (``u`` absent: zero in replay);
@@ -547,6 +553,31 @@ def to_trial(raw: RawTrial, al: Alignment, *, frame: str = "trial") -> Trial:
             t=t, value=np.where(np.isfinite(pose), pose, 0.0), valid=ok_t,
             names=("u", "v", "ox", "oy", "oz", "ux", "uy", "uz", "vx", "vy", "vz"), units=("mm",) * 5 + ("1",) * 6,
             settings={"type": "transverse", "name": "transverse", "rate": rate, "sigma": 0.5})
+    if (raw.folder / "V.dat").exists() and raw.us is not None:
+        # the inserted length since the first ultrasound frame that saw the needle: the commanded speed over
+        # the frame intervals (V[k] drives (t_{k-1}, t_k]); the reference pose is that frame's ultrasound point
+        # (no tracker) and the insertion direction of the trial's start (the trial frame's z, where every
+        # filter's start takes its orientation from)
+        vt, vv = raw.v
+        total = np.concatenate([[0.0], np.cumsum(np.diff(raw.t) * vv[: len(raw.t) - 1])])[keep]
+        us_k, _ = express(G, p0, raw.us[keep])
+        seen = np.nonzero(~raw.us_lost[keep] & np.isfinite(us_k).all(-1))[0]
+        f = int(seen[0]) if seen.size else 0
+        entry = np.concatenate([us_k[f], (G @ r_al[0][:, 2]) if frame == "trial" else r_al[0][:, 2]])
+        on = np.arange(len(t)) >= f
+        tr.sensors["inserted"] = SensorStream(
+            t=t, value=np.where(on[:, None], np.concatenate([(total - total[f])[:, None], np.tile(entry, (len(t), 1))],
+                                                            -1), 0.0), valid=on & bool(seen.size),
+            names=("length", "ex", "ey", "ez", "dx", "dy", "dz"), units=("mm",) * 4 + ("1",) * 3,
+            settings={"type": "insertion", "name": "inserted", "rate": rate, "sigma": 0.2})
+        # the same length from the trial's start, its reference pose the tip's at t = 0 (the trial frame's
+        # origin and z): what a robot's needle guide gives; in this recording only the tracker's first frame
+        start = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 1.0]) if frame == "trial" else np.concatenate([pos[0], R[0][:, 2]])
+        tr.sensors["inserted_from_start"] = SensorStream(
+            t=t, value=np.concatenate([(total - total[0])[:, None], np.tile(start, (len(t), 1))], -1),
+            valid=np.ones(len(t), dtype=bool), names=("length", "ex", "ey", "ez", "dx", "dy", "dz"),
+            units=("mm",) * 4 + ("1",) * 3,
+            settings={"type": "insertion", "name": "inserted_from_start", "rate": rate, "sigma": 0.2})
     # inputs, cut to the kept frames and shifted to t = 0
     vt, vv = raw.v
     sel = (vt >= raw.t[a] - 1e-9) & (vt < raw.t[b] - 1e-9)

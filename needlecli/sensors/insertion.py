@@ -29,8 +29,8 @@ import numpy as np
 from pydantic import Field
 
 from needlecli.schema import NonNeg
-from needlecli.sensors.base import NO_PIPELINE, SENSORS, Sensor, SensorSettings
-from needlecli.sensors.past import body_twist, plane_crossing
+from needlecli.sensors.base import NO_PIPELINE, SENSORS, SensorSettings
+from needlecli.sensors.past import PathSensor, plane_crossing
 
 ENTRY = ("ex", "ey", "ez", "dx", "dy", "dz")
 
@@ -41,11 +41,10 @@ class InsertionSettings(SensorSettings):
 
 
 @SENSORS.register("insertion")
-class InsertionSensor(Sensor):
+class InsertionSensor(PathSensor):
     """The inserted length against the arc from the entry point to the tip (module docstring)."""
 
     Settings = InsertionSettings
-    requires = ("tip_position", "tip_rotation")
     context_channels = ENTRY
     neutral_context = (0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
 
@@ -58,21 +57,11 @@ class InsertionSensor(Sensor):
         u = self.model.length_unit
         return (u, u, u, u, "1", "1", "1")
 
-    def check_model(self):
-        why = super().check_model()
-        if why is None and self.model.insertion_input not in self.model.input_names:
-            return f"sensor 'insertion' needs the insertion input of model {self.model.registered_name!r}"
-        return why
-
     def h(self, x, context):
         """The inserted length ``(..., 1)`` that puts the tip of states ``x (..., n)`` where it is, its path
         back reaching the entry plane of ``context (..., 6)`` (broadcast)."""
-        model = self.model
-        params = model.param_arrays()
-        omega, nu = body_twist(model, x, params)
-        _, s = plane_crossing(model.tip_position(x), model.tip_rotation(x), omega, nu, context[..., 0:3],
-                              context[..., 3:6])
-        scale = np.asarray(params.get("speed_scale", 1.0))
+        _, s = plane_crossing(*self.path_twist(x), context[..., 0:3], context[..., 3:6])
+        scale = np.asarray(self.model.param_arrays().get("speed_scale", 1.0))
         return (-s / scale)[..., None]
 
     def sigma(self, truth, idx):

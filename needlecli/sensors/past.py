@@ -40,7 +40,8 @@ neglected (Bar-Shalom's one-step retrodiction; Stone Soup's out-of-sequence exam
 the sample's time instead). A stream whose clock is off by an unknown ``delta`` is the same with
 ``delta`` a constant state that EM estimates (:mod:`needlecli.fitting.statespace`, ``time_offset``).
 
-All functions are pure and batched over leading axes.
+All functions are pure and batched over leading axes; :class:`PathSensor` is the base of the sensors whose
+``h`` is computed on the arc back from the tip.
 """
 
 from __future__ import annotations
@@ -48,6 +49,7 @@ from __future__ import annotations
 import numpy as np
 
 from needlecli.numerics import hat, vee
+from needlecli.sensors.base import Sensor
 
 #: Newton steps of :func:`plane_crossing` (from the straight line's crossing: the error after k steps is
 #: about ``(kappa s)^(2^k)`` of ``s``; 6 reach rounding for any crossing within a quarter turn)
@@ -139,3 +141,25 @@ def retrodict(model, x: np.ndarray, inputs: np.ndarray, params, dt: float) -> np
     for j in range(inputs.shape[-2] - 1, -1, -1):
         x = model.step(x, inputs[..., j, :], params, -dt)
     return x
+
+
+class PathSensor(Sensor):
+    """A sensor that measures the needle's past path through the arc back from the tip (a transverse plane's
+    crossing, the inserted length): it needs the tip's pose and the model's insertion input, whose unit
+    speed gives the body twist (:func:`body_twist`)."""
+
+    requires = ("tip_position", "tip_rotation")
+
+    def check_model(self):
+        why = super().check_model()
+        if why is None and self.model.insertion_input not in self.model.input_names:
+            return (f"sensor {self.registered_name!r} needs the insertion input of model "
+                    f"{self.model.registered_name!r}")
+        return why
+
+    def path_twist(self, x: np.ndarray):
+        """The tip's position ``(..., 3)``, rotation ``(..., 3, 3)`` and body twist per unit of insertion
+        ``(omega, nu)`` ``(..., 3)`` each at states ``x (..., n)``, with the model's parameters."""
+        model = self.model
+        omega, nu = body_twist(model, x, model.param_arrays())
+        return model.tip_position(x), model.tip_rotation(x), omega, nu

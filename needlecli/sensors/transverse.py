@@ -38,8 +38,8 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from needlecli.schema import NonNeg, Positive, Strict
-from needlecli.sensors.base import NO_PIPELINE, SENSORS, MeasurementStream, Sensor, SensorSettings
-from needlecli.sensors.past import body_twist, plane_crossing
+from needlecli.sensors.base import NO_PIPELINE, SENSORS, MeasurementStream, SensorSettings
+from needlecli.sensors.past import PathSensor, plane_crossing
 
 POSE = ("ox", "oy", "oz", "ux", "uy", "uz", "vx", "vy", "vz")
 NAMES = ("u", "v", *POSE)
@@ -116,12 +116,11 @@ def path_crossing(path: np.ndarray, origin: np.ndarray, normal: np.ndarray) -> t
 
 
 @SENSORS.register("transverse")
-class TransverseSensor(Sensor):
+class TransverseSensor(PathSensor):
     """A 2D transverse ultrasound image plane with its pose: the shaft's crossing in the plane's two
     coordinates (module docstring)."""
 
     Settings = TransverseSettings
-    requires = ("tip_position", "tip_rotation")
     context_channels = POSE
     neutral_context = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0)  # the world's x-y plane
     readings = {"tip": ("h_tip", ("w",))}
@@ -140,12 +139,6 @@ class TransverseSensor(Sensor):
         u = self.model.length_unit
         return (u, u, u, u, u, "1", "1", "1", "1", "1", "1")
 
-    def check_model(self):
-        why = super().check_model()
-        if why is None and self.model.insertion_input not in self.model.input_names:
-            return f"sensor 'transverse' needs the insertion input of model {self.model.registered_name!r}"
-        return why
-
     # ------------------------------------------------------------------ measurement model
     @staticmethod
     def _pose(context: np.ndarray):
@@ -156,9 +149,7 @@ class TransverseSensor(Sensor):
         """The crossing of the image plane with the arc back from the tip, ``(..., 2)`` in the plane's
         coordinates, for states ``x (..., n)`` and poses ``context (..., 9)`` (broadcast)."""
         o, eu, ev, n = self._pose(context)
-        model = self.model
-        omega, nu = body_twist(model, x, model.param_arrays())
-        X, _ = plane_crossing(model.tip_position(x), model.tip_rotation(x), omega, nu, o, n)
+        X, _ = plane_crossing(*self.path_twist(x), o, n)
         d = X - o
         return np.stack([np.einsum("...i,...i->...", eu, d), np.einsum("...i,...i->...", ev, d)], -1)
 

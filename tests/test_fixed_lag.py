@@ -73,3 +73,18 @@ def test_the_fixed_lag_observer_is_offline():
     cls = OBSERVERS.get("fixed_lag")
     assert cls.causal is False
     assert cls.Settings.model_validate({"type": "fixed_lag", "lag": 0.5}).lag == 0.5
+
+
+def test_tables_mark_the_estimates_that_saw_the_future():
+    """The recorded-data tables name a smoother's estimates (offline), with the fixed-lag smoother's lag, from
+    the attributes the Kalman observers write (``smoother``; the fixed-lag smoother's ``causal``, ``lag``)."""
+    from needlecli.io.results import Group
+    from needlecli.observers import OBSERVERS
+    from needlecli.reports.tables import offline_label
+
+    cls = OBSERVERS.get("fixed_lag")
+    obs = cls(cls.Settings.model_validate({"type": "fixed_lag", "name": "lag", "lag": 2.0}))
+    assert offline_label("lag", Group(attrs={"smoother": False, **obs._offline_attrs()})) == "lag (offline, 2 s ahead)"
+    assert offline_label("eks", Group(attrs={"smoother": True})) == "eks (offline)"
+    assert offline_label("ekf", Group(attrs={"smoother": False})) == "ekf"
+    assert offline_label("ukf", Group(attrs={})) == "ukf"

@@ -130,9 +130,13 @@ class _Kalman(Observer):
         return rec.posterior(
             dm.names, dm.units, angle_states=tuple(a for a in model.angle_states), extras=extras,
             attrs={"model": model.registered_name, "ticks": str(s.ticks), "augment": list(s.augment),
-                   "smoother": self.smoother},
+                   "smoother": self.smoother, **self._offline_attrs()},
         )
 
+
+    def _offline_attrs(self) -> dict:
+        """Results-file attributes of an offline pass after the filter (none for the filter)."""
+        return {}
 
     def _after_filter(self, fwd, times: np.ndarray, dm):
         """An offline pass on the EKF's result ``fwd`` at the ticks' ``times (K+1,)``, or None (the filter)."""
@@ -170,6 +174,9 @@ class FixedLagSmoother(_Kalman):
 
     Settings = FixedLagSettings
     causal = False
+
+    def _offline_attrs(self) -> dict:
+        return {"causal": False, "lag": float(self.settings.lag)}  # its estimates saw lag s of later samples
 
     def _after_filter(self, fwd, times, dm):
         return fixed_lag(fwd, times, self.settings.lag, state_angles=dm.angles, kernels=dm.kernels)

@@ -37,8 +37,8 @@ the latency by the model's own RK4 step with the recorded inputs and a negative 
 follow-the-leader model this is the arc back by the inserted length of the latency (the same pose);
 for any model it is the deterministic part of the past state, the process noise of the latency
 neglected (Bar-Shalom's one-step retrodiction; Stone Soup's out-of-sequence examples keep the state at
-the sample's time instead). A stream whose clock is off by an unknown ``delta`` is the same with
-``delta`` a constant state that EM estimates (:mod:`needlecli.fitting.statespace`, ``time_offset``).
+the sample's time instead). (A stream whose clock is off by an unknown ``delta`` would be the same with
+``delta`` a constant state that EM estimates; that temporal calibration is not built.)
 
 All functions are pure and batched over leading axes; :class:`PathSensor` is the base of the sensors whose
 ``h`` is computed on the arc back from the tip.

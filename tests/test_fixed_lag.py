@@ -70,9 +70,9 @@ def test_fixed_lag_is_the_rts_smoother_of_the_data_up_to_the_lag():
 def test_the_fixed_lag_observer_is_offline():
     from needlecli.observers import OBSERVERS
 
-    cls = OBSERVERS.get("fixed_lag")
+    cls = OBSERVERS.get("rts_fixed_lag")
     assert cls.causal is False
-    assert cls.Settings.model_validate({"type": "fixed_lag", "lag": 0.5}).lag == 0.5
+    assert cls.Settings.model_validate({"type": "rts_fixed_lag", "lag": 0.5}).lag == 0.5
 
 
 def test_tables_mark_the_estimates_that_saw_the_future():
@@ -82,8 +82,8 @@ def test_tables_mark_the_estimates_that_saw_the_future():
     from needlecli.observers import OBSERVERS
     from needlecli.reports.tables import offline_label
 
-    cls = OBSERVERS.get("fixed_lag")
-    obs = cls(cls.Settings.model_validate({"type": "fixed_lag", "name": "lag", "lag": 2.0}))
+    cls = OBSERVERS.get("rts_fixed_lag")
+    obs = cls(cls.Settings.model_validate({"type": "rts_fixed_lag", "name": "lag", "lag": 2.0}))
     assert offline_label("lag", Group(attrs={"smoother": False, **obs._offline_attrs()})) == "lag (offline, 2 s ahead)"
     assert offline_label("eks", Group(attrs={"smoother": True})) == "eks (offline)"
     assert offline_label("ekf", Group(attrs={"smoother": False})) == "ekf"

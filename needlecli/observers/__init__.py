@@ -16,7 +16,7 @@ OBSERVERS: Registry[type[Observer]] = Registry("observer type", group="needlecli
     "so3_invariant": "needlecli.observers.so3_invariant",
     "ekf": "needlecli.observers.kalman",
     "eks": "needlecli.observers.kalman",
-    "fixed_lag": "needlecli.observers.kalman",
+    "rts_fixed_lag": "needlecli.observers.kalman",
 })
 
 _LAZY = {  # the contract, imported on first use (this package's import is light: ``needle list``)

@@ -51,7 +51,7 @@ class EKFSettings(ObserverSettings, KalmanSetup):
 
 
 class FixedLagSettings(EKFSettings):
-    type: Literal["fixed_lag"]  # type: ignore[assignment]
+    type: Literal["rts_fixed_lag"]  # type: ignore[assignment]
     lag: NonNeg = Field(description="s: each estimate sees every sample up to this long after its time (0: the EKF; "
                         "longer than the run: the EKS)")
 
@@ -166,7 +166,7 @@ class ExtendedKalmanFilter(_Kalman):
     Settings = EKFSettings
 
 
-@OBSERVERS.register("fixed_lag")
+@OBSERVERS.register("rts_fixed_lag")
 class FixedLagSmoother(_Kalman):
     """The EKF and a fixed-lag smoother on its linearisation: each estimate from every sample up to ``lag``
     seconds after its time (:func:`needlecli.fitting.smoother.fixed_lag`): an offline estimate, available

@@ -124,7 +124,7 @@ def filterpy_run(cfg, res, obs_name, run, steps):
     ang_x = model.angle_mask
     dt = float(res.truth.time[1] - res.truth.time[0])
     inputs = np.ascontiguousarray(res.truth.inputs[run])
-    Q = np.diag([s.q.get(k, 0.0) ** 2 for k in names])
+    Q = np.diag([s.q.get(k, 0.0) ** 2 * dt for k in names])  # q per sqrt(s): the variance of one tick
     P0 = np.diag(np.maximum([s.p0.get(k, s.init.std.get(k, 0.0) ** 2) for k in names], 1e-12))
     x0 = res.estimates[obs_name].state[run, 0]
     i_kappa = model.index("kappa")

@@ -76,7 +76,7 @@ def test_ukf_takes_q_per_square_root_second_and_a_picked_trial(seed004_fit):
     ({"type": "ekf", "_ff": {"file": "no_such_fit.h5"}}, "observers -> 0 -> from_fit -> file", "no such fit file"),
     ({"type": "ekf", "_ff": {"pick": "mode"}}, "observers -> 0 -> from_fit -> pick", "median"),
     ({"type": "high_gain"}, "observers -> 0 -> type", "'high_gain' cannot take a fit"),
-    ({"type": "high_gain"}, "observers -> 0 -> type", "from_fit works for ekf, eks, open_loop, ukf"),
+    ({"type": "high_gain"}, "observers -> 0 -> type", "from_fit works for ekf, eks, open_loop, rts_fixed_lag, ukf"),
     ({"type": "kalman"}, "observers -> 0 -> type", "unknown observer type 'kalman'"),
     ({"type": "ekf", "measurements": {"camera": {"sigma": 1e-4}}}, "observers -> 0 -> measurements -> camera -> sigma",
      "from_fit sets it"),

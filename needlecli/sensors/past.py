@@ -37,8 +37,9 @@ the latency by the model's own RK4 step with the recorded inputs and a negative 
 follow-the-leader model this is the arc back by the inserted length of the latency (the same pose);
 for any model it is the deterministic part of the past state, the process noise of the latency
 neglected (Bar-Shalom's one-step retrodiction; Stone Soup's out-of-sequence examples keep the state at
-the sample's time instead). (A stream whose clock is off by an unknown ``delta`` would be the same with
-``delta`` a constant state that EM estimates; that temporal calibration is not built.)
+the sample's time instead). A stream whose clock is off by an unknown ``delta`` is the same with ``delta``
+a constant state that EM estimates (temporal calibration: ``measurements.<c>.time_offset`` of a fit, the
+first-order ``x - delta f(x, u)`` in :class:`needlecli.fitting.statespace.MeasurementModel`).
 
 All functions are pure and batched over leading axes; :class:`PathSensor` is the base of the sensors whose
 ``h`` is computed on the arc back from the tip.

@@ -135,9 +135,8 @@ class TransverseSensor(PathSensor):
         return NAMES
 
     @property
-    def channel_units(self):
-        u = self.model.length_unit
-        return (u, u, u, u, u, "1", "1", "1", "1", "1", "1")
+    def channel_units(self):  # the crossing and the origin in length, the unit axes
+        return (self.model.length_unit,) * 5 + ("1",) * 6
 
     # ------------------------------------------------------------------ measurement model
     @staticmethod

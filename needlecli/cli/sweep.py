@@ -31,7 +31,7 @@ def sweep(
     parameter; print the table's main columns, as many as the terminal's width holds. Exit code 1 when a
     cell failed (the others still ran), 2 for a bad config or grid.
 
-    Example: needle sweep configs/seed003/table1.yaml --grid configs/sweeps/seed003_q_kappa.yaml --workers 2
+    Example: needle sweep configs/multirate-ukf-us3d/table1.yaml --grid configs/sweeps/multirate-ukf-us3d_q_kappa.yaml --workers 2
     """
     from needlecli.experiments.studies.sweep import (
         default_plot_choice,

@@ -46,9 +46,9 @@ def _position_streams(res: Group):
 def real_tip_error(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
     """Tip position error [mm] against the reference (on recorded data the EM tracker): each position
     sensor's raw measurements at its valid frames, each observer at the same frames, and each observer at
-    every frame with a reference sample (seed 003's instantaneous error); an observer whose estimates saw
-    later samples is marked (offline). A stream identical to the reference (the tracker's own positions) is
-    left out."""
+    every frame with a reference sample (the multi-rate UKF paper's instantaneous error); an observer whose
+    estimates saw later samples is marked (offline). A stream identical to the reference (the tracker's own
+    positions) is left out."""
     truth = res.data["truth"]
     t_names = list(truth.attrs["names"])
     axes = next((ax for ax in _AXES if all(a in t_names for a in ax)), None)

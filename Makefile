@@ -3,7 +3,7 @@ PY ?= python
 
 STUDIES := results/studies
 
-.PHONY: help install demo test bench lint docs clean datasets regress real real-tau real-plane real-poses owndata faults papers particles
+.PHONY: help install demo test bench lint docs clean datasets regress real real-tau real-plane real-poses shaft owndata faults papers particles
 PAPERS := highgain-us2d so3-invariant multirate-ukf-us3d em-magnetic-pratt2022
 # the papers' former names (needlecli/papers.py: the seed texts' numbers), kept as aliases of their targets
 ALIASES := seed000 seed001 seed003 seed004
@@ -28,6 +28,7 @@ help:
 	@echo "make real-tau - after make real: the ultrasound's likelihood against the image plane offset's time constant"
 	@echo "make real-plane - after make real: the image plane's bound with margins 0-8 mm and lost frames only (tip error against the tracker)"
 	@echo "make real-poses - after make real: the held-out tracker trials predicted from the start and from their own pose at 0-60 mm"
+	@echo "make shaft    - the transverse-plane studies: a probe scanning around the tip, shaft-crossing vs tip model; latency (in $(SHAFT))"
 	@echo "make owndata  - a lab's exports made by needlecli, imported by a mapping, fitted with and without the slip (in $(OWN))"
 	@echo "make particles - the particle filters against the UKF, EKF (Table 1, T2prelim, outliers, resultsOrig) -> docs/guide/particle-filters.md"
 	@echo "make clean    - remove results/ and caches"
@@ -132,6 +133,24 @@ faults:
 
 # Recorded insertions (issue 8): the data stay outside the repository; not part of CI (about 4 minutes
 # on 2 cores, most of it EM). NEEDLECLI_REAL_DATA overrides where they are.
+# The transverse-plane studies (docs/guide/observers.md, "Transverse planes"): the
+# scanning probe read as the shaft's crossing and as the tip (configs/shaft/scan.yaml); a tip sensor's late
+# samples used at their arrival or their acquisition (configs/shaft/latency.yaml). Tables in $(SHAFT).
+SHAFT := results/shaft
+
+shaft:
+	@mkdir -p $(SHAFT)
+	needle simulate configs/shaft/scan.yaml --out $(SHAFT)/scan.h5 --quiet > /dev/null
+	needle evaluate $(SHAFT)/scan.h5 --out $(SHAFT)/scan --tables summary,consistency --no-plots --quiet
+	@# delayed samples used at their arrival or their acquisition (configs/shaft/latency.yaml), latency in s
+	@for L in 0 0.04 0.1 0.3; do \
+	  needle simulate configs/shaft/latency.yaml --set sensors.0.latency=$$L --out $(SHAFT)/latency_$$L.h5 --quiet \
+	    > /dev/null && \
+	  needle evaluate $(SHAFT)/latency_$$L.h5 --out $(SHAFT)/latency_$$L --tables summary,consistency --no-plots \
+	    --quiet || exit 1; \
+	done
+	@echo "tables: $(SHAFT)/scan, $(SHAFT)/latency_*"
+
 REAL := results/real
 REAL_DATA ?= $(or $(NEEDLECLI_REAL_DATA),../shared/real-data/ultrasteer)
 
@@ -155,6 +174,13 @@ real:
 	needle evaluate $(REAL)/em_resultsorig.h5 --out $(REAL)/tables --tables identifiability,em_per_trial --no-plots --quiet
 	needle simulate configs/real/ukf_resultsorig_em.yaml --out $(REAL)/ukf_resultsorig_em.h5 --quiet > /dev/null
 	needle evaluate $(REAL)/ukf_resultsorig_em.h5 --out $(REAL)/tables --quiet
+	@# (a3) the ultrasound read as a plane that sees the shaft, with the inserted length: EM for the sensors'
+	@# noise (the needle's motion held by its physics), the causal UKF, the fixed-lag smoother, side by side
+	needle fit-em configs/real/em_resultsorig_shaft.yaml --out $(REAL)/em_resultsorig_shaft.h5 --quiet
+	needle fit-em configs/real/em_resultsorig_shaft_start.yaml --out $(REAL)/em_resultsorig_shaft_start.h5 --quiet
+	needle simulate configs/real/ukf_resultsorig_shaft.yaml --out $(REAL)/ukf_resultsorig_shaft.h5 --quiet > /dev/null
+	needle evaluate $(REAL)/ukf_resultsorig_shaft.h5 --out $(REAL)/tables --tables real_tip_error,real_error_along_across \
+	  --no-plots --quiet
 	@# (d) the tracker trials cross-validated: EM on the other trials of the day, the held-out path from its first pose
 	needle crossval configs/real/em_tracker.yaml --observer open_loop --leave-one-out --group-by 'id~^[^-]+' --within \
 	  --out $(REAL)/crossval --quiet > /dev/null

@@ -46,6 +46,14 @@ class Channel:
     bound_for : ``bound_for(model)`` for a channel that bounds the state from one side (an image plane:
         :func:`needlecli.sensors.base.inequality_function`): ``bound(x, value) -> (g, side)``, each sample
         saying ``side * g(x) >= 0``; None for ordinary channels and models it cannot bound
+    context : (N, M, k) what is known with each sample besides what it measures (a transverse image plane's
+        pose: :attr:`~needlecli.sensors.base.Sensor.context_channels`), finite everywhere (a sample that is
+        not ``valid`` has the sensor's :attr:`~needlecli.sensors.base.Sensor.neutral_context`); None for
+        ordinary channels. ``h`` then takes it: ``h(x (..., n), context (..., k)) -> (..., m)``, and
+        ``value``, ``names``, ``units``, ``sigma`` and ``angle`` are those of the measured channels only
+    context_names : (k,) the names of the context's channels
+    h_for : also ``h_for(model, reading)``: one of the sensor's other readings of the same samples
+        (:attr:`~needlecli.sensors.base.Sensor.readings`, e.g. a transverse plane's ``tip``)
     """
 
     name: str
@@ -60,11 +68,13 @@ class Channel:
     sigma: np.ndarray
     angle: np.ndarray
     h: Callable[[np.ndarray], np.ndarray] | None
-    h_for: Callable[[Model], Callable[[np.ndarray], np.ndarray] | None] = lambda model: None
+    h_for: Callable[..., Callable[..., np.ndarray] | None] = lambda model, reading=None: None
     unit_vector: bool = False
     attrs: Mapping = field(default_factory=dict)
     sample_sigma: np.ndarray | None = None
     bound_for: Callable[[Model], Callable | None] = lambda model: None
+    context: np.ndarray | None = None
+    context_names: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)

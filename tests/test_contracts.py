@@ -198,8 +198,9 @@ def test_no_observer_type_is_named_outside_its_own_module():
 def test_what_an_observer_declares_is_read_through_the_registry():
     """Each built-in's declarations, as compare and from_fit used to hard-code them."""
     takes = {t: OBSERVERS.get(t).fit_takes for t in OBSERVERS.builtin_names()}
-    assert {t for t, v in takes.items() if v is not None} == {"ukf", "ekf", "eks", "open_loop", "pf", "rbpf"}
-    assert [t for t, v in takes.items() if v is not None and v.sensor_states] == ["ekf", "eks"]
+    assert {t for t, v in takes.items() if v is not None} == {"ukf", "ekf", "eks", "rts_fixed_lag", "open_loop", "pf",
+                                                              "rbpf"}
+    assert [t for t, v in takes.items() if v is not None and v.sensor_states] == ["ekf", "eks", "rts_fixed_lag"]
     assert not takes["open_loop"].measurements and takes["ukf"].measurements
     assert [t for t in OBSERVERS.builtin_names() if OBSERVERS.get(t).default_reference] == ["ukf"]
     assert [t for t in OBSERVERS.builtin_names() if OBSERVERS.get(t).model_only] == ["open_loop"]

@@ -278,7 +278,7 @@ def test_a_fit_section_takes_and_holds_another_fit(needle_fit, tmp_path):
     d, fit = needle_fit
     f2 = {k: v for k, v in _FIT.items() if k not in ("q",)}
     f2 = {**f2, "from_fit": {"file": str(fit), "model": "unicycle", "pick": "median"},
-          "hold": ["alpha", "beta", "gamma", "kappa"],
+          "hold": ["alpha", "beta", "gamma", "kappa"], "hold_reason": "the needle's motion, from the first fit",
           "measurements": {"us": {"sigma": [1.0, 1.0, 1.0], "frame": "needle"}}}
     cfg_path = tmp_path / "fit2.yaml"
     cfg_path.write_text(yaml.safe_dump(_sim_config([{"name": "open_loop", "type": "open_loop"}], fit=f2)))
@@ -296,6 +296,7 @@ def test_a_fit_section_takes_and_holds_another_fit(needle_fit, tmp_path):
             i = names.index(s)
             np.testing.assert_allclose(gb["Q"][()][:, i, i], Qa[i, i], rtol=1e-12)
         assert _s(gb.attrs["held"]) == ["alpha", "beta", "gamma", "kappa"]
+        assert _s(gb.attrs["hold_reason"]) == ["the needle's motion, from the first fit"]  # why, in the file
         q = _s(gb["identifiability"].attrs["quantities"])
         assert "kappa" not in q and "tr(Q_alpha)" not in q
 

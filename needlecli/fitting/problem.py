@@ -94,6 +94,9 @@ def build_system(
                              f"with a tangent (model {model.registered_name!r})")
     sensor_states = [(f"{name}_offset", model.length_unit, 0.0 if o.tau is None else 1.0 / o.tau)
                      for name, o in offsets.items()]
+    delays = {name: setup.measurements[name].time_offset for name, _, _ in chans
+              if name in setup.measurements and setup.measurements[name].time_offset is not None}
+    sensor_states += [(f"{name}_delay", "s", 0.0) for name in delays]  # constants
     dm = DiscreteModel(model, params, augment, grid_dt, ticks, inputs, setup.substeps, sensor_states,
                        kernels=problem.kernels)
     meas, R, floors = [], [], []
@@ -118,7 +121,10 @@ def build_system(
                               tuple(ch.names), tuple(ch.units), bool(ch.unit_vector), scale, frame,
                               model.tangent if frame == "needle" or name in offsets else None,
                               offset_index=dm.names.index(f"{name}_offset") if name in offsets else None,
-                              kernels=problem.kernels)
+                              kernels=problem.kernels, context=ch.context,
+                              delay_index=dm.names.index(f"{name}_delay") if name in delays else None,
+                              inputs=np.ascontiguousarray(inputs[:, ch.index]) if name in delays else None,
+                              drift=dm.drift if name in delays else None)
         meas.append(mm)
         sigma = spec.sigma if spec is not None and spec.sigma is not None else ch.sigma
         sig = np.asarray(sigma, dtype=float)
@@ -140,8 +146,9 @@ def build_system(
         q_index = tuple(range(dm.nx)) + tuple(dm.names.index(k) for k in moving)
     Qc = np.diag([q.get(s, 0.0) ** 2 for s in dm.names])
     m0 = initial_mean(setup.init, problem, model, model.param_arrays(), rng, augment=dm.augment)
-    if offsets:
-        m0 = np.concatenate([m0, np.tile([o.value for o in offsets.values()], (m0.shape[0], 1))], -1)
+    if offsets or delays:
+        prior = [o.value for o in offsets.values()] + [d.value for d in delays.values()]
+        m0 = np.concatenate([m0, np.tile(prior, (m0.shape[0], 1))], -1)
     for mm in meas:  # the reference axis of needle coordinates: given, or far from the initial tangent
         if mm.frame == "needle":
             spec = setup.measurements[mm.name]
@@ -151,6 +158,9 @@ def build_system(
     for c, o in offsets.items():  # the offset's prior: its stationary (or a constant's) variance
         k = dm.names.index(f"{c}_offset")
         P0[k, k] = max(o.sigma**2, 1e-18)
+    for c, d in delays.items():  # the clock offset's prior
+        k = dm.names.index(f"{c}_delay")
+        P0[k, k] = d.sigma**2
     return System(dm, meas, m0, P0, Qc, R, floors, q_index)
 
 
@@ -230,7 +240,7 @@ def check_channels(setup: KalmanSetup, model_cls: type[Model], sensors: dict) ->
         if measurement_function(sensors[name], own) is None:
             out.append((("measurements", name), f"model {model_cls.registered_name!r} cannot predict what sensor {name!r} measures"))
             continue
-        m = len(sensors[name].channel_names)
+        m = len(sensors[name].channel_names) - len(sensors[name].context_channels)  # the measured ones
         if spec.sigma is not None and np.size(spec.sigma) not in (1, m):
             out.append((("measurements", name, "sigma"), f"has {np.size(spec.sigma)} entries for {m} components"))
         if spec.frame == "needle" and (tuple(sensors[name].channel_names) != ("x", "y", "z") or not own.provides("tangent")):

@@ -38,6 +38,15 @@ class AlongOffset(Strict):
     value: float = Field(0.0, description="initial value (a constant's prior mean), model length unit")
 
 
+class TimeOffset(Strict):
+    """A stream's unknown clock offset, a constant state of the sensor that EM estimates (temporal
+    calibration): the sample stamped ``t`` was taken at ``t - delta``. Told apart from a constant offset of
+    the start only where the motion's speed varies."""
+
+    sigma: Positive = Field(description="prior std of the offset, s")
+    value: float = Field(0.0, description="prior mean (initial guess), s")
+
+
 class ChannelNoise(Strict):
     """How a filter treats one measurement channel (a sensor, by name)."""
 
@@ -53,6 +62,9 @@ class ChannelNoise(Strict):
                           "e2 = t x e1 (default: the axis least aligned with the initial tangent)")
     along_offset: AlongOffset | None = Field(
         None, description="a position offset along the needle's tangent, estimated as a state of the sensor")
+    time_offset: TimeOffset | None = Field(
+        None, description="the stream's clock offset, estimated as a constant state of the sensor (temporal "
+                          "calibration): h of the state delta earlier, x - delta f(x, u)")
     student_t: Positive | None = Field(
         None, description="EM: Student-t noise with these degrees of freedom (robust weights in the E-step: "
                           "outliers weigh less); off if unset")
@@ -147,6 +159,9 @@ class FitSettings(KalmanSetup):
                               description="models fitted by default (needle fit-em --model)")
     hold: list[str] = Field(default_factory=list, description="states whose process noise, and constants, held at "
                             "their initial guess, not fitted (e.g. taken from another fit with from_fit)")
+    hold_reason: str = Field("", description="why hold holds what it does (written to the fit file, /fit/<model> "
+                             "attribute hold_reason): e.g. the needle's along-needle process noise fixed by its physics "
+                             "on other insertions rather than traded by the likelihood against the probe's motion")
     isotropic: list[str] = Field(
         default_factory=list, description="blocks of Q by their stem (h for hx, hy, hz) fitted as a multiple of the "
         "identity over the block's states with process noise, uncorrelated with the other states: for a unit "

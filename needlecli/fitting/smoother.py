@@ -18,13 +18,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from needlecli.fitting.statespace import DiscreteModel, MeasurementModel
+from needlecli.numerics.angles import wrap_angle
 from needlecli.numerics.kalman import (
     ForwardResult,
     SmoothResult,
     kalman_filter_smoother,
     kalman_forward,
     kalman_loglik_affine,
+    repair_pd,
     rts_smoother,
+    symmetrize,
 )
 
 
@@ -303,3 +306,43 @@ def _scatter(full: SmootherResult | None, res: SmootherResult, idx: np.ndarray, 
         put(full.lin.d[j], res.lin.d[j])
         put(full.lin.y[j], res.lin.y[j])
     return full
+
+
+def fixed_lag(fwd: ForwardResult, times: np.ndarray, lag: float, *, state_angles: np.ndarray | None = None,
+              kernels: str | None = None) -> SmoothResult:
+    r"""Fixed-lag smoother: at each tick ``k`` (times ``times (K+1,)``, s) the estimate given every sample up
+    to ``t_k + lag``, the RTS recursion of the filter's linearisation run back from the filtered estimate
+    at the window's last tick ``e(k)`` (the last with ``t <= t_k + lag``) to ``k``:
+
+    .. math::  m_{k|e} = m_{k|k} + G_k (m_{k+1|e} - m_{k+1|k}),\quad
+               P_{k|e} = P_{k|k} + G_k (P_{k+1|e} - P_{k+1|k}) G_k^T
+
+    with the RTS gains ``G_k`` (:func:`~needlecli.numerics.kalman.rts_smoother`). Every window at once: as
+    many steps as the longest window has ticks, each over all runs and ticks. ``lag = 0`` gives the
+    filter, a lag past the last tick the RTS smoother. ``m, P`` (N, K+1, n), (N, K+1, n, n); ``C`` is
+    not computed (NaN), ``G`` the gains."""
+    N, K1, n = fwd.m_filt.shape
+    gains = rts_smoother(fwd, state_angles=state_angles, kernels=kernels)
+    G, GT = gains.G, np.swapaxes(gains.G, -1, -2)
+    Pp, _ = repair_pd(fwd.P_pred[:, 1:])
+    end = np.searchsorted(times, times + lag + 1e-9, side="right") - 1  # (K+1,) the window's last tick
+    cur = end.copy()
+    m = fwd.m_filt[:, end].copy()
+    P = fwd.P_filt[:, end].copy()
+    wrap = state_angles is not None and state_angles.any()
+    with np.errstate(all="ignore"):
+        while True:
+            on = np.nonzero(cur > np.arange(K1))[0]  # windows not yet back at their own tick
+            if on.size == 0:
+                break
+            c = cur[on] - 1
+            d = m[:, on] - fwd.m_pred[:, c + 1]
+            if wrap:
+                d[..., state_angles] = wrap_angle(d[..., state_angles])
+            mk = fwd.m_filt[:, c] + (G[:, c] @ d[..., None])[..., 0]
+            if wrap:
+                mk[..., state_angles] = wrap_angle(mk[..., state_angles])
+            m[:, on] = mk
+            P[:, on] = fwd.P_filt[:, c] + G[:, c] @ (P[:, on] - Pp[:, c]) @ GT[:, c]
+            cur[on] = c
+    return SmoothResult(m=m, P=symmetrize(P), C=np.full((N, K1 - 1, n, n), np.nan), G=G, repairs=gains.repairs)

@@ -132,6 +132,11 @@ class DiscreteModel:
             p[a] = z[..., self.nx + i]
         return p
 
+    def drift(self, z: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The model's own time derivative ``(..., nx)`` at states ``z (..., n)`` (augmented constants as
+        parameters) and inputs ``u (..., m)``: how far the needle moves per second (a clock offset's ``h``)."""
+        return self.model.f(z[..., : self.nx], u, self._p(z, z.ndim - 1))
+
     def f(self, z: np.ndarray, u: np.ndarray) -> np.ndarray:
         p = self._p(z, z.ndim - 1)
         dx = self.model.f(z[..., : self.nx], u, p)
@@ -322,6 +327,15 @@ class MeasurementModel:
     weight: np.ndarray | None = None
     #: the kernels setting of :meth:`linearise` (:class:`DiscreteModel`'s ``kernels``)
     kernels: str = "auto"
+    #: (N, M, k) what is known with each sample besides what it measures (a transverse plane's pose:
+    #: :attr:`~needlecli.problem.Channel.context`, finite everywhere); ``h`` is then ``h(x, context)``
+    context: np.ndarray | None = None
+    #: index of a constant sensor state, the stream's clock offset ``delta`` (s): the sample stamped ``t``
+    #: was taken at ``t - delta``, ``h`` is of the state then, to first order ``x - delta f(x, u)``
+    #: (``drift(z, u) = f``, ``inputs (N, M, m)`` the model's inputs at each sample); temporal calibration
+    delay_index: int | None = None
+    inputs: np.ndarray | None = None
+    drift: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
 
     @property
     def m(self) -> int:
@@ -345,17 +359,24 @@ class MeasurementModel:
                                self.names, self.units, self.unit_vector,
                                None if self.scale is None else self.scale[idx], self.frame, self.tangent_fn,
                                self.frame_axis, self.offset_index, None if self.weight is None else self.weight[idx],
-                               self.kernels)
+                               self.kernels, None if self.context is None else self.context[idx],
+                               self.delay_index, None if self.inputs is None else self.inputs[idx], self.drift)
         if self.tangent:
             out._axis_cache = self._axis()
         return out
 
-    def h_aug(self, z: np.ndarray) -> np.ndarray:
+    def h_aug(self, z: np.ndarray, context: np.ndarray | None = None, u: np.ndarray | None = None) -> np.ndarray:
+        """``h`` of augmented states ``z (..., n)`` (with the sensor states' offset and clock offset),
+        ``context (..., k)`` and ``u (..., m)`` the samples' context and inputs broadcast against ``z``'s
+        leading axes (a channel with :attr:`context`, :attr:`delay_index`)."""
         x = z[..., : self.nx]
+        if self.delay_index is not None:  # the state the sample was taken from, delta earlier
+            x = x - z[..., self.delay_index, None] * self.drift(z, u)
+        hx = self.h(x) if context is None else self.h(x, context)
         if self.offset_index is None:
-            return self.h(x)
+            return hx
         t = self.tangent_fn(x)
-        return self.h(x) + z[..., self.offset_index, None] * t / np.linalg.norm(t, axis=-1, keepdims=True)
+        return hx + z[..., self.offset_index, None] * t / np.linalg.norm(t, axis=-1, keepdims=True)
 
     def linearise(self, z: np.ndarray, y: np.ndarray | None = None, sample: int | None = None):
         """At states ``z (..., n)``: ``(h(z), H (..., m, n), d = h(z) - H z, y)`` with the measurements
@@ -363,12 +384,20 @@ class MeasurementModel:
         (whitened by ``scale``: of every sample, or of sample ``sample`` when ``z`` is ``(N, n)``; weighted
         by ``weight`` likewise)."""
         if (self.scale is None and self.weight is None and self.frame == "world" and self.offset_index is None
-                and z.ndim in (2, 3) and z.shape[0] == self.valid.shape[0]):  # (whitening, weights, the needle's
+                and self.context is None and self.delay_index is None and z.ndim in (2, 3)
+                and z.shape[0] == self.valid.shape[0]):  # (whitening, weights, the needle's
             kind = measurement_kind(self)                                     # frame and offsets: numpy below)
             fast = twin("linearise", self.kernels) if kind is not None else None
             if fast is not None:
                 return fast(self, kind, z, y)
-        yh, H = finite_difference_h(self.h_aug, z)
+        if self.context is None and self.delay_index is None:
+            yh, H = finite_difference_h(self.h_aug, z)
+        else:  # each state with its sample's context and inputs: (N, k) at one sample, (N, M, k) at every one
+            def at(a):
+                return None if a is None else (a[:, sample] if sample is not None else a)[..., None, :]
+
+            ctx, uu = at(self.context), at(self.inputs)
+            yh, H = finite_difference_h(lambda pts: self.h_aug(pts, ctx, uu), z)
         if y is None:
             y = np.where(self.valid[..., None], self.y, 0.0)
         if self.tangent or self.frame == "needle":

@@ -19,6 +19,10 @@ units here, at the edge (mm, rad, s; m for the magnetic models)::
         units: [mm, mm, mm]
         valid_column: ok           # optional: 1/0 or true/false
         sensor: {type: position, rate: 1.0, axes: [x, y, z], sigma: 0.3}
+      us2d:                        # a transverse image plane (sensor transverse): the crossing and the plane's pose
+        file: probe.csv
+        columns: {u: cu, v: cv, ox: o_x, oy: o_y, oz: o_z, ux: ex_x, uy: ex_y, uz: ex_z, vx: ey_x, vy: ey_y, vz: ey_z}
+        sensor: {type: transverse, rate: 10.0, sigma: 0.5}
     truth:                         # optional
       file: tracker.csv
       columns: {x: px, y: py, z: pz}

@@ -135,6 +135,9 @@ def check_fit_values(f: h5py.File, path: str | Path) -> None:
                 # without the attribute (older files): a unit vector's 2 x 2
                 direction = coords.startswith("tangent plane") or (not coords and m == 3 and R.shape[-1] == 2)
                 want = m - 1 if direction else m
+                if coords.startswith("components "):  # the components R is of, as named (a channel with context
+                    names = coords[len("components "):].split(", ")  # such as a plane's pose: the measured ones)
+                    want = len(names)
                 if R.shape[1:] != (want, want):
                     what = (f"a direction's R in its tangent plane, {want} x {want}" if direction
                             else f"{want} x {want}, one row per component ({', '.join(names)})")

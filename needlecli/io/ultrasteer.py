@@ -58,6 +58,17 @@ Each trial becomes one log trial with
   unit normal ``nx, ny, nz`` (``MeasBx x MeasBy``, turned along the insertion), its signed position along
   it ``d = n . MeasFul`` (mm) and ``seen`` (1 where ``us`` is valid, 0 where lost): a one-sided bound on
   the tip (:mod:`needlecli.sensors.plane`), valid wherever the plane's axes are;
+* sensor ``transverse`` (``transverse``, resultsOrig only): the same ultrasound frames as a transverse
+  image plane that sees the shaft (:mod:`needlecli.sensors.transverse`): the needle's crossing in the
+  image's coordinates ``u, v`` (mm, ``MeasPos`` projected on the image axes: it lies in the plane) and the
+  plane's pose of every frame, origin ``ox, oy, oz`` (``MeasFul``) and unit axes ``ux .. uz``, ``vx .. vz``
+  (``MeasBx``, ``MeasBy``); valid where ``us`` is;
+* sensor ``inserted`` (``insertion``, resultsOrig only): the inserted length since the first ultrasound frame
+  that saw the needle, the commanded speed ``V.dat`` over the frame intervals
+  (:mod:`needlecli.sensors.insertion`), its reference pose that frame's ultrasound point and the trial's
+  initial insertion direction (``z`` of the trial frame); valid from that frame on; and ``inserted_from_start``,
+  the same length from the trial's start with the tip's pose at ``t = 0`` as its reference (what a robot's
+  needle guide gives; in this recording the tracker's first frame);
 * input ``v`` (mm/s): ``V.dat`` where present (``V[k]`` drives ``(t_{k-1}, t_k]``), else the folder's
   speed (``05mm`` -> 0.5, ``1mm`` -> 1, ...); input ``u`` (rad/s) from the differences of ``Thetas.dat``
   over ``dts`` where present; the trials have no rotation record (``u`` absent: zero in replay);
@@ -182,6 +193,7 @@ class RawTrial:
     us_lost: np.ndarray | None = None  # (N,) bool
     us_reasons: dict[str, int] = field(default_factory=dict)
     plane: tuple[np.ndarray, np.ndarray] | None = None  # (N, 3) a corner, (N, 3) unit normal along the insertion
+    image_axes: tuple[np.ndarray, np.ndarray] | None = None  # (N, 3) unit MeasBx, MeasBy (NaN where not usable)
     rho: float | None = None
     dt_source: str = "nominal 0.177 s"
     same_as: str | None = None  # a trial of trials/ holding the same tracker record
@@ -288,7 +300,20 @@ def read_trial(folder: Path, *, trial_id: str, session: str, speed_folder: str |
             raise DataError(f"{meas}: {len(us)} frames, the tracker has {N}")
         raw.us, raw.us_lost, raw.us_reasons = us, *_us_lost(folder, us)
         raw.plane = _image_plane(folder, N)
+        raw.image_axes = _image_axes(folder, N) if raw.plane is not None else None
     return raw
+
+
+def _image_axes(folder: Path, N: int) -> tuple[np.ndarray, np.ndarray]:
+    """The image's unit axes ``MeasBx``, ``MeasBy`` of each frame ``(N, 3)`` each (NaN where not finite or
+    of no length); the plane's origin is ``MeasFul`` (:func:`_image_plane`)."""
+    out = []
+    for f in ("MeasBx.dat", "MeasBy.dat"):
+        a = _rows(folder / f, 3)
+        with np.errstate(all="ignore"):
+            norm = np.linalg.norm(a, axis=-1, keepdims=True)
+            out.append(np.where(np.isfinite(a).all(-1, keepdims=True) & (norm > 0), a / norm, np.nan))
+    return out[0], out[1]
 
 
 def _image_plane(folder: Path, N: int) -> tuple[np.ndarray, np.ndarray] | None:
@@ -516,6 +541,43 @@ def to_trial(raw: RawTrial, al: Alignment, *, frame: str = "trial") -> Trial:
         tr.sensors["plane"] = SensorStream(
             t=t, value=np.where(ok_plane[:, None], value, 0.0), valid=ok_plane, names=("nx", "ny", "nz", "d", "seen"),
             units=("1", "1", "1", "mm", "1"), settings={"type": "image_plane", "name": "plane", "rate": rate})
+    if raw.plane is not None and raw.image_axes is not None and raw.us is not None:
+        o, _ = express(G, p0, raw.plane[0][keep])
+        eu, ev = raw.image_axes[0][keep] @ G.T, raw.image_axes[1][keep] @ G.T
+        us, _ = express(G, p0, raw.us[keep])
+        d = us - o  # MeasPos lies in the image plane (to 1e-5 mm on resultsOrig): its image coordinates
+        uv = np.stack([np.sum(eu * d, -1), np.sum(ev * d, -1)], -1)
+        pose = np.concatenate([uv, o, eu, ev], -1)
+        ok_t = np.isfinite(pose).all(-1) & ~raw.us_lost[keep]
+        tr.sensors["transverse"] = SensorStream(
+            t=t, value=np.where(np.isfinite(pose), pose, 0.0), valid=ok_t,
+            names=("u", "v", "ox", "oy", "oz", "ux", "uy", "uz", "vx", "vy", "vz"), units=("mm",) * 5 + ("1",) * 6,
+            settings={"type": "transverse", "name": "transverse", "rate": rate, "sigma": 0.5})
+    if (raw.folder / "V.dat").exists() and raw.us is not None:
+        # the inserted length since the first ultrasound frame that saw the needle: the commanded speed over
+        # the frame intervals (V[k] drives (t_{k-1}, t_k]); the reference pose is that frame's ultrasound point
+        # (no tracker) and the insertion direction of the trial's start (the trial frame's z, where every
+        # filter's start takes its orientation from)
+        vt, vv = raw.v
+        total = np.concatenate([[0.0], np.cumsum(np.diff(raw.t) * vv[: len(raw.t) - 1])])[keep]
+        us_k, _ = express(G, p0, raw.us[keep])
+        seen = np.nonzero(~raw.us_lost[keep] & np.isfinite(us_k).all(-1))[0]
+        f = int(seen[0]) if seen.size else 0
+        entry = np.concatenate([us_k[f], (G @ r_al[0][:, 2]) if frame == "trial" else r_al[0][:, 2]])
+        on = np.arange(len(t)) >= f
+        tr.sensors["inserted"] = SensorStream(
+            t=t, value=np.where(on[:, None], np.concatenate([(total - total[f])[:, None], np.tile(entry, (len(t), 1))],
+                                                            -1), 0.0), valid=on & bool(seen.size),
+            names=("length", "ex", "ey", "ez", "dx", "dy", "dz"), units=("mm",) * 4 + ("1",) * 3,
+            settings={"type": "insertion", "name": "inserted", "rate": rate, "sigma": 0.2})
+        # the same length from the trial's start, its reference pose the tip's at t = 0 (the trial frame's
+        # origin and z): what a robot's needle guide gives; in this recording only the tracker's first frame
+        start = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 1.0]) if frame == "trial" else np.concatenate([pos[0], R[0][:, 2]])
+        tr.sensors["inserted_from_start"] = SensorStream(
+            t=t, value=np.concatenate([(total - total[0])[:, None], np.tile(start, (len(t), 1))], -1),
+            valid=np.ones(len(t), dtype=bool), names=("length", "ex", "ey", "ez", "dx", "dy", "dz"),
+            units=("mm",) * 4 + ("1",) * 3,
+            settings={"type": "insertion", "name": "inserted_from_start", "rate": rate, "sigma": 0.2})
     # inputs, cut to the kept frames and shifted to t = 0
     vt, vv = raw.v
     sel = (vt >= raw.t[a] - 1e-9) & (vt < raw.t[b] - 1e-9)

@@ -18,6 +18,7 @@ OBSERVERS: Registry[type[Observer]] = Registry("observer type", group="needlecli
     "eks": "needlecli.observers.kalman",
     "pf": "needlecli.observers.pf",
     "rbpf": "needlecli.observers.rbpf",
+    "rts_fixed_lag": "needlecli.observers.kalman",
 })
 
 _LAZY = {  # the contract, imported on first use (this package's import is light: ``needle list``)

@@ -23,7 +23,7 @@ from pydantic import Field
 
 from needlecli.fitting.problem import build_system, check_setup, own_model
 from needlecli.fitting.settings import KalmanSetup
-from needlecli.fitting.smoother import ekf, eks, ieks
+from needlecli.fitting.smoother import ekf, eks, fixed_lag, ieks
 from needlecli.initial import InitialEstimate, describe
 from needlecli.models import MODELS
 from needlecli.observers.base import (
@@ -39,7 +39,7 @@ from needlecli.observers.base import (
 from needlecli.observers.defaults import filter_settings
 from needlecli.observers.record import RunRecorder
 from needlecli.problem import CommonStart
-from needlecli.schema import Positive
+from needlecli.schema import NonNeg, Positive
 
 
 class EKFSettings(ObserverSettings, KalmanSetup):
@@ -48,6 +48,12 @@ class EKFSettings(ObserverSettings, KalmanSetup):
     init: InitialEstimate = Field(default_factory=InitialEstimate, description="initial estimate (needlecli.initial)")
     joseph: bool = Field(True, description="Joseph-form covariance update")
     max_cov_trace: Positive = Field(1e8, description="a run whose tr(P) exceeds this has diverged")
+
+
+class FixedLagSettings(EKFSettings):
+    type: Literal["rts_fixed_lag"]  # type: ignore[assignment]
+    lag: NonNeg = Field(description="s: each estimate sees every sample up to this long after its time (0: the EKF; "
+                        "longer than the run: the EKS)")
 
 
 class EKSSettings(EKFSettings):
@@ -102,6 +108,9 @@ class _Kalman(Observer):
             if not self.smoother:
                 fwd = ekf(dm, S.meas, S.m0, S.P0, Q, R, progress=progress)
                 z, P, ll, rep = fwd.m_filt, fwd.P_filt, fwd.loglik, fwd.repairs
+                sm = self._after_filter(fwd, problem.time[dm.ticks], dm)
+                if sm is not None:
+                    z, P, rep = sm.m, sm.P, rep + sm.repairs
             elif s.iterations == 1:
                 res = eks(dm, S.meas, S.m0, S.P0, Q, R, progress=progress)
                 z, P, ll, rep = res.sm.m, res.sm.P, res.fwd.loglik, res.fwd.repairs + res.sm.repairs
@@ -121,8 +130,17 @@ class _Kalman(Observer):
         return rec.posterior(
             dm.names, dm.units, angle_states=tuple(a for a in model.angle_states), extras=extras,
             attrs={"model": model.registered_name, "ticks": str(s.ticks), "augment": list(s.augment),
-                   "smoother": self.smoother},
+                   "smoother": self.smoother, **self._offline_attrs()},
         )
+
+
+    def _offline_attrs(self) -> dict:
+        """Results-file attributes of an offline pass after the filter (none for the filter)."""
+        return {}
+
+    def _after_filter(self, fwd, times: np.ndarray, dm):
+        """An offline pass on the EKF's result ``fwd`` at the ticks' ``times (K+1,)``, or None (the filter)."""
+        return None
 
 
 def _events(dm, z, P, max_trace) -> list[tuple[np.ndarray, str, str]]:
@@ -146,6 +164,22 @@ class ExtendedKalmanFilter(_Kalman):
     """Batched multi-rate EKF: exact RK4 transition Jacobians, joint update with every sample of a tick."""
 
     Settings = EKFSettings
+
+
+@OBSERVERS.register("rts_fixed_lag")
+class FixedLagSmoother(_Kalman):
+    """The EKF and a fixed-lag smoother on its linearisation: each estimate from every sample up to ``lag``
+    seconds after its time (:func:`needlecli.fitting.smoother.fixed_lag`): an offline estimate, available
+    ``lag`` s late, that saw that much of the future."""
+
+    Settings = FixedLagSettings
+    causal = False
+
+    def _offline_attrs(self) -> dict:
+        return {"causal": False, "lag": float(self.settings.lag)}  # its estimates saw lag s of later samples
+
+    def _after_filter(self, fwd, times, dm):
+        return fixed_lag(fwd, times, self.settings.lag, state_angles=dm.angles, kernels=dm.kernels)
 
 
 @OBSERVERS.register("eks")

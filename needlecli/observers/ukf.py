@@ -68,6 +68,7 @@ from needlecli.observers.base import (
 from needlecli.observers.defaults import filter_settings
 from needlecli.observers.record import RunRecorder
 from needlecli.schema import DistanceGrowth, NonNeg, Positive, Probability, Strict
+from needlecli.sensors.base import with_constraints
 
 
 class MeasurementSpec(Strict):
@@ -93,6 +94,13 @@ class MeasurementSpec(Strict):
     margin: NonNeg = Field(0.0, description="a one-sided channel (image_plane): the bound moved by this much in the "
                                            "sample's favour (side * g >= -margin: a tip seen up to margin short of "
                                            "the plane, a slice thickness), model length unit")
+    reading: str | None = Field(None, description="another reading of the samples that the sensor offers, instead of "
+                                "its h (a transverse plane: tip, each sample read as the tip's own position, the shaft "
+                                "behind it ignored); default: the sensor's h")
+    delayed: Literal["arrival", "acquisition"] = Field(
+        "arrival", description="a sample available latency s after it was taken updates the state at its arrival, as "
+        "if it were of now (arrival), or the state it was taken from (acquisition): the state carried back over the "
+        "latency by the filter's model with the recorded inputs (needlecli.sensors.past.retrodict)")
 
     @model_validator(mode="after")
     def _frame(self):
@@ -138,6 +146,43 @@ class UKFSettings(ObserverSettings):
         if any(b <= a for a, b in zip(self.predict_at_depths, self.predict_at_depths[1:])):
             raise ValueError("predict_at_depths must increase strictly")
         return self
+
+
+def _component_names(sensor, reading: str | None) -> tuple[str, ...]:
+    """The components a channel's ``h`` (or ``reading``) predicts: the measured channels, then the reading's
+    constraints."""
+    names = tuple(c for c in sensor.channel_names if c not in sensor.context_channels)
+    return names + (tuple(sensor.readings[reading][1]) if reading in sensor.readings else ())
+
+
+def _components(sensor, reading: str | None) -> int:
+    return len(_component_names(sensor, reading))
+
+
+def _predicted(c: dict, X: np.ndarray, jsel: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """``h`` of channel ``c`` at sigma points ``X (N, S, n)``, each run's for its sample ``jsel (N,)``: with the
+    sample's context (a transverse plane's pose), and carried back to the sample's acquisition where the
+    channel's delayed samples update the state they were taken from. ``(N, S, m)``."""
+    if c["context"] is None and c["retro"] is None:
+        return c["h"](X)
+    js = np.unique(jsel[valid]) if valid.any() else jsel[:1]
+    out = None
+    for j in js:
+        rows = None if js.size == 1 else (jsel == j)
+        Xj = X if rows is None else X[rows]
+        if c["retro"] is not None:
+            Xj = c["retro"](Xj, int(j), rows)
+        if c["context"] is None:
+            y = c["h"](Xj)
+        else:
+            ctx = c["context"][:, int(j)] if rows is None else c["context"][rows, int(j)]
+            y = c["h"](Xj, ctx[:, None, :])
+        if rows is None:
+            return y
+        if out is None:
+            out = np.zeros(X.shape[:2] + y.shape[-1:])
+        out[rows] = y
+    return out
 
 
 def tick_stride(rate: float | None, dt: float) -> int:
@@ -210,8 +255,14 @@ def check_filter(settings, model: Model, sensors: Mapping, channel=None) -> tupl
             found = [(("sides" if "sides" in spec.model_fields_set else "margin",),
                       f"only for a channel that bounds the state from one side; sensor {name!r} is a "
                       f"{sensor.registered_name}")]
-        elif measurement_function(sensor, own) is None:
+        elif (reading := getattr(spec, "reading", None)) is not None and reading not in sensor.readings:
+            found = [(("reading",), f"sensor {name!r} ({sensor.registered_name}) has no reading {reading!r}"
+                      + (f"; readings: {', '.join(sensor.readings)}" if sensor.readings else ""))]
+        elif measurement_function(sensor, own, reading) is None:
             found = [((), f"model {mcls.registered_name!r} cannot predict what sensor {name!r} measures")]
+        elif isinstance(spec.sigma, list) and len(spec.sigma) not in (1, m := _components(sensor, reading)):
+            found = [(("sigma",), f"has {len(spec.sigma)} entries for {m} components"
+                      + (f" (reading {reading}: {', '.join(_component_names(sensor, reading))})" if reading else ""))]
         else:
             found = []
         if not found and channel is not None:
@@ -404,6 +455,8 @@ class UnscentedKalmanFilter(Observer):
         chans = self._channels(problem, model)
         bounds = self._bounds(problem, model)  # one-sided channels: truncated updates (numpy path only)
 
+        self._retrodiction(chans, model, params, inputs, ticks, dt_grid)
+
         # --- initial estimate
         x, P0 = self._initial(problem, model, params, rng, chans)
         for c in chans:  # needle coordinates: the reference axis, given or far from the initial tangent
@@ -576,6 +629,11 @@ class UnscentedKalmanFilter(Observer):
     @staticmethod
     def _counts(rec: RunRecorder, chans: list[dict], bounds: list[dict]) -> _Counts:
         """The filter's counters, kept by ``rec`` under their names in the results file."""
+        # the NIS's degrees of freedom per run (N,) where they are not the stored channel's count (a transverse
+        # plane's pose is known, not measured; a reading adds its constraints)
+        for c in chans:
+            if c["m"] != len(c["channel"].names) + len(c["channel"].context_names):
+                rec.extras[f"nis_dof/{c['name']}"] = np.full(len(c["valid"]), c["m"])
         return _Counts(
             repairs=rec.counter("cholesky_repairs"), hits=rec.counter("constraint_hits"),
             resets=rec.counter("kappa_resets"),
@@ -648,11 +706,13 @@ class UnscentedKalmanFilter(Observer):
         out = []
         for name in names:
             ch = problem.channels[name]
-            h = ch.h_for(model)
+            spec = s.measurements.get(name)
+            reading = getattr(spec, "reading", None)  # (a particle filter's channel settings may lack it)
+            h = ch.h_for(model, reading) if reading is not None else ch.h_for(model)
             if h is None:
                 raise ValueError(f"channel {name!r} cannot be predicted from model {model.registered_name!r}")
-            m = len(ch.names)
-            spec = s.measurements.get(name)
+            value, names_h = with_constraints(h, ch.value, ch.names)  # a reading's constraints: zero samples
+            m = len(names_h)
             sigma = np.broadcast_to(np.asarray(spec.sigma if spec else ch.sigma, dtype=float), (m,)).copy()
             growth = spec.growth if spec else None
             # (the particle filters' channels, read here too, are in world coordinates: no frame, no axis)
@@ -665,14 +725,45 @@ class UnscentedKalmanFilter(Observer):
                 "select": h.index if isinstance(h, StateSelection) else None,
                 "pos_cols": pos_cols, "pos_axes": [("x", "y", "z").index(ch.names[i]) for i in pos_cols],
                 "gate": _chi2_quantile(spec.gate, m) if spec and spec.gate else None,
-                "angle": np.asarray(ch.angle, dtype=bool), "value": ch.value, "valid": ch.valid,
+                "angle": np.r_[np.asarray(ch.angle, dtype=bool), np.zeros(m - len(ch.names), dtype=bool)],
+                "value": value, "valid": ch.valid,
                 "avail": avail[order], "order": order, "channel": ch,
                 "frame": frame, "tangent": model.tangent if frame == "needle" else None,
                 "axis": AXES.index(across) if across else None,
             })
             c = out[-1]
+            c["context"] = ch.context
+            c["delayed"] = getattr(spec, "delayed", None) == "acquisition" and bool(np.any(ch.t_available > ch.t))
+            c["index"] = np.asarray(ch.index)
+            c["retro"] = None  # set by _retrodiction once the ticks are known
+            if c["delayed"]:  # h of the state carried back over the latency: no longer a selection of the states
+                c["select"] = None
             c["scalar"] = m == 1 and c["select"] is not None and c["gate"] is None and not pos_cols
         return out
+
+    @staticmethod
+    def _retrodiction(chans: list[dict], model: Model, params, inputs: np.ndarray, ticks: np.ndarray, dt: float) -> None:
+        """For each channel whose delayed samples update the state they were taken from (``delayed:
+        acquisition``): ``c["retro"](X, j, rows)``, sigma points ``X (R, S, n)`` of the runs ``rows`` at the tick
+        where sample ``j`` is used, carried back to its acquisition grid step by the model with the recorded
+        inputs (:func:`needlecli.sensors.past.retrodict`)."""
+        from needlecli.sensors.past import retrodict
+
+        for c in chans:
+            if not c["delayed"]:
+                continue
+            used_at = np.empty_like(c["index"])
+            tick_of = np.minimum(np.searchsorted(ticks, c["avail"], side="left"), len(ticks) - 1)
+            used_at[c["order"]] = ticks[tick_of]
+
+            def retro(X, j, rows, _a=used_at, _i=c["index"]):
+                k0, k1 = int(_i[j]), int(_a[j])
+                if k1 <= k0:
+                    return X
+                u = inputs[:, k0:k1] if rows is None else inputs[rows, k0:k1]
+                return retrodict(model, X, u[:, None], params, dt)
+
+            c["retro"] = retro
 
     def _bounds(self, problem: EstimationProblem, model: Model) -> list[dict]:
         """The one-sided channels the settings name (``measurements``; never by default), with their
@@ -824,7 +915,7 @@ class UnscentedKalmanFilter(Observer):
             ys.append(y)
             masks.append(np.broadcast_to(v[:, None], (N, c["m"])))
             rs.append(r)
-            hs.append(c["select"] if X is None else c["h"](X))
+            hs.append(c["select"] if X is None else _predicted(c, X, jsel, v))
             angs.append(c["angle"])
         if not ys:
             return x, P

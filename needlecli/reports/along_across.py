@@ -18,7 +18,7 @@ import pandas as pd
 from needlecli.io.results import Group
 from needlecli.metrics import reference_tangent, split
 from needlecli.reports import PLOTS
-from needlecli.reports.tables import TABLES, count_cell
+from needlecli.reports.tables import TABLES, count_cell, offline_label
 
 _AXES = ("x", "y", "z")
 
@@ -65,7 +65,7 @@ def sources(res: Group) -> list[tuple[str, str, np.ndarray, np.ndarray, np.ndarr
         ok = have & (np.asarray(g.data["status"]).astype(str) == "ok")[:, None]
         al, ac = split(est - ref, t)
         frames = have.any(0)  # the reference's frames only (replayed trials: the tracker's)
-        out.append((obs, "observer", depth[:, frames], np.where(ok, al, np.nan)[:, frames], np.where(ok, ac, np.nan)[:, frames]))
+        out.append((offline_label(obs, g), "observer", depth[:, frames], np.where(ok, al, np.nan)[:, frames], np.where(ok, ac, np.nan)[:, frames]))
     return out
 
 
@@ -78,7 +78,8 @@ def _mean(v: np.ndarray) -> float:
 def real_error_along_across(res: Group, errors=None) -> pd.DataFrame:
     """Tip position error [mm] split along the needle (the reference's tangent: signed, positive ahead
     of the tip; and its magnitude) and across it: each position sensor's raw samples at their valid
-    frames and each observer at every reference frame (on recorded data the EM tracker), with the
+    frames and each observer at every reference frame (on recorded data the EM tracker; marked (offline)
+    where its estimates saw later samples), with the
     error's magnitude beside them; the mean over frames, and per 20 mm of inserted depth the mean along
     and across."""
     from needlecli.reports.plots import length_scale

@@ -149,6 +149,9 @@ def nis(res: Group, obs: str) -> list[Normalised]:
         m = meas[ch]
         index = np.asarray(m.data["index"])
         dof = int(np.asarray(m.data["value"]).shape[-1])
+        own = g.data.get("nis_dof")  # the observer's own count (a channel with context or a reading's constraints)
+        if isinstance(own, Group) and ch in own.data:
+            dof = int(np.asarray(own.data[ch]).ravel()[0])
         out.append(Normalised(ch, np.asarray(q, dtype=float)[keep], dof, np.asarray(m.data["t"]),
                               depth[keep][:, np.minimum(index, depth.shape[1] - 1)], keep))
     return out

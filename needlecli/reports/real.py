@@ -9,7 +9,7 @@ import pandas as pd
 
 from needlecli.io.results import Group
 from needlecli.metrics import ErrorSet
-from needlecli.reports.tables import TABLES, count_cell, order_quantities
+from needlecli.reports.tables import TABLES, count_cell, offline_label, order_quantities
 
 _LENGTH_TO_MM = {"mm": 1.0, "m": 1000.0, "cm": 10.0}
 _AXES = (("x", "y", "z"), ("px", "py", "pz"))
@@ -46,8 +46,9 @@ def _position_streams(res: Group):
 def real_tip_error(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
     """Tip position error [mm] against the reference (on recorded data the EM tracker): each position
     sensor's raw measurements at its valid frames, each observer at the same frames, and each observer at
-    every frame with a reference sample (the multi-rate UKF paper's instantaneous error). A stream identical to the
-    reference (the tracker's own positions) is left out."""
+    every frame with a reference sample (the multi-rate UKF paper's instantaneous error); an observer whose
+    estimates saw later samples is marked (offline). A stream identical to the reference (the tracker's own
+    positions) is left out."""
     truth = res.data["truth"]
     t_names = list(truth.attrs["names"])
     axes = next((ax for ax in _AXES if all(a in t_names for a in ax)), None)
@@ -86,11 +87,13 @@ def real_tip_error(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
             est = g.data["state"][:, index][..., [e_names.index(a) for a in cols]]
             e = scale * np.linalg.norm(est - ref, axis=-1)
             keep = use & e_ok[:, None]
-            row(obs, f"valid {name} frames ({label})", np.where(keep, e, np.nan), int(keep.any(axis=1).sum()), n_runs)
+            row(offline_label(obs, g), f"valid {name} frames ({label})", np.where(keep, e, np.nan),
+                int(keep.any(axis=1).sum()), n_runs)
     for obs, es in errors.items():
         qe = es.quantities.get("E_xyz")
         if qe is not None:
-            row(obs, "every reference frame (E_xyz)", qe.values, len(qe.runs), es.n_runs)
+            row(offline_label(obs, estimates[obs]) if obs in estimates else obs, "every reference frame (E_xyz)",
+                qe.values, len(qe.runs), es.n_runs)
     return pd.DataFrame(rows, columns=["Source", "Compared at", "Frames", "Mean", "Std", "Median", "RMSE", "Max", "Runs"])
 
 

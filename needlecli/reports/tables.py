@@ -60,6 +60,16 @@ def _rows(errors: dict[str, ErrorSet], stats: dict[str, Callable[[np.ndarray], f
     return pd.DataFrame(rows, columns=cols)
 
 
+def offline_label(name: str, g) -> str:
+    """An observer's name in a table, marked ``(offline)`` where its estimates saw later samples (a smoother:
+    results-file attribute ``smoother`` true or ``causal`` false, the fixed-lag smoother's with its lag)."""
+    a = g.attrs
+    if bool(a.get("smoother", False)) or not bool(a.get("causal", True)):
+        lag = a.get("lag")
+        return f"{name} (offline" + (f", {float(lag):g} s ahead)" if lag is not None else ")")
+    return name
+
+
 @TABLES.register("summary")
 def summary_table(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
     """Instantaneous estimation error over all kept runs and all time steps, the initial one included:

@@ -13,6 +13,8 @@ if TYPE_CHECKING:
 SENSORS: Registry[type[Sensor]] = Registry("sensor type", group="needlecli.sensors", base="needlecli.sensors.base:Sensor", builtins={
     **{name: "needlecli.sensors.statistical" for name in ("position", "encoder", "elastography", "tangent", "bfield")},
     "image_plane": "needlecli.sensors.plane",
+    "transverse": "needlecli.sensors.transverse",
+    "insertion": "needlecli.sensors.insertion",
 })
 PIPELINES: Registry[type[Pipeline]] = Registry("measurement pipeline", group="needlecli.pipelines", base="needlecli.sensors.base:Pipeline", builtins={
     "gaussian": "needlecli.sensors.base",

@@ -116,6 +116,21 @@ class Sensor:
 
     unit_vector: ClassVar[bool] = False  # channels form one unit vector (renormalised after noise)
 
+    #: channels of each sample that are not measured but known with it (a transverse image plane's pose,
+    #: :mod:`needlecli.sensors.transverse`): observers compare ``h`` with the other channels only and pass
+    #: these to ``h`` as its ``context`` (:func:`context_columns`; the results file keeps every channel)
+    context_channels: ClassVar[tuple[str, ...]] = ()
+    #: the context given to ``h`` for a sample that is not valid (its stored context is NaN; masked out of
+    #: every update, but NaN would survive the mask as ``NaN * 0``): one value per context channel, or empty
+    #: for zeros
+    neutral_context: ClassVar[tuple[float, ...]] = ()
+    #: other readings of the same samples, by name: ``(method, extra)``, the name of a method ``(x, context) ->
+    #: (..., m + len(extra))`` like :meth:`h` whose first ``m`` components predict the measured channels and
+    #: whose ``extra`` ones are constraints the reading says are zero. An observer may choose one per channel
+    #: (a transverse plane's ``tip``: each sample read as the tip's own position, in the plane at ``(u, v)``,
+    #: the constraint ``w`` the tip's distance from the plane; the model a study compares with)
+    readings: ClassVar[dict[str, tuple[str, tuple[str, ...]]]] = {}
+
     def check_model(self) -> str | None:
         """Why this sensor cannot measure the model, or None."""
         for q in self.requires:
@@ -142,7 +157,9 @@ class Sensor:
 
     # ------------------------------------------------------------------ measurement model
     def h(self, x: np.ndarray) -> np.ndarray:
-        """Noise-free measurement ``(..., m)`` of states ``x (..., n)`` (for observers)."""
+        """Noise-free measurement ``(..., m)`` of states ``x (..., n)`` (for observers). A sensor with
+        :attr:`context_channels` takes ``h(x, context)``, ``context (..., k)`` those channels of the sample
+        (broadcast against ``x``'s leading axes), and predicts the other ``m`` channels."""
         raise NotImplementedError
 
     def state_selection(self) -> np.ndarray | None:
@@ -283,19 +300,85 @@ class GaussianPipeline(Pipeline):
         return value, valid, np.ascontiguousarray(sigma)
 
 
-def measurement_function(sensor, model):
-    """``h`` of ``sensor`` for the state of ``model`` (which may be an observer's own), or None."""
+class _NoPipeline:
+    """What :meth:`Sensor._stream` reads of a pipeline, for sensors that make their samples themselves (a
+    transverse plane's crossing, the inserted length): no extra arrays."""
+
+    extras: dict = {}
+
+
+#: the stand-in pipeline of sensors that make their samples themselves
+NO_PIPELINE = _NoPipeline()
+
+
+def measurement_function(sensor, model, reading: str | None = None):
+    """``h`` of ``sensor`` for the state of ``model`` (which may be an observer's own), or None; with
+    ``reading`` (one of the sensor's :attr:`~Sensor.readings`) that reading of the samples instead. A sensor
+    with :attr:`~Sensor.context_channels` gives ``h(x, context)``."""
+    if reading is not None and reading not in sensor.readings:
+        raise ValueError(f"sensor {sensor.name!r} ({sensor.registered_name}) has no reading {reading!r}"
+                         + (f"; readings: {', '.join(sensor.readings)}" if sensor.readings else ""))
     if model is not sensor.model:
         sensor = type(sensor)(sensor.settings, model)
         if sensor.check_model():
             return None
+    fn = sensor.h if reading is None else Reading(getattr(sensor, sensor.readings[reading][0]),
+                                                  sensor.readings[reading][1])
+    k = len(sensor.context_channels)
     try:
         with np.errstate(all="ignore"):
-            sensor.h(np.zeros((1, model.n)))
+            fn(np.zeros((1, model.n)), *((np.zeros((1, k)),) if k else ()))
     except NotMeasurable:
         return None
-    sel = sensor.state_selection()
-    return sensor.h if sel is None else StateSelection(sel)
+    sel = None if k or reading is not None else sensor.state_selection()
+    return fn if sel is None else StateSelection(sel)
+
+
+class Reading:
+    """Another reading of a sensor's samples (:attr:`Sensor.readings`): ``fn(x, *context) -> (..., m + e)``,
+    the first ``m`` components predicting the measured channels, the last ``e`` the constraints ``extra``
+    (names) that the reading says are zero (observers append zeros to the samples for them)."""
+
+    __slots__ = ("fn", "extra")
+
+    def __init__(self, fn, extra: tuple[str, ...] = ()) -> None:
+        self.fn = fn
+        self.extra = tuple(extra)
+
+    def __call__(self, x, *context):
+        return self.fn(x, *context)
+
+
+def with_constraints(h, value: np.ndarray, names: tuple[str, ...]) -> tuple[np.ndarray, tuple[str, ...]]:
+    """The samples ``value (N, M, m)`` and channel ``names`` that ``h`` predicts: those of the channel, with
+    a zero (NaN where the sample is NaN) and the name of each constraint of a :class:`Reading` appended."""
+    extra = getattr(h, "extra", ())
+    if not extra:
+        return value, tuple(names)
+    nan = ~np.isfinite(value).all(-1, keepdims=True)
+    zeros = np.where(nan, np.nan, np.zeros(value.shape[:-1] + (len(extra),)))
+    return np.concatenate([value, zeros], -1), (*names, *extra)
+
+
+def sample_context(sensor, value: np.ndarray) -> np.ndarray | None:
+    """The context of a sensor's samples ``value (N, M, channels)``: ``(N, M, k)``, finite everywhere (a
+    sample without one, not valid, gets :attr:`~Sensor.neutral_context`); None for a sensor without
+    :attr:`~Sensor.context_channels`."""
+    _, ctx = context_columns(sensor)
+    if ctx is None:
+        return None
+    c = np.asarray(value, dtype=float)[..., ctx]
+    fill = np.asarray(sensor.neutral_context or np.zeros(len(ctx)), dtype=float)
+    return np.ascontiguousarray(np.where(np.isfinite(c).all(-1, keepdims=True), c, fill))
+
+
+def context_columns(sensor) -> tuple[np.ndarray, np.ndarray | None]:
+    """Indices of a sensor's measured channels ``(m,)`` and of its context channels ``(k,)`` (None: it has
+    none) among :attr:`~Sensor.channel_names` (:attr:`~Sensor.context_channels`)."""
+    names = list(sensor.channel_names)
+    ctx = [names.index(c) for c in sensor.context_channels]
+    meas = np.array([i for i in range(len(names)) if i not in ctx], dtype=np.int64)
+    return meas, (np.array(ctx, dtype=np.int64) if ctx else None)
 
 
 def inequality_function(sensor, model):

@@ -21,7 +21,7 @@ from needlecli.io.results import Group, root_attrs, write_atomic
 from needlecli.observers import OBSERVERS, Channel, EstimationProblem, Posterior
 from needlecli.observers.base import cov_steps
 from needlecli.sensors import MeasurementStream
-from needlecli.sensors.base import inequality_function, measurement_function
+from needlecli.sensors.base import context_columns, inequality_function, measurement_function, sample_context
 
 if TYPE_CHECKING:
     from needlecli.experiments.config.types import ExperimentConfig
@@ -72,13 +72,17 @@ def build_problem(cfg: ExperimentConfig, truth: Truth, sensors, streams: dict[st
         per_sample = bool(st.attrs.get("sigma_per_sample", False))  # recorded per-sample sigmas (replay)
         if per_sample:
             nominal = np.broadcast_to(np.asarray(st.attrs["nominal_sigma"], dtype=float), (len(st.names),)).copy()
+        meas, ctx = context_columns(sensor)  # what each sample measures, and what is known with it
+        sub = (lambda a: a) if ctx is None else (lambda a, _m=meas: np.ascontiguousarray(a[..., _m]))
         channels[sensor.name] = Channel(
             name=sensor.name, sensor_type=sensor.registered_name, t=st.t, t_available=st.t_available,
-            index=st.index, value=st.value, valid=st.valid, names=st.names, units=st.units,
-            sigma=nominal, angle=sensor.angle_channels, h=h, attrs=st.attrs,
-            h_for=lambda model, _s=sensor: measurement_function(_s, model), unit_vector=sensor.unit_vector,
-            sample_sigma=st.sigma if per_sample else None,
+            index=st.index, value=sub(st.value), valid=st.valid, names=_pick(st.names, meas, ctx),
+            units=_pick(st.units, meas, ctx), sigma=sub(nominal), angle=sub(sensor.angle_channels), h=h, attrs=st.attrs,
+            h_for=lambda model, reading=None, _s=sensor: measurement_function(_s, model, reading),
+            unit_vector=sensor.unit_vector, sample_sigma=sub(st.sigma) if per_sample else None,
             bound_for=lambda model, _s=sensor: inequality_function(_s, model),
+            context=sample_context(sensor, st.value),
+            context_names=() if ctx is None else _pick(st.names, ctx, ctx),
         )
     n_runs = truth.states.shape[0]
     return EstimationProblem(
@@ -96,6 +100,11 @@ def build_problem(cfg: ExperimentConfig, truth: Truth, sensors, streams: dict[st
         cov_layout=cfg.output.covariance,
         kernels=cfg.simulation.kernels,
     )
+
+
+def _pick(names, idx, ctx) -> tuple:
+    """``names`` at ``idx`` (all of them for a sensor without context channels, ``ctx`` None)."""
+    return tuple(names) if ctx is None else tuple(names[i] for i in idx)
 
 
 def run_experiment(

@@ -575,6 +575,7 @@ def _model_group(mf: ModelFit, fit: FitSettings) -> Group:
         "model": mf.name, "names": dm.names, "units": dm.units, "constants": consts,
         "q_states": [dm.names[i] for i in S.q_index], "channels": [m.name for m in S.meas],
         "held": [h for h in fit.hold if h in dm.names or h in fit_augment(type(dm.model), fit.constants)],
+        "hold_reason": fit.hold_reason,
         "max_iter": fit.em.max_iter, "tol": fit.em.tol, "seconds": mf.seconds,
         "singular_reason": dm.model.singular_reason,
         "sensor_states": list(dm.sensor_states), "sensor_state_channels": [m.name for m in S.meas if m.offset_index is not None],

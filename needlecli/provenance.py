@@ -1,16 +1,25 @@
 """Where a result comes from: the package version and its git commit (recorded in every results file,
-printed by ``needle --version``). Light: the standard library only."""
+printed by ``needle --version``, compared between a sweep's submitter and its workers). Light: the
+standard library only.
+
+``NEEDLECLI_REPORT_VERSION`` (``VERSION`` or ``VERSION GIT``), where set, replaces what this process
+reports: a testing aid for a cluster whose workers run another needlecli than the submitter's.
+"""
 
 from __future__ import annotations
 
+import functools
+import os
 import subprocess
 from pathlib import Path
 
 from needlecli import __version__
 
+REPORT_ENV = "NEEDLECLI_REPORT_VERSION"
 
-def git_hash() -> str:
-    """The package's git commit (``unknown`` outside a checkout), with ``-dirty`` for local changes."""
+
+@functools.lru_cache(maxsize=1)
+def _git_hash() -> str:
     here = Path(__file__).resolve().parent
     try:
         out = subprocess.run(
@@ -22,6 +31,32 @@ def git_hash() -> str:
         return "unknown"
 
 
+def _reported() -> list[str]:
+    return os.environ.get(REPORT_ENV, "").split()
+
+
+def version() -> str:
+    """The package version this process reports."""
+    r = _reported()
+    return r[0] if r else __version__
+
+
+def git_hash() -> str:
+    """The package's git commit (``unknown`` outside a checkout), with ``-dirty`` for local changes."""
+    r = _reported()
+    return r[1] if len(r) > 1 else _git_hash()
+
+
+def identity() -> dict[str, str]:
+    """``{"version", "git"}``: what two processes must share to compute the same cells."""
+    return {"version": version(), "git": git_hash()}
+
+
+def describe(ident: dict[str, str]) -> str:
+    """``needlecli <version> (git <hash>)`` of an :func:`identity`."""
+    return f"needlecli {ident.get('version', '?')} (git {ident.get('git', '?')})"
+
+
 def version_line() -> str:
     """``needlecli <version> (git <hash>)``."""
-    return f"needlecli {__version__} (git {git_hash()})"
+    return describe(identity())

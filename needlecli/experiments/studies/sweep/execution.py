@@ -43,6 +43,7 @@ from needlecli import kernels, platform
 from needlecli.errors import NeedleError, SweepError
 from needlecli.experiments.studies.sweep.plan import Cell, config_hash
 from needlecli.io.atomic import install_worker_signals, worker_task, write_text_atomic
+from needlecli.kernels._threads import n_threads
 from needlecli.provenance import describe, identity
 from needlecli.reports.sweep import cell_metrics, param_info, sweep_table, write_sweep_table
 
@@ -142,7 +143,10 @@ def _run_cell(cell: Cell, path: Path, t0: float, threads: int | None) -> CellOut
         for stale in (_error_file(cell), _sidecar(cell)):  # an earlier results file stays until the new one replaces it
             stale.unlink(missing_ok=True)
         # BLAS pinned (local workers also start with platform.THREAD_ENV at 1); the kernels on this worker's
-        # share of the cores, and compiled whatever the cache's state: every cell takes one path
+        # share of the cores (NEEDLECLI_THREADS, if smaller, wins), and compiled whatever the cache's state:
+        # every cell takes one path
+        if threads is not None:
+            threads = min(threads, n_threads())
         with platform.thread_pools_limited(1), kernels.threads(threads), kernels.compile_now():
             cfg, text = load_config(cell.config_source, text=cell.config_text)
             run_experiment(cfg, text, out=path, base_dir=cell.base_dir)

@@ -3,7 +3,7 @@ PY ?= python
 
 STUDIES := results/studies
 
-.PHONY: help install demo test bench lint docs clean seed000 seed001 seed003 seed004 datasets regress real real-tau real-plane owndata faults
+.PHONY: help install demo test bench lint docs clean seed000 seed001 seed003 seed004 datasets regress real real-tau real-plane real-poses owndata faults papers seed000-numbers seed001-numbers seed003-numbers seed004-numbers
 
 help:
 	@echo "make install  - install needlecli with test extras (editable)"
@@ -15,12 +15,14 @@ help:
 	@echo "make seed000  - seed 000's simulation and experiment-like studies: Table I, the sweep of theta (in $(STUDIES))"
 	@echo "make seed001  - seed 001's helix studies: convergence, half turns, Fig. 3, the alternative reading (in $(STUDIES))"
 	@echo "make seed003  - seed 003's simulation study: Table 1 (and its variant), Figs. 6-8 (results and tables in $(STUDIES))"
+	@echo "make papers   - every number each paper states beside needlecli's over three seeds, into its page (seed00x-numbers: one paper)"
 	@echo "make datasets - rebuild the synthetic logs in datasets/ from configs/datasets/"
 	@echo "make regress  - replay every bundled data set and check its tables against datasets/baselines/"
-	@echo "make faults   - kill needle simulate and needle sweep at 20 random points each and check what is on disk"
+	@echo "make faults   - kill simulate, sweep, crossval, compare, log import-csv and fit-em at 20 random points each; check what is on disk"
 	@echo "make real     - import the recorded ultrasteer insertions (../shared/real-data) and make their tables in $(REAL)"
 	@echo "make real-tau - after make real: the ultrasound's likelihood against the image plane offset's time constant"
 	@echo "make real-plane - after make real: the image plane's bound with margins 0-8 mm and lost frames only (tip error against the tracker)"
+	@echo "make real-poses - after make real: the held-out tracker trials predicted from the start and from their own pose at 0-60 mm"
 	@echo "make seed004  - seed 004's synthetic study and T2prelim: EM fits, Tables 1-3, Figs. 5, 10 (in $(STUDIES))"
 	@echo "make owndata  - a lab's exports made by needlecli, imported by a mapping, fitted with and without the slip (in $(OWN))"
 	@echo "make clean    - remove results/ and caches"
@@ -75,6 +77,16 @@ seed004:
 	  needle fit-em configs/seed004/$$c.yaml --model both --out $(STUDIES)/seed004_$$c.h5 && \
 	  needle evaluate $(STUDIES)/seed004_$$c.h5 --out $(STUDIES)/seed004 || exit 1; \
 	done
+
+# Every number a paper states beside needlecli's over three seeds (--set runs.seed=S), with a verdict: the
+# studies of docs/papers/numbers/PAPER.yaml run once per seed into results/papers/PAPER, the values collected
+# into docs/papers/numbers/PAPER_values.yaml, the table written into the paper's page (tools/paper_numbers.py;
+# PAPER_ARGS=--reuse keeps results files already there, --render only rewrites the page). Times on the shared
+# 2-core machine: docs/papers/numbers/PAPER_values.yaml, made_with.seconds.
+seed000-numbers seed001-numbers seed003-numbers seed004-numbers:
+	$(PY) tools/paper_numbers.py $(@:-numbers=) $(PAPER_ARGS)
+
+papers: seed000-numbers seed001-numbers seed003-numbers seed004-numbers
 
 DSTMP := results/datasets
 
@@ -166,6 +178,16 @@ real-plane:
 	  --set observers.5.measurements.plane.margin=0.0 > /dev/null
 	@needle evaluate $(REAL)/plane/short.h5 --out $(REAL)/plane/short --tables real_error_along_across --no-plots --quiet
 	@echo "lost frames only:"; grep -E '^\| (ukf_em_plane|ukf_em_white_plane_m5) ' $(REAL)/plane/short/*along_across.md | cut -d'|' -f2-7
+
+# The two parts of the held-out error on the tracker trials (docs/real-data.md (d), issue 30): leave one out
+# within the day as make real's crossval, each held-out trial also predicted from its own pose at 0-60 mm,
+# the recorded one and the one a smoother tuned by the fold's EM gives (configs/real/em_tracker_poses.yaml;
+# needs make real's log; about as long as make real's crossval, most of it EM). Tables in $(REAL)/crossval_poses.
+real-poses:
+	needle crossval configs/real/em_tracker_poses.yaml --observer open_loop --observer eks --leave-one-out \
+	  --group-by 'id~^[^-]+' --within --from-depths 0,10,20,30,40,60 --pose-from truth --pose-from eks_em \
+	  --out $(REAL)/crossval_poses --quiet > /dev/null
+	@echo "tables: $(REAL)/crossval_poses (crossval_from_pose: the start's part and the model's)"
 
 # Bringing your own recorded data (issue 18, docs/tutorials/own-data.md): a synthetic study in
 # the shape of a lab's exports (step-indexed tracker poses with quaternions, zero rows, per-sample rms, a

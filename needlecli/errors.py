@@ -3,6 +3,25 @@
 from __future__ import annotations
 
 
+def shown(name: object) -> str:
+    """A file name, a path or a name as a message shows it: as it is when every character is printable,
+    else quoted with its control characters escaped (``'bad\\nname.yaml'``), so that a name holding a
+    newline or a terminal's escape sequence can neither split a message's line nor act on the terminal."""
+    text = str(name)
+    return text if text.isprintable() else repr(text)
+
+
+def one_line(message: object) -> str:
+    """A message as one line: a library's wrapped lines (a newline followed by indentation) joined with
+    a space, runs of spaces made one, and every other character that is not printable escaped
+    (``\\n``, ``\\x1b``): what a name in the message holds is shown, never acted on."""
+    import re
+
+    text = re.sub(r"[ \t]*\r?\n[ \t]+", " ", str(message).strip())
+    text = re.sub(r" {2,}", " ", text)
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
 class NeedleError(Exception):
     """Base of every error that is the user's to fix (bad config, bad data). Exit code 2."""
 
@@ -30,7 +49,7 @@ class ConfigError(NeedleError):
 
     def __str__(self) -> str:
         where = f" [{' -> '.join(str(p) for p in self.loc)}]" if self.loc else ""
-        return f"{self.source}:{where} {self.message}"
+        return f"{shown(self.source)}:{where} {self.message}"
 
 
 class DataError(NeedleError):
@@ -49,7 +68,7 @@ class OutputError(NeedleError):
     def __init__(self, path, message: str) -> None:
         self.path = path
         self.message = message
-        super().__init__(f"{path}: {message}")
+        super().__init__(f"{shown(path)}: {message}")
 
 
 class ComponentError(NeedleError):

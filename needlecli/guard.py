@@ -72,7 +72,7 @@ class Component:
         except PASS_THROUGH:
             raise
         except BaseException as e:  # noqa: BLE001 (SystemExit too: a component may not end the command)
-            if _interrupt_in(e):
+            if wrapped_interrupt(e) is not None:
                 raise
             raise ComponentError(str(self), f"{what} {failure(e)}") from e
 
@@ -103,18 +103,19 @@ def failure(e: BaseException) -> str:
     return f"raised {type(e).__name__}: {text}" if text else f"raised {type(e).__name__}"
 
 
-def _interrupt_in(e: BaseException) -> bool:
-    """Whether a KeyboardInterrupt (a signal's :class:`~needlecli.errors.Interrupted`) is the cause or
-    context of ``e``: a library turned it into its own exception, which the command then handles as the
-    signal (:func:`needlecli.cli.common.user_errors`)."""
+def wrapped_interrupt(e: BaseException, kind: type[BaseException] = KeyboardInterrupt) -> BaseException | None:
+    """The interrupt (a ``kind``: by default any KeyboardInterrupt, e.g. a signal's
+    :class:`~needlecli.errors.Interrupted`) that is ``e`` or its cause or context, if any: a library turned
+    it into its own exception, which the command then handles as the signal
+    (:func:`needlecli.cli.common.user_errors`)."""
     seen: set[int] = set()
     x: BaseException | None = e
     while x is not None and id(x) not in seen:
-        if isinstance(x, KeyboardInterrupt):
-            return True
+        if isinstance(x, kind):
+            return x
         seen.add(id(x))
         x = x.__cause__ or x.__context__
-    return False
+    return None
 
 
 def what(v: object) -> str:

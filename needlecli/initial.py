@@ -7,8 +7,8 @@ The initial mean of every run, in this order:
 
 1. the base: the true initial state (``from: truth``; simulations, or logs that recorded it; where a
    run's truth is unknown the nominal state stands) or the nominal one (``from: nominal``: the model's
-   default pose with the config's ``model.initial_state``); augmented constants from the model's
-   parameters;
+   default pose with the config's ``model.initial_state``, :func:`nominal_state`); augmented constants
+   from the model's parameters;
 2. ``values`` fix states (and augmented constants) for every run;
 3. Gaussian noise of ``std`` per state (drawn from the observer's own random stream, every run at once);
 4. ``first_measurement`` takes states from the first valid sample of a channel component
@@ -22,7 +22,7 @@ The observers that start as a paper prescribes in other terms (seed 000's high-g
 compare``: the reference observer's initial estimate, drawn once), :func:`initial_mean` and
 :func:`initial_covariance` return it, by state name, instead of what the observer's own ``init`` says:
 every observer then starts from the same information. States it does not give start at the nominal
-state (never a run's truth) with the observer's own initial variance.
+state (:func:`nominal_state`, never a run's truth) with the observer's own initial variance.
 """
 
 from __future__ import annotations
@@ -107,6 +107,17 @@ def first_sample(problem: EstimationProblem, spec: str) -> tuple[np.ndarray, np.
     return ch.value[np.arange(ch.value.shape[0]), first, ch.names.index(comp)], has
 
 
+def nominal_state(problem: EstimationProblem, model: Model, params: Mapping) -> np.ndarray:
+    """The nominal initial state ``(N, model.n)`` of every run: ``model``'s default pose with the
+    experiment's ``model.initial_state`` (``problem.initial_state``, by state name) where ``model`` has
+    those states -- the mean of the truth's initial state, which ``model.initial_std`` spreads."""
+    x = np.broadcast_to(np.asarray(model.initial_state(params), dtype=float), (problem.n_runs, model.n)).copy()
+    for name, v in problem.initial_state.items():
+        if name in model.state_names:
+            x[:, model.index(name)] = v
+    return x
+
+
 def initial_mean(init: InitialEstimate, problem: EstimationProblem, model: Model, params: Mapping,
                  rng: np.random.Generator | None, augment: Sequence[str] = ()) -> np.ndarray:
     """The initial mean ``(N, n + len(augment))`` of every run, as the module docstring says.
@@ -118,7 +129,7 @@ def initial_mean(init: InitialEstimate, problem: EstimationProblem, model: Model
     augment : parameters of ``model`` estimated as constant states after the model's own
     """
     N, n = problem.n_runs, model.n
-    x = np.broadcast_to(np.asarray(model.initial_state(params), dtype=float), (N, n)).copy()
+    x = nominal_state(problem, model, params)
     if problem.start is not None:
         return _from_start(problem.start, x, model, params, augment)
     if init.from_ == "truth" and problem.initial_truth is not None:
@@ -169,7 +180,7 @@ def _from_start(start: CommonStart, nominal: np.ndarray, model: Model, params: M
 def start_state(problem: EstimationProblem, model: Model, params: Mapping) -> np.ndarray:
     """The state ``(N, model.n)`` of ``model`` that the problem's common start gives (the nominal state
     where it gives none), for observers with their own ``init`` schema (high-gain, SO(3))."""
-    x = np.broadcast_to(np.asarray(model.initial_state(params), dtype=float), (problem.n_runs, model.n)).copy()
+    x = nominal_state(problem, model, params)
     return _from_start(problem.start, x, model, params, ()) if problem.start is not None else x
 
 

@@ -26,6 +26,11 @@ statvfs (POSIX)           free_bytes: the room checked before     shutil.disk_us
 pathconf (POSIX)          max_name_length: a file name too long   255 bytes, the limit of the common file
 [pathconf]                refused before the work (io/atomic.py)  systems
 
+O_NONBLOCK (POSIX)        open_for_reading: every input opened    a plain open (Windows has no named pipes
+[nonblocking]             without waiting, so that a named pipe   in the file system); a FIFO there would
+                          with no writer is seen and refused      wait for its writer
+                          (io/inputs.py)
+
 /proc/meminfo (Linux)     available_memory: the memory check      sysconf's available pages (BSD), else no
 [proc]                    before the work                         memory check (NEEDLECLI_MEMORY sets the
                           (experiments/config/budget.py)          limit by hand)
@@ -100,7 +105,7 @@ SWITCH = "NEEDLECLI_PLATFORM_WITHOUT"
 #: the capabilities :data:`SWITCH` can take away (the table of the module docstring)
 CAPABILITIES = ("fallocate", "positioned_io", "o_direct", "statvfs", "pathconf", "proc", "mallopt",
                 "huge_pages", "sched_getaffinity", "threadpoolctl", "fork", "prctl", "flock", "msvcrt",
-                "posix_signals")
+                "posix_signals", "nonblocking")
 
 
 def without(name: str) -> bool:
@@ -181,6 +186,19 @@ def open_direct(path, flags: int = os.O_WRONLY) -> int | None:
         return os.open(path, flags | os.O_DIRECT)
     except OSError:  # tmpfs and others: no O_DIRECT
         return None
+
+
+# ---------------------------------------------------------------------------------------------- files: reading
+def open_for_reading(path) -> int:
+    """A read-only descriptor of ``path``, opened without waiting: ``O_NONBLOCK`` (POSIX), so that a named
+    pipe (FIFO) with no writer opens at once and its kind can be checked (:mod:`needlecli.io.inputs`
+    refuses it) instead of blocking for ever; on a regular file the flag changes nothing. Elsewhere (or
+    without [nonblocking]) a plain read-only open. Raises ``OSError`` as ``os.open`` does (``ENXIO`` for a
+    socket)."""
+    flags = os.O_RDONLY | getattr(os, "O_BINARY", 0)
+    if hasattr(os, "O_NONBLOCK") and not without("nonblocking"):
+        flags |= os.O_NONBLOCK
+    return os.open(path, flags)
 
 
 # ---------------------------------------------------------------------------------------------- files: limits

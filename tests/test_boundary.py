@@ -198,7 +198,7 @@ def test_compare_keeps_going_and_its_row_says_why(tmp_path, case):
     rows = pd.read_csv(out / "compare.csv").set_index("observer")
     assert CASES[case][1] in rows.loc["mine", "failure_reasons"]
     assert rows.loc["mine", "runs_failed"] == 3
-    assert rows.loc["ol", "runs_failed"] == 0 and np.isfinite(rows.loc["ol", "inst_mean"])
+    assert rows.loc["ol", "runs_failed"] == 0 and np.isfinite(rows.loc["ol", "E_xyz_mean"])
     assert "mine: " + CASES[case][1] in " ".join(p.stdout.split())
 
 

@@ -62,8 +62,9 @@ def test_compare_prints_the_appendix_table_with_ukf_and_open_loop(tiny, tmp_path
     md = (tmp_path / "compare.md").read_text()
     header = next(line for line in md.splitlines() if line.startswith("|"))
     assert "ukf" in header and "open_loop" in header
-    for row in ("Sensor frequency", "Online curvature estimation", "Instantaneous error", "Prediction error* (mm)",
-                "Runtime per step", "Runs that failed", "Number of insertions", "Start"):
+    for row in ("Sensor frequency", "Online curvature estimation", "E_xyz (mm)", "E_x (mm)", "E_gamma (deg)",
+                "E_kappa (1/mm)", "Prediction error* (mm)", "Runtime per step", "Runs that failed",
+                "Number of insertions", "Start"):
         assert f"| {row}" in md
     assert "1 Hz" in r.output and "50 Hz" in r.output and "2 Hz" in r.output
     assert "skipped: so3_invariant" in r.output and "tangent sensor" in r.output  # no tangent sensor here
@@ -73,9 +74,29 @@ def test_compare_prints_the_appendix_table_with_ukf_and_open_loop(tiny, tmp_path
     assert df.loc["ukf", "pred_depth"] == pytest.approx(3.75)  # 25 % of 15 mm
     assert np.isfinite(df.loc["ukf", "pred_mean_mm"]) and np.isnan(df.loc["open_loop", "pred_mean_mm"])
     assert (df["runs"] == 3).all() and (df["runs_failed"] == 0).all() and (df["ms_per_step"] > 0).all()
-    assert df.loc["ukf", "inst_quantity"] == "E_xyz"
     # the UKF beats the open loop on the same insertions
-    assert df.loc["ukf", "inst_mean"] < df.loc["open_loop", "inst_mean"]
+    assert df.loc["ukf", "E_xyz_mean"] < df.loc["open_loop", "E_xyz_mean"]
+    assert (tmp_path / "compare_error_vs_depth.png").exists() and "plots:" in r.output
+    # the same quantities for every observer: the high-gain observer's pitch and roll beside the others',
+    # n/a (NaN) where it does not estimate a state
+    errs = [c for c in df.columns if c.startswith("E_")]
+    for q in ("E_xyz", "E_x", "E_y", "E_z", "E_alpha", "E_beta", "E_gamma", "E_R", "E_kappa"):
+        assert f"{q}_mean" in errs and f"{q}_std" in errs
+    assert df.loc[["ukf", "ekf", "eks", "open_loop"], errs].notna().all().all()
+    hg = df.loc["high_gain"]
+    assert np.isfinite(hg[["E_x_mean", "E_beta_mean", "E_gamma_mean"]].astype(float)).all()
+    assert np.isnan(hg[["E_xyz_mean", "E_y_mean", "E_alpha_mean", "E_kappa_mean"]].astype(float)).all()
+    res = read_results(tmp_path / "tiny003_compare.h5")  # E_x by hand: |x_hat - x| after initialisation
+    t_names = list(res.data["truth"].attrs["names"])
+    for name in ("high_gain", "ukf"):
+        g = res.data["estimates"].data[name]
+        e = np.abs(g.data["state"][:, 1:, list(g.attrs["names"]).index("x")]
+                   - res.data["truth"].data["state"][:, 1:, t_names.index("x")])
+        assert df.loc[name, "E_x_mean"] == pytest.approx(e.mean(), rel=1e-12)
+        assert df.loc[name, "E_x_std"] == pytest.approx(e.std(), rel=1e-12)
+    head = next(ln for ln in r.output.splitlines() if ln.startswith("| mean error"))  # one column per observer
+    assert all(o in head for o in df.index)
+    assert any(ln.startswith("| E_gamma (deg)") for ln in r.output.splitlines())
     assert "Skipped:" in (tmp_path / "compare.md").read_text()
     assert (tmp_path / "tiny003_compare.h5").exists()
     r = invoke("evaluate", tmp_path / "tiny003_compare.h5", "--out", tmp_path / "ev", "--no-plots", "--quiet")
@@ -146,7 +167,7 @@ def test_ukf_defaults_from_the_sensors(tiny):
                                               "kappa": "swe.kappa"}
     assert s["init"]["std"] == {"alpha": 0.0873, "beta": 0.0873}
     assert s["p0"]["x"] == pytest.approx((2 * 0.3) ** 2) and s["p0"]["kappa"] == pytest.approx(1e-6)
-    assert s["q"]["x"] == pytest.approx(0.02 * np.sqrt(0.02))  # the truth's process noise per tick
+    assert s["q"]["x"] == pytest.approx(0.02)  # the truth's process noise, per square-root second as every q
     assert s["predict_at_depths"] == [3.75]
     OBSERVERS.get("ukf").Settings.model_validate({"type": "ukf", **s})
     # without a sensor with a nominal sigma that the model predicts, the UKF is skipped with the reason
@@ -167,7 +188,16 @@ def test_compare_replays_a_log_with_the_model_given(tiny, tmp_path):
     assert r.exit_code == 0, r.output
     df = pd.read_csv(tmp_path / "rp" / "compare.csv").set_index("observer")
     assert set(df.index) == {"ukf", "open_loop"} and (df["runs"] == 2).all()
-    assert np.isfinite(df.loc["ukf", "inst_mean"])  # against the logged truth
+    assert np.isfinite(df.loc["ukf", "E_xyz_mean"])  # against the logged truth
+    from needlecli.io.logs import read_log
+
+    res = read_results(next((tmp_path / "rp").glob("*_compare.h5")))  # --runs: the log's first trials
+    assert [str(t) for t in res.data["truth"].data["trial_id"]] == [t.id for t in read_log(tmp_path / "tiny.log.h5").trials][:2]
+    # the replay's filters are derived from what the log records: the sensors' sigmas, the truth's start
+    import yaml
+
+    ukf = next(o for o in yaml.safe_load(res.attrs["config"])["observers"] if o["name"] == "ukf")
+    assert ukf["measurements"]["us3d"]["sigma"] == 0.3 and ukf["init"]["from"] == "truth"
 
 
 @pytest.mark.parametrize("args, message", [
@@ -247,7 +277,46 @@ def test_compare_table_fits_80_columns_and_names_results_once(tiny, tmp_path):
     r = invoke("compare", tiny, "--out", tmp_path, "--quiet")
     assert r.exit_code == 0, r.output
     lines = r.output.splitlines()
-    long = [ln for ln in lines if len(ln) > 80 and not ln.startswith(("table:", "results:"))]
+    long = [ln for ln in lines if len(ln) > 80 and not ln.startswith(("table:", "results:", "plots:", "compare: "))]
     assert not long, long
     assert sum(ln.startswith("results:") for ln in lines) == 1
     assert any(ln.startswith("| observer") and "start" in ln for ln in lines)
+
+
+def test_a_filter_worse_than_the_model_alone_is_warned_about(tiny, tmp_path):
+    """A filter that does worse than the open loop from the same start: a warning in the output and in the
+    table's notes (here a UKF held straight by a curvature bound, without the position it could correct)."""
+    cfg_path = tmp_path / "bad.yaml"
+    cfg_path.write_text(tiny.read_text() + """observers:
+  - name: straight
+    type: ukf
+    measurements: {robot: {sigma: 0.0035}}
+    kappa_max: 1.0e-7
+    init: {from: truth, std: {alpha: 0.0873, beta: 0.0873}, values: {kappa: 0.0}, first_measurement: {x: us3d.x, y: us3d.y, z: us3d.z}}
+""")
+    r = invoke("compare", cfg_path, "--observers", "straight,ekf,open_loop", "--out", tmp_path / "o", "--quiet")
+    assert r.exit_code == 0, r.output
+    df = pd.read_csv(tmp_path / "o" / "compare.csv").set_index("observer")
+    assert df.loc["straight", "E_xyz_mean"] > df.loc["open_loop", "E_xyz_mean"] > df.loc["ekf", "E_xyz_mean"]
+    said = " ".join(r.output.split())  # (the log's warning, on stderr)
+    assert "compare: straight does worse than open_loop, the model alone from the same start (E_xyz" in said
+    assert "ekf does worse" not in said
+    md = (tmp_path / "o" / "compare.md").read_text()
+    assert "Warning:\n- straight does worse than open_loop" in md
+
+
+def test_worse_than_model_compares_like_with_like():
+    """Only observers from the common start against a model-only one from it; the tip norm where both have
+    it, else the axes the observer has (seed 000's high-gain observer: E_x)."""
+    from needlecli.reports.compare import worse_than_model
+
+    nan = float("nan")
+    df = pd.DataFrame({
+        "observer": ["ol", "kf", "hg", "own", "good"], "model_only": [True, False, False, False, False],
+        "start": ["common", "common (reference)", "common; x, beta = 0", "own settings", "common"],
+        "E_xyz_mean": [1.0, 2.0, nan, 3.0, 0.5], "E_x_mean": [0.5, 0.1, 0.6, 3.0, 0.1],
+    })
+    warn = worse_than_model(df)
+    assert [w.split()[0] for w in warn] == ["kf", "hg"]
+    assert "E_xyz 2 against 1 mm" in warn[0] and "E_x 0.6 against 0.5 mm" in warn[1]
+    assert worse_than_model(df.assign(start="own settings")) == []

@@ -247,6 +247,7 @@ output: {tables: [sumary]}
 """
 
 ACROSS = """\
+format: 2
 model: {type: modified_unicycle}
 inputs: {v: 1.5, uu: 0}
 process_noise: {std: {alpah: 0.1}}

@@ -160,12 +160,12 @@ def test_a_plugin_ukf_is_tuned_by_from_fit_as_the_ukf_is(lab):
     obs = _observers(out)
     assert "from_fit" not in obs["lab"] and "from_fit" not in obs["builtin"]  # expanded
     assert _without(obs["lab"], "type", "name") == _without(obs["builtin"], "type", "name")
-    with h5py.File(lab["fit"]) as f:  # q per tick of the 5 Hz filter, from the fit's Q (per second)
+    with h5py.File(lab["fit"]) as f:  # q per square-root second, the fit's sqrt(Q_ii), whatever the filter's rate
         g = f["fit/unicycle"]
         names = _strs(g.attrs["names"])
         Q = np.median(g["Q"][()], axis=0)
         kappa = float(np.median(g["constant/kappa"][()]))
-    assert obs["lab"]["q"]["x"] == pytest.approx(np.sqrt(Q[names.index("x"), names.index("x")] * 0.2), rel=1e-12)
+    assert obs["lab"]["q"]["x"] == pytest.approx(np.sqrt(Q[names.index("x"), names.index("x")]), rel=1e-12)
     assert obs["lab"]["params"]["kappa"] == pytest.approx(kappa, rel=1e-12)
     assert len(obs["lab"]["measurements"]["tracker"]["sigma"]) == 3
 
@@ -199,10 +199,10 @@ def test_what_an_observer_declares_is_read_through_the_registry():
     """Each built-in's declarations, as compare and from_fit used to hard-code them."""
     takes = {t: OBSERVERS.get(t).fit_takes for t in OBSERVERS.builtin_names()}
     assert {t for t, v in takes.items() if v is not None} == {"ukf", "ekf", "eks", "open_loop"}
-    assert takes["ukf"].q == "per_tick" and takes["ekf"].q == takes["eks"].q == takes["open_loop"].q == "per_root_second"
     assert [t for t, v in takes.items() if v is not None and v.sensor_states] == ["ekf", "eks"]
     assert not takes["open_loop"].measurements and takes["ukf"].measurements
     assert [t for t in OBSERVERS.builtin_names() if OBSERVERS.get(t).default_reference] == ["ukf"]
+    assert [t for t in OBSERVERS.builtin_names() if OBSERVERS.get(t).model_only] == ["open_loop"]
     hg = OBSERVERS.get("high_gain")
     s = hg.Settings.model_validate({"type": "high_gain", **hg.derived_settings(None)})
     assert hg.prescribed_start(s) == "x, beta = 0"

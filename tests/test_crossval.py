@@ -31,7 +31,7 @@ def test_folds_keep_groups_together_and_leave_one_out_within_a_group():
     assert loo[0].test == ["d1-a"] and loo[0].train == ["d1-b", "d1-c"] and loo[3].train == ["d2-b"]
     with pytest.raises(ConfigError, match="alone in its group"):  # d3 has one trial
         make_folds(ids + ["d4-a"], groups + ["d4"], k=None, leave_one_out=True, within=True)
-    with pytest.raises(ConfigError, match="at most 3"):
+    with pytest.raises(ConfigError, match="give --folds 3 or fewer"):
         make_folds(ids, groups, k=4, leave_one_out=False, within=False)
 
 
@@ -97,3 +97,122 @@ def test_crossval_user_errors(tmp_path):
     assert r.exit_code == 2 and ("no observer 'nope'" in r.output or "no such" in r.output or "log" in r.output)
     r = CliRunner().invoke(app, ["crossval", str(cfg), "--observer", "open_loop", "--within", "--quiet"])
     assert r.exit_code == 2 and "--within" in r.output
+
+
+def test_shifted_problem_starts_each_row_at_its_own_step():
+    """The problem of predictions from a pose: row b is run runs[b] from grid step starts[b] on, its
+    inputs and depths shifted (held past the run's end, the inputs at zero), no measurement, the start given."""
+    from needlecli.experiments.studies.crossval import shifted_problem
+    from needlecli.models import MODELS
+    from needlecli.problem import Channel, CommonStart, EstimationProblem
+
+    T, N = 12, 2
+    time = 0.1 * np.arange(T)
+    inputs = np.stack([np.arange(T) + 100.0 * r for r in range(N)])[..., None] * np.array([1.0, -1.0])  # (N, T, 2)
+    depth = np.cumsum(np.ones((N, T)), axis=1)
+    ch = Channel(name="tracker", sensor_type="position", t=time[::3], t_available=time[::3], index=np.arange(0, T, 3),
+                 value=np.zeros((N, 4, 3)), valid=np.ones((N, 4), dtype=bool), names=("x", "y", "z"),
+                 units=("mm",) * 3, sigma=np.ones(3), angle=np.zeros(3, dtype=bool), h=None,
+                 attrs={"per_run": np.array([7.0, 8.0]), "scalar": 3.0})
+    model = MODELS.get("unicycle")()
+    prob = EstimationProblem(time=time, inputs=inputs, input_names=("v", "u"), depth=depth, channels={"tracker": ch},
+                             model=model, params=model.param_arrays(), interfaces=np.zeros(0))
+    runs, starts = np.array([1, 0, 1]), np.array([4, 2, 9])
+    start = CommonStart(names=("x",), mean=np.zeros((3, 1)), cov=np.zeros((1, 1)), source="test")
+    sub = shifted_problem(prob, runs, starts, start)
+    assert sub.n_runs == 3 and len(sub.time) == T - 2 and sub.start is start and sub.initial_truth is None
+    np.testing.assert_allclose(sub.time, time[: T - 2])
+    for b, (r, s) in enumerate(zip(runs, starts)):
+        n = T - s
+        np.testing.assert_array_equal(sub.inputs[b, :n], inputs[r, s:])
+        np.testing.assert_array_equal(sub.inputs[b, n:], 0.0)
+        np.testing.assert_array_equal(sub.depth[b, :n], depth[r, s:])
+        np.testing.assert_array_equal(sub.depth[b, n:], depth[r, -1])
+    c = sub.channels["tracker"]
+    assert c.value.shape == (3, 0, 3) and c.valid.shape == (3, 0) and c.t.size == 0
+    np.testing.assert_array_equal(c.attrs["per_run"], [8.0, 7.0, 8.0])
+    assert c.attrs["scalar"] == 3.0
+
+
+def _pose_study(tmp_path) -> Path:
+    """Four noise-free insertions of the unicycle with half turns, a tracker, a fit section; the hand-tuned
+    open loop has the true curvature but starts 3 deg off in each angle (a common start of its own)."""
+    cfg = {
+        "name": "poses",
+        "model": {"type": "unicycle", "params": {"kappa": 0.01}},
+        "inputs": {"v": 2.0, "u": {"kind": "flips", "at_depths": [12.0, 26.0], "rate": 3.14159}},
+        "sensors": [{"name": "tracker", "type": "position", "rate": 5.0, "sigma": 0.1}],
+        "observers": [{"name": "model", "type": "open_loop",
+                       "init": {"from": "truth", "std": {"alpha": 0.05, "beta": 0.05, "gamma": 0.05}}}],
+        "runs": {"count": 4, "seed": 5},
+        "stop": {"depth": 40.0},
+        "simulation": {"dt": 0.02},
+        "output": {"covariance": "none"},
+        "fit": {"models": ["unicycle"], "constants": ["kappa"],
+                "q": {"x": 0.02, "y": 0.02, "z": 0.02, "alpha": 2.0e-3, "beta": 2.0e-3, "gamma": 2.0e-3},
+                "p0": {"x": 0.05, "y": 0.05, "z": 0.05, "alpha": 1.0e-3, "beta": 1.0e-3, "gamma": 1.0e-2, "kappa": 1.0e-4},
+                "measurements": {"tracker": {"sigma": 0.2}},
+                "init": {"from": "nominal", "values": {"kappa": 0.008},
+                         "first_measurement": {"x": "tracker.x", "y": "tracker.y", "z": "tracker.z"}},
+                "em": {"max_iter": 40, "tol": 0.2}},
+    }
+    path = tmp_path / "poses.yaml"
+    path.write_text(yaml.safe_dump(cfg, sort_keys=False))
+    return path
+
+
+def test_crossval_predicts_from_the_recorded_pose_and_tells_the_start_from_the_model(tmp_path):
+    """Without process noise the truth is the model's own path: from the recorded (true) pose at any depth
+    the open loop with the true curvature follows it exactly (inputs, depths and steps aligned), while from
+    the common start, 3 deg off in each angle, it drifts; the error from the start minus the error from the
+    pose at 0 is the start pose's part."""
+    cfg = _pose_study(tmp_path)
+    r = CliRunner().invoke(app, ["crossval", str(cfg), "--observer", "model", "--folds", "2", "--from-depths", "0,10,25",
+                                 "--out", str(tmp_path / "cv"), "--quiet"])
+    assert r.exit_code == 0, r.output
+    t = pd.read_csv(tmp_path / "cv" / "crossval_from_pose.csv")
+    assert set(t["Observer"]) == {"model", "model_em"}
+    m = t[t["Observer"] == "model"].set_index("From")
+    assert list(m.index) == ["common start", "recorded pose at 0 mm", "recorded pose at 10 mm", "recorded pose at 25 mm"]
+    assert (m["Trials"] == 4).all()
+    bins = [c for c in t.columns if c.endswith(" mm")]
+    assert bins[:3] == ["0-10 mm", "10-20 mm", "20-30 mm"]
+    exact = m.loc[[i for i in m.index if i.startswith("recorded")], bins].to_numpy(dtype=float)
+    assert np.nanmax(exact) < 1e-6  # the model's own path, from the true pose: nothing left
+    assert np.isnan(m.loc["recorded pose at 25 mm", "20-30 mm"])  # 15 mm of insertion left after 25 mm
+    start = m.loc["common start", bins].to_numpy(dtype=float)
+    assert start[2] > 0.3 and start[2] > start[0]  # the start's 3 deg grow into the path
+    # the EM-tuned copy has its fitted curvature: from the true pose its error is the curvature's, small
+    em = t[t["Observer"] == "model_em"].set_index("From")
+    assert 0 < em.loc["recorded pose at 0 mm", "20-30 mm"] < 0.5 * em.loc["common start", "20-30 mm"]
+    # the table is the folds' files': the same from crossval_tables, and the arrays are where the layout says
+    tables = crossval_tables([tmp_path / "cv" / "folds" / f"fold{k}.h5" for k in range(2)])
+    pd.testing.assert_frame_equal(tables["from_pose"].reset_index(drop=True), t, check_exact=False, rtol=1e-9,
+                                  check_dtype=False)
+    import h5py
+
+    with h5py.File(tmp_path / "cv" / "folds" / "fold0.h5") as f:
+        g = f["crossval/from_pose/truth"]
+        assert list(g.attrs["depths"]) == [0.0, 10.0, 25.0] and g["start_index"].shape == (2, 3)
+        assert g["model/state"].shape[:2] == (2, 3) and g["model/status"].shape == (2, 3)
+
+
+def test_crossval_pose_options_are_checked_before_any_fit(tmp_path):
+    cfg = _pose_study(tmp_path)
+    for args, words in ((["--pose-from", "nobody"], "error: --pose-from: "), (["--from-depths", "0,-5"], "error: --from-depths: "),
+                        (["--from-depths", "0,x"], "error: --from-depths: ")):
+        r = CliRunner().invoke(app, ["crossval", str(cfg), "--observer", "model", "--folds", "2",
+                                     "--out", str(tmp_path / "cv"), "--quiet", *args])
+        assert r.exit_code == 2 and words in r.output and "Traceback" not in r.output, r.output
+        assert not (tmp_path / "cv" / "folds" / "fold0_fit.h5").exists()
+
+
+def test_the_poses_config_is_the_tracker_config_with_a_smoother():
+    """configs/real/em_tracker_poses.yaml (make real-poses) fits exactly what em_tracker.yaml fits, on the same
+    trials; it adds the smoother, first (its initial estimate is the folds' common start), and keeps the open loop."""
+    a = yaml.safe_load((ROOT / "configs" / "real" / "em_tracker.yaml").read_text())
+    b = yaml.safe_load((ROOT / "configs" / "real" / "em_tracker_poses.yaml").read_text())
+    for key in ("source", "model", "fit", "runs", "simulation", "output"):
+        assert a[key] == b[key], key
+    assert [o["type"] for o in b["observers"]] == ["eks", "open_loop"] and b["observers"][1] == a["observers"][0]
+    assert b["observers"][0]["q"] == a["fit"]["q"] and b["observers"][0]["init"]["from"] == "nominal"

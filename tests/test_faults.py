@@ -277,3 +277,83 @@ def test_immutable_target_refused_before_the_work(tmp_path, what):
             else f"cannot write in {folder}: permission denied")
     assert r.stderr.strip() == f"error: {target}: {want}", r.stderr
     assert target.read_bytes() == b"earlier" and [p.name for p in folder.iterdir()] == ["r.h5"]
+
+
+# ---------------------------------------------------------------------------------------------- one set of outputs
+def test_a_set_is_renamed_into_place_together_and_readable_before(tmp_path):
+    """Inside a set each file is complete in its temporary file, readable through the input opener under
+    its own name, and nothing is at the targets until the set ends; then all of them are."""
+    from needlecli.io.atomic import output_set, staged_path, write_text_atomic
+    from needlecli.io.inputs import read_text
+
+    out = tmp_path / "new" / "folder"
+    with output_set():
+        write_text_atomic(out / "a.txt", "first\n")
+        write_text_atomic(out / "sub" / "b.txt", "second\n")
+        write_text_atomic(out / "a.txt", "first, again\n")  # written twice: the later one counts
+        assert not (out / "a.txt").exists() and not (out / "sub" / "b.txt").exists()
+        assert staged_path(out / "a.txt") != out / "a.txt"
+        assert read_text(out / "a.txt", "a text", limit=100) == "first, again\n"
+    assert (out / "a.txt").read_text() == "first, again\n" and (out / "sub" / "b.txt").read_text() == "second\n"
+    assert sorted(p.name for p in out.rglob("*")) == ["a.txt", "b.txt", "sub"]
+
+
+def test_a_set_that_fails_leaves_nothing_not_even_its_folders(tmp_path):
+    from needlecli.errors import DataError
+    from needlecli.io.atomic import JOURNAL, output_set, write_text_atomic
+
+    (tmp_path / "keep.txt").write_text("earlier")
+    JOURNAL.reset()
+    with pytest.raises(DataError), output_set():
+        write_text_atomic(tmp_path / "keep.txt", "new")
+        write_text_atomic(tmp_path / "a" / "b" / "c.txt", "new")
+        raise DataError("a later step fails")
+    assert [p.name for p in tmp_path.iterdir()] == ["keep.txt"]
+    assert (tmp_path / "keep.txt").read_text() == "earlier" and not JOURNAL.inflight and not JOURNAL.written
+
+
+def test_a_set_kept_after_a_verdict(tmp_path):
+    """A command that ends with exit code 1 after its outputs are complete (a regression) keeps them."""
+    from needlecli.io.atomic import output_set, write_text_atomic
+
+    class Verdict(Exception):
+        pass
+
+    with pytest.raises(Verdict), output_set() as s:
+        write_text_atomic(tmp_path / "t.md", "table\n")
+        s.keep = True
+        raise Verdict
+    assert (tmp_path / "t.md").read_text() == "table\n"
+
+
+def test_a_rename_that_fails_in_the_middle_says_what_was_written(tmp_path, monkeypatch):
+    import errno
+
+    import needlecli.io.atomic as atomic
+    from needlecli.errors import OutputError
+
+    calls = [0]
+    real = os.replace
+
+    def replace(a, b):
+        calls[0] += 1
+        if calls[0] == 2:
+            raise OSError(errno.EACCES, "Permission denied", str(b))
+        real(a, b)
+
+    with pytest.raises(OutputError) as info, atomic.output_set():
+        for name in ("a", "b", "c"):
+            atomic.write_text_atomic(tmp_path / name, name)
+        monkeypatch.setattr(atomic.os, "replace", replace)
+    monkeypatch.undo()
+    assert str(info.value) == (f"{tmp_path / 'b'}: cannot write: permission denied; 1 of the 3 outputs were written "
+                               f"before it ({tmp_path / 'a'}); not written: {tmp_path / 'b'}, {tmp_path / 'c'} (an "
+                               "earlier file there is unchanged)")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a"]
+
+
+# ---------------------------------------------------------------------------------------------- the newer commands
+@pytest.mark.parametrize("command, points", [("compare", 2), ("import-csv", 2), ("fit-em", 2), ("crossval", 1)])
+def test_fault_injection_of_a_set_of_outputs(tmp_path, command, points):
+    found = faults.set_faults(command, tmp_path, points, np.random.default_rng(5))
+    assert all(not p.problems for p in found), "\n".join(p.line() for p in found)

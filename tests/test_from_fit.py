@@ -54,7 +54,9 @@ def test_ekf_takes_q_r_and_c_per_square_root_second(seed004_fit):
     assert text.startswith("# observer tuned:") and "from_fit" in text.splitlines()[0]
 
 
-def test_ukf_takes_q_per_tick_and_a_picked_trial(seed004_fit):
+def test_ukf_takes_q_per_square_root_second_and_a_picked_trial(seed004_fit):
+    """q means one thing in every observer: the UKF takes sqrt(Q_ii) as the EKF does, whatever its rate
+    (it converts to its 50 Hz tick itself)."""
     cfg, _ = load_config(text=_config(seed004_fit, {"type": "ukf", "rate": 50.0, "_ff": {"pick": "trial", "trial": 2}}))
     with h5py.File(seed004_fit) as f:
         g = f["fit/mnm"]
@@ -62,8 +64,7 @@ def test_ukf_takes_q_per_tick_and_a_picked_trial(seed004_fit):
         Q = g["Q"][()][2]
         c = g["constant/c"][()][2]
     o = cfg.observers[0]
-    dt_tick = 2 * 0.01  # 50 Hz on the 100 Hz grid
-    assert o.q["hx"] == pytest.approx(np.sqrt(Q[names.index("hx"), names.index("hx")] * dt_tick), rel=1e-12)
+    assert o.q["hx"] == pytest.approx(np.sqrt(Q[names.index("hx"), names.index("hx")]), rel=1e-12)
     assert o.params["c"] == pytest.approx(c, rel=1e-12)
 
 
@@ -96,3 +97,53 @@ def test_a_fitted_ekf_runs_in_a_simulation(seed004_fit, tmp_path):
         config = f.attrs["config"]
         assert "from_fit" in config.splitlines()[0] and "from_fit:" not in config  # values written out
         assert np.isfinite(f["estimates/tuned/state"][()]).all()
+
+
+def _damaged_copy(fit: Path, tmp_path: Path, edit) -> Path:
+    out = tmp_path / "damaged_fit.h5"
+    out.write_bytes(fit.read_bytes())
+    with h5py.File(out, "r+") as f:
+        edit(f)
+    return out
+
+
+def _set(f, path: str, index: tuple, value) -> None:
+    v = f[path][()]
+    v[index] = value
+    del f[path]
+    f[path] = v
+
+
+@pytest.mark.parametrize("edit, hdf5, message", [
+    (lambda f: _set(f, "fit/mnm/Q", (1, 3, 3), -1e-6), "/fit/mnm/Q", "trial 1: entry (3, 3) = -1e-06 < 0"),
+    (lambda f: _set(f, "fit/mnm/R/camera", (0, 0, 1), 1.0), "/fit/mnm/R/camera", "trial 0: not symmetric"),
+    (lambda f: f["fit/mnm"].attrs.modify("names", ["px", "py", "pz", "hx", "hy", "hz", "Bx", "By", "Bz", "kappa"]),
+     "/fit/mnm attribute names", "'kappa' is neither a state nor a constant of model 'mnm'"),
+])
+def test_a_damaged_fit_is_refused_whatever_the_observer_takes(seed004_fit, tmp_path, edit, hdf5, message):
+    """The open loop takes q and the constants only, the EKF R too: both refuse a damaged fit, naming the
+    config's key and the fit file's HDF5 path (a negative variance was taken as q = 0)."""
+    fit = _damaged_copy(seed004_fit, tmp_path, edit)
+    for kind in ("open_loop", "ekf"):
+        with pytest.raises(ConfigError) as e:
+            load_config(text=_config(fit, {"type": kind}))
+        text = str(e.value)
+        assert "[observers -> 0 -> from_fit -> file]" in text and f"[{hdf5}" in text and message in text, text
+
+
+def test_a_fit_section_takes_q_from_a_fit_of_other_sensors(seed004_fit):
+    """A fit section's from_fit takes q and the constants, not R: the other fit's channels (camera, coils)
+    need not be this config's sensors (here the camera is named cam), while an observer's must be."""
+    data = yaml.safe_load(_config(seed004_fit, {"type": "ekf"}))
+    data["sensors"][0]["name"] = "cam"
+    observer = data.pop("observers")
+    data["fit"] = {"models": ["mnm"], "from_fit": {"file": str(seed004_fit), "model": "mnm"},
+                   "measurements": {"cam": {"sigma": 1e-4}, "coils": {"sigma": 3e-4}},
+                   "init": {"values": {"hy": -1.0}, "first_measurement": {"px": "cam.x", "py": "cam.y"}}}
+    cfg, _ = load_config(text=yaml.safe_dump(data, sort_keys=False))
+    names, Q, _, _ = _fitted(seed004_fit)
+    assert cfg.fit.q["hx"] == pytest.approx(np.sqrt(Q[names.index("hx"), names.index("hx")]), rel=1e-12)
+    data["observers"] = observer
+    with pytest.raises(ConfigError) as e:
+        load_config(text=yaml.safe_dump(data, sort_keys=False))
+    assert "the fit's channel 'camera' is no sensor of this config (sensors: cam, coils)" in str(e.value)

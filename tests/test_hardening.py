@@ -15,15 +15,26 @@ A case::
       expect: {file: cfg.yaml, key: sensors -> 0 -> rate, message: finite number}   # code: 2 by default
 
 ``expect`` may give ``hdf5`` (an HDF5 path in brackets) instead of ``key``, ``code`` and ``lines`` (the
-lines on stderr, default 1); ``created`` lists files a successful case may make.
+lines on stderr, default 1); ``created`` lists files a successful case may make, ``warning`` what one of
+its ``warning:`` lines on stderr must say; ``output`` texts the command's output must hold (stdout and stderr), ``absent`` texts it must not.
+
+A case may also make the disk fail while the command writes: ``disk_full: k`` (the k-th file written
+cannot be flushed to disk: ENOSPC, as a disk that fills up reports it), ``rename_fails: k`` (the k-th
+rename of a complete file into place fails). Every case must end within :data:`PATIENCE` seconds (an input
+that makes the command wait -- a named pipe with no writer -- is a failure, not a hang), and its output
+must hold no control character (a name that holds one is shown escaped).
 """
 
 from __future__ import annotations
 
 import copy
+import errno
 import hashlib
 import os
 import re
+import signal
+import socket
+import zipfile
 from pathlib import Path
 
 import h5py
@@ -38,12 +49,63 @@ from needlecli.experiments.config.overrides import set_dotted
 
 HERE = Path(__file__).parent / "hardening"
 BASE = yaml.safe_load((HERE / "base.yaml").read_text())
-CLASSES = sorted(p for p in HERE.glob("[0-9]_*.yaml"))
+CLASSES = sorted(HERE.glob("[0-9]*_*.yaml"), key=lambda p: int(p.name.split("_")[0]))
+PATIENCE = 120  # s: longer is a command waiting for an input that never comes
 CASES = [(p.stem, c) for p in CLASSES for c in yaml.safe_load(p.read_text())]
 
 
 def invoke(args, env=None):
     return CliRunner().invoke(app, [str(a) for a in args], env=env, catch_exceptions=True)
+
+
+class Waited(Exception):
+    """A command still running after :data:`PATIENCE` seconds."""
+
+
+def _waited(signum, frame):  # noqa: ARG001
+    raise Waited(f"still running after {PATIENCE} s: waiting for an input?")
+
+
+def invoke_patiently(args, env=None):
+    old = signal.signal(signal.SIGALRM, _waited)
+    signal.alarm(PATIENCE)
+    try:
+        return invoke(args, env)
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, old)
+
+
+def fail_disk(monkeypatch, *, disk_full: int | None = None, rename_fails: int | None = None) -> None:
+    """Make the k-th file written fail to be flushed (``disk_full``: ENOSPC) or the k-th rename into place
+    fail (``rename_fails``: ENOSPC), for the one command the case runs."""
+    import needlecli.io.atomic as atomic
+
+    if disk_full:
+        real_fsync, calls = atomic._fsync, [0]
+
+        def fsync(p):
+            calls[0] += 1
+            if calls[0] == disk_full:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(p))
+            real_fsync(p)
+
+        monkeypatch.setattr(atomic, "_fsync", fsync)
+    if rename_fails:
+        renames = [0]
+
+        class Os:  # atomic's os, whose replace fails at the k-th call
+            def __getattr__(self, name):
+                return getattr(os, name)
+
+            @staticmethod
+            def replace(a, b):
+                renames[0] += 1
+                if renames[0] == rename_fails:
+                    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(b))
+                os.replace(a, b)
+
+        monkeypatch.setattr(atomic, "os", Os())
 
 
 # ---------------------------------------------------------------------------------------------- good inputs
@@ -53,14 +115,17 @@ def good(tmp_path_factory) -> dict[str, Path]:
     d = tmp_path_factory.mktemp("good")
     (d / "tiny.yaml").write_text(yaml.safe_dump(BASE["tiny"], sort_keys=False))
     (d / "fit.yaml").write_text(yaml.safe_dump(BASE["fit"], sort_keys=False))
+    (d / "fitok.yaml").write_text(yaml.safe_dump(_edited(BASE["fit"], BASE["fitok"]), sort_keys=False))
     for args in (["simulate", d / "tiny.yaml", "--out", d / "results.h5", "--quiet"],
                  ["log", "from-results", d / "results.h5", "--out", d / "log.h5"],
                  ["fit-em", d / "fit.yaml", "--out", d / "fit.h5", "--quiet"],
+                 ["fit-em", d / "fitok.yaml", "--out", d / "fitok.h5", "--quiet"],
                  ["evaluate", d / "results.h5", "--out", d / "tables", "--no-plots", "--quiet",
                   "--write-baseline", d / "baseline.yaml"]):
         r = invoke(args)
         assert r.exit_code == 0, r.output
-    return {"results": d / "results.h5", "log": d / "log.h5", "fit": d / "fit.h5", "baseline": d / "baseline.yaml"}
+    return {"results": d / "results.h5", "log": d / "log.h5", "fit": d / "fit.h5", "fitok": d / "fitok.h5",
+            "baseline": d / "baseline.yaml"}
 
 
 # ---------------------------------------------------------------------------------------------- builders
@@ -78,7 +143,18 @@ def _edited(data: dict, spec: dict) -> dict:
 
 
 def build_config(case_dir: Path, spec: dict, good) -> str:
-    base = copy.deepcopy(BASE[spec["config"]])
+    """A config of base.yaml: ``tiny``, ``replay`` (of the good log, or ``log``), ``fit``, ``fitok`` (a fit
+    that converges at once), ``crossval`` (``fitok`` with an observer to tune), ``from_fit`` (its observer
+    tuned by the good ``fitok`` fit file); then ``set`` and ``del`` (dotted keys)."""
+    if spec["config"] in ("fitok", "crossval", "from_fit"):
+        base = _edited(BASE["fit"], BASE["fitok"])
+        if spec["config"] != "fitok":
+            base["observers"] = copy.deepcopy(BASE[spec["config"]]["observers"])
+        if spec["config"] == "from_fit":
+            base.pop("fit")
+            base["observers"][0]["from_fit"]["file"] = str(good["fitok"])
+    else:
+        base = copy.deepcopy(BASE[spec["config"]])
     if spec["config"] == "replay":
         base["source"]["logs"] = [str(case_dir / spec.get("log", "log.h5"))] if spec.get("log") else [str(good["log"])]
     return yaml.safe_dump(_paths(_edited(base, spec), case_dir), sort_keys=False)
@@ -104,6 +180,24 @@ def _generated(kind: str, n: int | None) -> bytes:
         lines += [f"a{i}: &a{i} [" + ", ".join([f"*a{i - 1}"] * 10) + "]" for i in range(1, n or 7)]
         return ("\n".join(lines) + "\n").encode()
     raise ValueError(kind)
+
+
+def _path_csv(angle: float = 0.0, n: int = 41, step: float = 0.5, kappa: float = 0.01, noise: float = 0.02,
+              seed: int = 1, speed: float = 2.0, q: list | None = None) -> tuple[str, float]:
+    """A tracker's CSV (``t,tx,ty,tz``, mm) of a bevel-tip insertion: a circle of curvature ``kappa``
+    bending toward -y, one sample per ``step`` mm at ``speed`` mm/s, started along the direction ``angle``
+    degrees from +z (turned about x), with ``noise`` (mm) on each coordinate; ``q``: a quaternion ``[w, x, y,
+    z]`` the tracker reports at every sample (columns ``qw,qx,qy,qz``). Returns the text and the last time."""
+    s = step * np.arange(n)
+    th = kappa * s
+    pos = np.c_[np.zeros(n), (np.cos(th) - 1.0) / kappa, np.sin(th) / kappa]
+    a = np.radians(angle)
+    turn = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(a), -np.sin(a)], [0.0, np.sin(a), np.cos(a)]])
+    pos = pos @ turn.T + np.random.default_rng(seed).normal(0.0, noise, pos.shape)
+    t = s / speed
+    tail = "".join(f",{c:.9g}" for c in q) if q is not None else ""
+    rows = "\n".join(f"{ti:.6g},{x:.6f},{y:.6f},{z:.6f}{tail}" for ti, (x, y, z) in zip(t, pos))
+    return "t,tx,ty,tz" + (",qw,qx,qy,qz" if q is not None else "") + "\n" + rows + "\n", float(t[-1])
 
 
 def _h5_value(v):
@@ -169,6 +263,13 @@ def damage(path: Path, ops: list) -> None:
                 f.create_dataset(arg, data=v, chunks=True, compression="gzip")
             elif kind == "datatype":
                 f[arg] = np.dtype("f8")
+            elif kind == "copy":  # [path, new path]: a dataset copied, its attributes too
+                src, dst = arg
+                f.copy(f[src], dst)
+            elif kind == "texts":  # [path, [text, ...]]: a dataset of texts in place of what was there
+                p, values = arg
+                del f[p]
+                f.create_dataset(p, data=np.array(values, dtype=object), dtype=h5py.string_dtype())
             else:
                 after.append(op)
     for op in after:
@@ -190,6 +291,8 @@ def damage(path: Path, ops: list) -> None:
 def build(case_dir: Path, name: str, spec, good) -> None:
     p = case_dir / name
     p.parent.mkdir(parents=True, exist_ok=True)
+    if isinstance(spec, dict) and {"fifo", "socket", "dir", "symlink"} & set(spec) and p.is_file():
+        p.unlink()  # a file an earlier builder made there (a mapping's CSV) becomes this instead
     if isinstance(spec, str):
         p.write_text(spec)
     elif "config" in spec:
@@ -219,10 +322,36 @@ def build(case_dir: Path, name: str, spec, good) -> None:
         files.update(spec["ultrasteer"] or {})
         for fname, text in files.items():
             (folder / fname).write_text(text if text.endswith("\n") else text + "\n")
+    elif "yaml" in spec:  # a YAML file given in full (@name: a path in the case's folder), with set/del edits
+        p.write_text(yaml.safe_dump(_paths(_edited(spec["yaml"], spec), case_dir), sort_keys=False))
+    elif "imported" in spec:  # a log imported from a tracker's path (see _path_csv) by BASE's mapping
+        src = case_dir / f".{name}.exports"
+        src.mkdir()
+        (src / "mapping.yaml").write_text(yaml.safe_dump(_edited(BASE["mapping"], spec["imported"]), sort_keys=False))
+        path, end = _path_csv(**{k: v for k, v in spec["imported"].items() if k not in ("set", "del")})
+        (src / "us.csv").write_text(path)
+        (src / "robot.csv").write_text(f"t,speed\n0,2\n{end:g},2\n")
+        r = invoke(["log", "import-csv", src / "mapping.yaml", "--out", p])
+        assert r.exit_code == 0, r.output
     elif "dir" in spec:
         p.mkdir(exist_ok=True)
-    elif "symlink" in spec:
+    elif "symlink" in spec:  # to a name in the case's folder (itself: a loop), or an absolute path (/dev/null)
         p.symlink_to(case_dir / spec["symlink"])
+    elif "fifo" in spec:  # a named pipe nobody writes to
+        os.mkfifo(p)
+    elif "socket" in spec:  # a Unix socket's file (the socket itself closed)
+        with socket.socket(socket.AF_UNIX) as sock:
+            sock.bind(str(p))
+    elif "zip" in spec:  # a zip archive holding a copy of a good file (or a text)
+        with zipfile.ZipFile(p, "w") as z:
+            z.writestr("inside", good[spec["zip"]].read_bytes() if spec["zip"] in good else spec["zip"])
+    elif "hdf5" in spec:  # an HDF5 file of another program: datasets and attributes of its own
+        with h5py.File(p, "w") as f:
+            for k, v in (spec["hdf5"] or {"data": [1.0, 2.0]}).items():
+                if k.startswith("@"):
+                    f.attrs[k[1:]] = _h5_value(v)
+                else:
+                    f[k] = np.asarray(v)
     else:
         raise ValueError(f"unknown builder {spec}")
 
@@ -266,12 +395,12 @@ def test_corpus_is_large_and_covers_every_class():
     for cls, _ in CASES:
         per_class[cls] = per_class.get(cls, 0) + 1
     assert len(CASES) >= 150, per_class
-    assert {c.split("_")[0] for c in per_class} >= {"1", "2", "3", "4", "5", "6", "8"}, per_class
+    assert {c.split("_")[0] for c in per_class} >= {"1", "2", "3", "4", "5", "6", "8", "9", "10", "11"}, per_class
     assert all(n >= 10 for n in per_class.values()), per_class
 
 
 @pytest.mark.parametrize("cls, case", CASES, ids=[f"{cls.split('_')[0]}-{c['id']}" for cls, c in CASES])
-def test_case(cls, case, good, tmp_path):
+def test_case(cls, case, good, tmp_path, monkeypatch):
     case_dir = tmp_path / "case"
     case_dir.mkdir()
     for name, spec in (case.get("files") or {}).items():
@@ -284,10 +413,18 @@ def test_case(cls, case, good, tmp_path):
         earlier = t.read_bytes()
     before = _snapshot(case_dir)
     env = {k: str(v) for k, v in (case.get("env") or {}).items()}
-    result = invoke([_arg(a, case_dir) for a in case["run"]], env=env or None)
+    fail_disk(monkeypatch, disk_full=case.get("disk_full"), rename_fails=case.get("rename_fails"))
+    result = invoke_patiently([_arg(a, case_dir) for a in case["run"]], env=env or None)
     exp = case["expect"]
     out = result.output
+    assert not isinstance(result.exception, Waited), result.exception
     assert "Traceback" not in out, out
+    raw = sorted({c for c in out if not c.isprintable() and c != "\n"})
+    assert not raw, f"control characters {raw} in the output: {out!r}"
+    for sub in exp.get("output", []):
+        assert sub in out, f"{sub!r} not in the output: {out!r}"
+    for sub in exp.get("absent", []):
+        assert sub not in out, f"{sub!r} in the output: {out!r}"
     assert result.exit_code == exp.get("code", 2), (result.exit_code, out, result.exception)
     assert isinstance(result.exception, SystemExit) or result.exception is None, repr(result.exception)
     err = [ln for ln in result.stderr.splitlines() if ln.strip()]
@@ -308,6 +445,8 @@ def test_case(cls, case, good, tmp_path):
             assert str(sub) in line, f"{sub!r} not in {line!r}"
         for jargon in ("Value error", "union_tag", "function-after", "[key]", "Errno"):
             assert jargon not in line, line
+    for sub in np.atleast_1d(exp.get("warning", [])):  # what a command that succeeds must warn about
+        assert any(ln.startswith("warning: ") and str(sub) in ln for ln in err), f"no warning {sub!r}: {result.stderr}"
     after = _snapshot(case_dir)
     made = sorted(set(after) - set(before))
     allowed = [str(Path(c)) for c in exp.get("created", [])]
@@ -373,3 +512,46 @@ def test_every_replay_config_has_a_baseline():
         assert baseline.is_file(), f"make regress needs {baseline}"
         r = invoke(["validate", cfg])
         assert r.exit_code == 0, r.output
+
+
+# ---------------------------------------------------------------------------------------------- one channel of warnings
+def _warn_then(monkeypatch, error: bool):
+    """evaluate's first read made to warn (Python's and numpy's warnings, a log record), then to fail."""
+    import logging
+    import warnings
+
+    import needlecli.reports.evaluate as ev
+
+    real = ev.experiment_name
+
+    def name(path):
+        warnings.warn("a library's own warning", UserWarning, stacklevel=1)
+        np.mean(np.array([]))  # numpy: RuntimeWarning, mean of an empty slice
+        logging.getLogger("needlecli").warning("a weakly identified fit")
+        if error:
+            from needlecli.errors import DataError
+
+            raise DataError(f"{path}: [/truth] something is wrong")
+        return real(path)
+
+    monkeypatch.setattr(ev, "experiment_name", name)
+
+
+@pytest.mark.parametrize("quiet", [True, False])
+def test_warnings_never_come_before_the_error_line(good, tmp_path, monkeypatch, quiet):
+    _warn_then(monkeypatch, error=True)
+    r = invoke(["evaluate", good["results"], "--out", tmp_path / "t", "--no-plots"] + (["--quiet"] if quiet else []))
+    assert r.exit_code == 2
+    assert [ln for ln in r.stderr.splitlines() if ln.strip()] == [f"error: {good['results']}: [/truth] something is wrong"]
+
+
+def test_warnings_after_a_command_that_succeeded_and_never_with_quiet(good, tmp_path, monkeypatch):
+    _warn_then(monkeypatch, error=False)
+    r = invoke(["evaluate", good["results"], "--out", tmp_path / "t", "--no-plots", "--quiet"])
+    assert r.exit_code == 0 and "warning" not in r.stderr.lower(), r.stderr
+    r = invoke(["evaluate", good["results"], "--out", tmp_path / "u", "--no-plots"])
+    assert r.exit_code == 0, r.output
+    warned = [ln for ln in r.stderr.splitlines() if ln.startswith("warning: ")]
+    assert warned[0] == "warning: a library's own warning (UserWarning)", r.stderr
+    assert "warning: Mean of empty slice (RuntimeWarning)" in warned and warned[-1] == "warning: a weakly identified fit"
+    assert r.stderr.rstrip().endswith(warned[-1])  # after the command's own lines

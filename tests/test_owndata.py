@@ -275,6 +275,121 @@ def test_command_files_in_every_common_form(tmp_path):
     assert read_meta_file(tmp_path / "b.csv")["operator"] == "jo"
 
 
+def test_command_file_layouts_by_their_content(tmp_path):
+    """One-line JSON in a .txt file is a mapping (not name,value text); a header with one identical row per
+    step gives its constant columns; two columns of texts over two read either way and are refused; a name,
+    value file whose first value is a text stays name,value lines."""
+    from needlecli.errors import NeedleError
+    from needlecli.io.csv_layout import read_meta_file
+
+    forms = {"json.txt": ('{"speed": 2, "operator": "jo"}', {"speed": 2, "operator": "jo"}),
+             "steps.csv": ("speed,duty_cycle,operator\n2,0.2,jo\n2,0.2,jo\n2,0.2,jo\n",
+                           {"speed": 2, "duty_cycle": 0.2, "operator": "jo"}),
+             "steps2.csv": ("speed,duty_cycle\n2,0.2\n2,0.2\n", {"speed": 2, "duty_cycle": 0.2}),
+             "texts.csv": ("operator,jo\nspeed,2\nstep_mm,0.5\n", {"operator": "jo", "speed": 2, "step_mm": 0.5}),
+             "blank.txt": ("\nspeed = 2\n\n# c\nstep_mm: 0.5\n\n", {"speed": 2, "step_mm": 0.5})}
+    for name, (text, want) in forms.items():
+        (tmp_path / name).write_text(text)
+        assert read_meta_file(tmp_path / name) == want, name
+    for name, text, said in (("amb.csv", "operator,needle\njo,nitinol\n", "two readings hold"),
+                             ("vary.csv", "speed,duty_cycle\n2,0.2\n2,0.3\n", "[line 3, column duty_cycle] the column varies"),
+                             ("twice.txt", "speed 2\n\nspeed 2\n", "[line 3, column 1] 'speed' is given twice (first on line 1)")):
+        (tmp_path / name).write_text(text)
+        with pytest.raises(NeedleError) as e:
+            read_meta_file(tmp_path / name)
+        assert said in str(e.value), str(e.value)
+
+
+def test_csv_blank_lines_at_the_end_are_ignored(tmp_path):
+    from needlecli.io.csv_import import read_csv
+
+    (tmp_path / "a.csv").write_text("t,x\n0,1\n1,2\n,\n\n  \n")  # a row of empty cells is a row (a lost sample)
+    d = read_csv(tmp_path / "a.csv", ["t", "x"])
+    np.testing.assert_array_equal(d["t"][:2], [0.0, 1.0])
+    assert len(d["t"]) == 3 and np.isnan(d["x"][2])
+
+
+def test_frame_bend_from_the_path_matches_the_orientations(tmp_path):
+    """``frame.bend: path`` (the roll from the path's deviation from the initial tangent) puts the hand-written
+    exports' circle where the orientations put it: on the model's own circle, bending toward -y."""
+    truth = _lab_exports(tmp_path)
+    mp = yaml.safe_load((tmp_path / "mapping.yaml").read_text())
+    mp["frame"] = {"reference": "em", "z": "orientation", "bend": "path"}
+    (tmp_path / "m.yaml").write_text(yaml.safe_dump(mp))
+    res = run("log", "import-csv", tmp_path / "m.yaml", "--out", tmp_path / "b.h5")
+    assert res.exit_code == 0, res.output
+    a1 = read_log(tmp_path / "b.h5").trials[0]
+    em = a1.sensors["em"]
+    pos, rot, dead = truth["A1"]
+    np.testing.assert_allclose(em.value[em.valid], pos[~dead], atol=1e-6)
+    rep = json.loads(a1.meta["import_report"])["frame"]
+    assert rep["bend_from"].startswith("mean deviation of the path") and rep["roll_psi_deg"] == pytest.approx(-30.0, abs=1e-6)
+
+
+def test_initial_directions_and_axis_angles():
+    """Paths along known directions (in any length unit, with lost samples first) start along them: the
+    angle to +z is the one they were drawn at; a path of one valid sample has none."""
+    from needlecli.io.frames import axis_angles, initial_directions
+
+    ang = np.radians([0.0, 35.0, 90.0, 176.0])
+    s = np.linspace(0.0, 40.0, 81)
+    d = np.c_[np.zeros(4), np.sin(ang), np.cos(ang)]  # (4, 3)
+    pos = s[None, :, None] * d[:, None, :] + np.array([5.0, -3.0, 100.0])
+    pos[1] *= 1e-3  # metres
+    ok = np.ones(pos.shape[:2], dtype=bool)
+    ok[2, :7] = False
+    pos[2, :7] = 0.0  # a tracker's zero rows, marked lost
+    ok[3, 1:] = False
+    got = axis_angles(initial_directions(pos, ok), np.array([0.0, 0.0, 1.0]))
+    np.testing.assert_allclose(got[:3], [0.0, 35.0, 90.0], atol=1e-6)
+    assert np.isnan(got[3])
+
+
+def test_a_fitted_value_outside_its_bounds_is_never_identified():
+    """A drift constant whose schema says g > 0, fitted on data drifting backwards (g = -0.5, well
+    measured): the likelihood identifies it sharply, the verdict is "outside its bounds", per trial and
+    pooled; the same data drifting forwards are identified."""
+    from pydantic import Field
+
+    from needlecli.fitting.identify import IDENTIFIED, OUTSIDE, Bounds, identify, parameter_bounds
+    from needlecli.fitting.statespace import DiscreteModel, MeasurementModel
+    from needlecli.models.base import Model, ModelParams
+
+    class P(ModelParams):
+        g: float = Field(0.5, gt=0.0, le=2.0, description="drift per unit input")
+
+    class Drift(Model):
+        state_names, state_units = ("a",), ("mm",)
+        input_names, input_sizes, input_units = ("u",), {"u": 1}, {"u": "1"}
+        Params = P
+
+        def f(self, x, u, p):
+            return (p["g"] * u[..., 0])[..., None] + 0.0 * x
+
+        def initial_state(self, p):
+            return np.zeros(1)
+
+    assert parameter_bounds(Drift, "g") == Bounds(0.0, 2.0, True, False)
+    assert str(parameter_bounds(MODELS.get("unicycle"), "speed_scale")) == "(0, 2]"
+    assert str(parameter_bounds(MODELS.get("unicycle"), "kappa")) == "[0, inf)"
+    N, T, dt = 3, 120, 0.1
+    rng = np.random.default_rng(4)
+    u = np.ones((N, T, 1))
+    for g, want in ((-0.5, OUTSIDE), (0.5, IDENTIFIED)):
+        y = (g * dt * np.arange(T) + 0.05 * rng.standard_normal((N, T)))[..., None]
+        dm = DiscreteModel(Drift(P()), {"g": np.full(N, g)}, ("g",), dt, np.arange(T), u, None)
+        mm = MeasurementModel("pos", lambda z: z[..., :1], 1, np.arange(T), y, np.ones((N, T), bool),
+                              np.zeros(1, bool), names=("a",), units=("mm",))
+        x0 = np.c_[np.zeros(N), np.full(N, g)]
+        res = identify(dm, [mm], x0, np.zeros((2, 2)), np.zeros((N, 2, 2)), [np.full((N, 1, 1), 0.0025)],
+                       np.ones(N, bool), const_sd=np.full((N, 1), 0.01))
+        k = res.names.index("g")
+        assert (res.verdict[:, k] == want).all() and res.pooled_verdict[k] == want, (g, res.verdict, res.reason)
+        assert (res.rse[:, k] < 0.05).all()  # sharply identified by the likelihood either way
+        if want == OUTSIDE:
+            assert "g = -0.5 is outside its bounds (0, 2]" in res.reason[0, k]
+
+
 # ---------------------------------------------------------------------------------------------- end to end
 KAPPA0, SLOPE = 0.012, -0.012  # the study's law: kappa = 0.012 (1 - duty_cycle) 1/mm
 

@@ -8,6 +8,8 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+import h5py
+import matplotlib
 import numpy as np
 import pandas as pd
 import pytest
@@ -22,11 +24,12 @@ from needlecli.io.logs import log_from_results, write_log
 from needlecli.io.results import read_results
 from needlecli.metrics import compute_errors
 from needlecli.reports.evaluate import evaluate_results
-from needlecli.reports.plots import PLOTS, draw_plots, observer_colours
+from needlecli.reports.plots import PLOTS, draw_plots, observer_colour, observer_colours, observer_look
 from needlecli.reports.seed004 import ALL_FIT_TABLES
 from needlecli.reports.tables import TABLES, column_formatter, latex_escape, to_latex, to_markdown
 
 SIM = """\
+format: 2
 name: reports_sim
 model: {type: modified_unicycle, params: {kappa: 0.005, beta_cut: 0.035}, param_std: {kappa: 0.0005}}
 inputs:
@@ -40,7 +43,7 @@ sensors:
 observers:
   - name: ukf
     type: ukf
-    q: {x: 2.0e-3, y: 2.0e-3, z: 2.0e-3, alpha: 2.0e-5, beta: 2.0e-5, gamma: 5.0e-4, kappa: 2.0e-6}
+    q: {x: 2.0e-2, y: 2.0e-2, z: 2.0e-2, alpha: 2.0e-4, beta: 2.0e-4, gamma: 5.0e-3, kappa: 2.0e-5}
     p0: {x: 1.0, y: 1.0, z: 1.0, alpha: 5.0e-3, beta: 5.0e-3, gamma: 0.1, kappa: 2.0e-6}
     measurements:
       us3d: {sigma: 0.3, growth: {transducer: [0.0, 0.0, 90.0], a: 1.0, d_max: 80.0}}
@@ -109,7 +112,7 @@ def test_every_plot_holds_data_in_one_colour_per_observer(which, drawn):
     assert {"error_vs_depth", "trajectories", "curvature", "rotation_error", "prediction", "nees_vs_depth"} <= names, names
     assert len(figs) == len(written)
     colours = observer_colours(res)
-    assert colours == {"open_loop": "C0", "ukf": "C1"}  # the results file's observer order
+    assert colours == {"open_loop": observer_colour("open_loop"), "ukf": observer_colour("ukf")}  # by name
     problems = [p for fig in figs for p in figure_problems(fig, colours, layout=which == "sim")]  # the same layout
     assert not problems, "\n".join(problems)
     # the same observer has the same colour in every figure (and in every panel: figure_problems)
@@ -120,6 +123,89 @@ def test_every_plot_holds_data_in_one_colour_per_observer(which, drawn):
                 if (ln.get_gid() or "").startswith("observer:"):
                     seen.setdefault(ln.get_gid(), set()).add(ln.get_color())
     assert seen and all(len(c) == 1 for c in seen.values()), seen
+
+
+@pytest.fixture(scope="module")
+def second_study(tmp_path_factory) -> Path:
+    """Another study: an EKF first (it sorts before the others in the results file), the open loop, the UKF
+    with one prediction depth (as needle compare sets it)."""
+    d = tmp_path_factory.mktemp("second")
+    data = yaml.safe_load(SIM)
+    ukf, ol = data["observers"]
+    ukf["predict_at_depths"] = [3.0]
+    ekf = {"name": "ekf", "type": "ekf", "q": dict(ukf["q"]), "p0": dict(ukf["p0"]), "init": dict(ukf["init"]),
+           "measurements": {"us3d": {"sigma": 0.3}, "robot": {"sigma": 0.0035}, "swe": {"sigma": 0.001}}}
+    data["observers"] = [ekf, ol, ukf]
+    data["name"] = "reports_second"
+    cfg, text = load_config(text=yaml.safe_dump(data, sort_keys=False))
+    return run_experiment(cfg, text, out=d / "second.h5").path
+
+
+def _looks(figs) -> dict[str, set]:
+    """gid -> the (colour, dashes, marker) of every line drawn for it."""
+    seen: dict[str, set] = {}
+    for fig in figs:
+        for ax in fig.axes:
+            for ln in ax.lines:
+                if (ln.get_gid() or "").startswith("observer:"):
+                    seen.setdefault(ln.get_gid().split(":", 1)[1], set()).add(
+                        (matplotlib.colors.to_hex(ln.get_color()), ln.get_marker()))
+    return seen
+
+
+def test_an_observer_keeps_its_colour_in_every_figure_of_every_study(drawn, second_study, tmp_path):
+    """Two studies with their observers in different orders (and an EKF in one): every plot of both, and
+    each observer is drawn in one colour and marker throughout, the one of its name."""
+    first = drawn["sim"][1]
+    res2, second, written = _draw_all(second_study, tmp_path)
+    assert len(second) == len(written) >= 5
+    looks = _looks(first + second)
+    assert {"ukf", "open_loop", "ekf"} <= set(looks)
+    for obs, seen in looks.items():  # single runs' thin lines go without markers
+        assert {c for c, _ in seen} == {observer_colour(obs)}, (obs, seen)
+        assert {m for _, m in seen} - {"None", "_"} == {observer_look(obs)["marker"]}, (obs, seen)  # _: error bar caps
+    problems = [p for fig in second for p in figure_problems(fig, observer_colours(res2), layout=False)]
+    assert not problems, "\n".join(problems)
+    # one prediction depth: no plot of a single point (table prediction gives it)
+    assert not [p for p in written if p.name.endswith("_prediction.png")]
+    assert TABLES.get("prediction")(res2, compute_errors(res2)).shape[0] == 1
+
+
+def test_curves_on_top_of_each_other_stay_visible():
+    """The names that meet in one figure most often get different colours: the built-in observers' (also
+    their default names and needle compare's), the built-in models' (fitted side by side), the bundled
+    configs' tuned variants; any two observers differ in colour, dashes or marker, their markers start
+    elsewhere, and none is the grey of sensor samples."""
+    from needlecli.models import MODELS
+    from needlecli.observers import OBSERVERS
+
+    for names in (OBSERVERS.builtin_names(), MODELS.builtin_names(), ["ukf", "ukf_em", "ukf_em_white", "ukf_gated",
+                  "open_loop"], ["hand_tuned", "em_tuned", "ukf_em"], ["ol", "ukf", "cv", "cv_kf"],
+                  ["ukf_reset_1x", "ukf_reset_10x"], [*OBSERVERS.builtin_names(), "ukf_defaults"]):
+        assert len({observer_colour(n) for n in names}) == len(names), names
+    names = OBSERVERS.builtin_names()
+    assert observer_colour("ukf") == "#1f77b4" and "#7f7f7f" not in {observer_colour(n) for n in names}
+    looks = [observer_look(n) for n in [*names, "ukf_em", "ukf_reset_1x", "ukf_reset_10x", "hand_tuned", "cv"]]
+    keys = [(lk["color"], str(lk["ls"]), lk["marker"]) for lk in looks]
+    assert len(set(keys)) == len(keys)
+    a, b = observer_look("ukf"), observer_look("ekf")
+    assert a["ls"] != b["ls"] and a["markevery"][0] != b["markevery"][0]
+
+
+def test_legends_sit_outside_the_data(drawn, second_study, tmp_path):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    figs = drawn["sim"][1] + _draw_all(second_study, tmp_path)[1]
+    for fig in figs:
+        fig.set_dpi(30)
+        canvas = FigureCanvasAgg(fig)
+        canvas.draw()
+        r = canvas.get_renderer()
+        legends = list(fig.legends) + [ax.get_legend() for ax in fig.axes if ax.get_legend() is not None]
+        for leg in legends:
+            box = leg.get_window_extent(r)
+            for ax in fig.axes:
+                assert not box.overlaps(ax.get_window_extent(r)), f"{title(fig)!r}: a legend over a panel"
 
 
 def test_replayed_error_curves_come_from_the_truth_frames(drawn):
@@ -245,3 +331,48 @@ def test_fit_tables_are_refused_on_results_files(sim):
 
 def test_every_plot_is_registered_once():
     assert len(PLOTS.names()) == len(set(PLOTS.names()))
+
+
+# ---------------------------------------------------------------------------------------------- fit files
+@pytest.fixture(scope="module")
+def unicycle_fit(tmp_path_factory) -> Path:
+    """The EM tutorial's unicycle, 3 trials, a few EM iterations."""
+    d = tmp_path_factory.mktemp("unicycle_fit")
+    cfg = Path(__file__).resolve().parents[1] / "configs" / "tutorials" / "fit_em.yaml"
+    r = invoke("fit-em", cfg, "--out", d / "fit.h5", "--quiet", "--set", "runs.count=3", "--set", "fit.em.max_iter=3",
+               "--set", "fit.identify.enabled=false", "--set", "fit.repeats=2")
+    assert r.exit_code == 0, r.output
+    return d / "fit.h5"
+
+
+def test_a_fit_of_another_model_gets_tables_named_for_what_they_hold(unicycle_fit, tmp_path):
+    """A unicycle's fit writes fit_parameters and fit_recovery, not seed 004's tables of the MNM and BiNM
+    (empty, captioned with the paper's numbers, as it used to); those are still there by name."""
+    r = invoke("evaluate", unicycle_fit, "--out", tmp_path / "t", "--no-plots")
+    assert r.exit_code == 0, r.output
+    written = sorted(p.name for p in (tmp_path / "t").glob("*.csv"))
+    assert not [n for n in written if "seed004" in n], written
+    for t in ("fit_parameters", "fit_recovery", "fit_status"):
+        assert f"fit_em_{t}.csv" in written and f"## {t}" in r.output
+    df = pd.read_csv(tmp_path / "t" / "fit_em_fit_parameters.csv")
+    assert set(df["Model"]) == {"unicycle"} and "kappa" in set(df["Quantity"]) and "tr(R_tracker)" in set(df["Quantity"])
+    with h5py.File(unicycle_fit) as f:  # the mean of the fitted constant over the kept trials
+        kappa = f["fit/unicycle/constant/kappa"][()]
+    assert float(df.loc[df["Quantity"] == "kappa", "Mean"].iloc[0]) == pytest.approx(kappa.mean(), rel=1e-6)
+    r = invoke("evaluate", unicycle_fit, "--tables", "seed004_recovery", "--no-plots", "--out", tmp_path / "old")
+    assert r.exit_code == 0 and (tmp_path / "old" / "fit_em_seed004_recovery.csv").exists()  # the former name
+
+
+def test_the_log_likelihood_decrease_line_says_whether_it_matters():
+    from types import SimpleNamespace
+
+    from needlecli.cli.fit_em import ll_decrease_line
+
+    ll = np.array([[-1000.0, -500.0, -100.0, -100.2, -90.0], [-800.0, -700.0, -650.0, np.nan, np.nan]])
+    small = SimpleNamespace(ll_decreases=np.array([1, 0]), ll_worst_drop=np.array([0.2, 0.0]), history={"loglik": ll})
+    line = ll_decrease_line(small)
+    assert "in 1 iteration(s) of 1 trial(s)" in line and "0.022 % of its trial's rise" in line and "negligible" in line
+    big = SimpleNamespace(ll_decreases=np.array([1, 2]), ll_worst_drop=np.array([0.2, 40.0]), history={"loglik": ll})
+    line = ll_decrease_line(big)
+    assert "in 3 iteration(s) of 2 trial(s)" in line and "27 % of its trial's rise" in line and "not negligible" in line
+    assert ll_decrease_line(SimpleNamespace(ll_decreases=np.zeros(2, int), ll_worst_drop=np.zeros(2), history={})) == ""

@@ -27,6 +27,7 @@ from needlecli.experiments.studies.sweep import (
 )
 
 TINY = """\
+format: 2
 name: tiny_sweep
 model: {type: modified_unicycle, params: {kappa: 0.005, beta_cut: 0.035}, param_std: {kappa: 0.001}}
 inputs: {v: 1.5, u: 0.0}
@@ -37,7 +38,8 @@ sensors:
 observers:
   - name: ukf
     type: ukf
-    q: {x: 2.0e-3, y: 2.0e-3, z: 2.0e-3, alpha: 2.0e-5, beta: 2.0e-5, gamma: 5.0e-4, kappa: 2.0e-6}
+    q: {x: 1.4142135623730951e-2, y: 1.4142135623730951e-2, z: 1.4142135623730951e-2, alpha: 1.4142135623730951e-4,
+        beta: 1.4142135623730951e-4, gamma: 3.5355339059327378e-3, kappa: 1.4142135623730951e-5}
     p0: {x: 1.0, y: 1.0, z: 1.0, alpha: 5.0e-3, beta: 5.0e-3, gamma: 0.1, kappa: 2.0e-6}
     init: {from: truth, std: {alpha: 0.0873, beta: 0.0873}, first_measurement: {x: us3d.x, y: us3d.y, z: us3d.z}}
   - {name: ol, type: open_loop}
@@ -248,7 +250,7 @@ def test_shipped_grid_makes_valid_cells(tmp_path):
                        out_dir=tmp_path)
     assert len(cells) == 50 and {c.seed for c in cells} == set(range(10))
     assert sorted({c.overrides["observers.0.q.kappa"] for c in cells}) == pytest.approx(
-        [2e-7, 2e-7 * 10**0.5, 2e-6, 2e-6 * 10**0.5, 2e-5])
+        [2e-6, 2e-6 * 10**0.5, 2e-5, 2e-5 * 10**0.5, 2e-4])
     assert all(yaml.safe_load(c.config_text)["runs"]["count"] == 10 for c in cells)
 
 
@@ -275,10 +277,12 @@ def test_sweep_reports_do_not_import_the_experiment_layer():
 
 
 # ---------------------------------------------------------------------------------------------- common random numbers
-#: TINY with an open loop that starts from the truth with 5 deg of noise on the angles: its errors come
+#: TINY with an open loop that starts from the truth with 5 deg of noise on the angles, from its own start
+#: (runs.common_start: none; shared, it would start from the UKF's first ultrasound sample): its errors come
 #: from the truth and its own draws only, never from the sensors
 TINY_OL = TINY.replace("  - {name: ol, type: open_loop}",
-                       "  - {name: ol, type: open_loop, init: {from: truth, std: {alpha: 0.0873, beta: 0.0873}}}")
+                       "  - {name: ol, type: open_loop, init: {from: truth, std: {alpha: 0.0873, beta: 0.0873}}}").replace(
+    "runs: {count: 2, seed: 5}", "runs: {count: 2, seed: 5, common_start: none}")
 METRICS = ["E_xyz_mean", "E_xyz_std", "E_xyz_max", "E_alpha_mean", "E_beta_mean", "E_kappa_mean"]
 
 
@@ -318,7 +322,7 @@ def test_plot_has_error_bars_over_replicate_seeds_and_the_parameter_with_its_uni
     assert res.failed == 0
     fig = sweep_figure(res.table, metric="E_xyz_mean", param="observers.0.q.kappa", units=res.units, title="q_kappa")
     ax = fig.axes[0]
-    assert ax.get_xlabel() == "ukf: q.kappa (process noise std per state per tick) [1/mm]"
+    assert ax.get_xlabel() == "ukf: q.kappa (process noise std per state) [(1/mm)/sqrt(s)]"
     assert ax.get_ylabel() == "E_xyz, mean over runs and time steps [mm]"
     assert "mean over 3 seeds, bars: \u00b11 std" in ax.get_title() and "the same seeds at every point" in ax.get_title()
     csv = pd.read_csv(tmp_path / "o" / "sweep.csv")
@@ -335,11 +339,11 @@ def test_plot_has_error_bars_over_replicate_seeds_and_the_parameter_with_its_uni
 
     plt.close(fig)
     md = (tmp_path / "o" / "sweep.md").read_text()
-    assert "`observers.0.q.kappa`: ukf: q.kappa (process noise std per state per tick) [1/mm]" in md
+    assert "`observers.0.q.kappa`: ukf: q.kappa (process noise std per state) [(1/mm)/sqrt(s)]" in md
 
 
 PARAM_UNITS = {
-    "observers.0.q.kappa": ("ukf: q.kappa", "1/mm"),
+    "observers.0.q.kappa": ("ukf: q.kappa", "(1/mm)/sqrt(s)"),  # per square-root second, as the truth's
     "observers.0.p0.alpha": ("ukf: p0.alpha", "rad^2"),
     "observers.0.init.std.alpha": ("ukf: init.std.alpha", "rad"),
     "observers.0.measurements.us3d.sigma": ("ukf: measurements.us3d.sigma", "mm"),
@@ -373,7 +377,7 @@ def test_swept_keys_are_named_with_their_units(files, tmp_path):
     (c,) = plan_sweep(config, Grid.model_validate({"cells": [cell]}), out_dir=tmp_path)
     assert {k: (v["name"], v["unit"]) for k, v in c.param_info.items() if k != SEED_KEY} == PARAM_UNITS
     model = MODELS.get("modified_unicycle")
-    assert PARAM_UNITS["observers.0.q.kappa"][1] == model.state_units[model.state_names.index("kappa")]
+    assert PARAM_UNITS["observers.0.q.kappa"][1] == f"({model.state_units[model.state_names.index('kappa')]})/sqrt(s)"
     assert PARAM_UNITS["inputs.v"][1] == model.input_units["v"]
 
     root = Path(__file__).resolve().parents[1]

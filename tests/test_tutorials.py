@@ -7,11 +7,15 @@ within 1 % (``...`` on a line of its own skips any lines, ``…`` stands for one
 
 from __future__ import annotations
 
+import os
 import re
 import shlex
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from typer.testing import CliRunner
 
@@ -88,10 +92,15 @@ def commands(body: str) -> list[tuple[list[str], list[str]]]:
     return out
 
 
+#: pages whose commands run elsewhere: own-data.md's by tests/test_owndata.py; own-observer.md's in a
+#: process of their own, with the page's package installed (test_own_observer_page_installs_and_runs)
+OWN_RUNNER = ("own-data.md", "own-observer.md")
+
+
 def test_every_tutorial_is_checked():
     names = {p.name for p in PAGES}
     assert {"first-study.md", "adding-a-sensor.md", "comparing-observers.md", "fitting-em.md", "sweeps.md",
-            "own-data.md"} <= names
+            "own-data.md", "own-observer.md"} <= names
     for p in PAGES:
         if p.name != "own-data.md":  # its commands are run by tests/test_owndata.py
             assert any(kind == "console" for kind, _, _ in blocks(p)), f"{p.name}: no console block"
@@ -109,7 +118,7 @@ def test_the_matcher_holds_numbers_to_the_tolerance():
     check_lines(["a 1", "...", "c 3.001"], ["a 1", "b 2", "c 3"], "x")
 
 
-@pytest.mark.parametrize("page", [p for p in PAGES if p.name != "own-data.md"], ids=lambda p: p.stem)
+@pytest.mark.parametrize("page", [p for p in PAGES if p.name not in OWN_RUNNER], ids=lambda p: p.stem)
 def test_tutorial_commands_print_what_the_page_shows(page, tmp_path, monkeypatch):
     shutil.copytree(ROOT / "configs", tmp_path / "configs")
     monkeypatch.chdir(tmp_path)
@@ -127,3 +136,64 @@ def test_tutorial_commands_print_what_the_page_shows(page, tmp_path, monkeypatch
             check_lines(expected, r.stdout.splitlines(), f"{page.name}: {' '.join(argv)}")
             ran += 1
     assert ran >= 1
+
+
+CODE = re.compile(r'^```(?:python|toml) title="([^"]+)"\n(.*?)^```', re.S | re.M)
+
+
+def _install(project: Path) -> Path:
+    """What ``pip install -e project`` makes of a package for ``importlib.metadata``: the folder on the path,
+    a ``dist-info`` beside its code with the name, version and entry points of its ``pyproject.toml``."""
+    tables: dict[str, dict[str, str]] = {}
+    section = ""
+    for line in (project / "pyproject.toml").read_text(encoding="utf-8").splitlines():  # (tomllib: Python 3.11)
+        head = re.fullmatch(r"\[(.+)\]", line.strip())
+        pair = re.fullmatch(r'"?([\w.-]+)"?\s*=\s*"([^"]*)"', line.strip())
+        if head:
+            section = head.group(1).replace('"', "")
+        elif pair:
+            tables.setdefault(section, {})[pair.group(1)] = pair.group(2)
+    name, version = tables["project"]["name"], tables["project"]["version"]
+    info = project / f"{name.replace('-', '_')}-{version}.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {name}\nVersion: {version}\n")
+    groups = {k.removeprefix("project.entry-points."): v for k, v in tables.items() if k.startswith("project.entry-points.")}
+    assert groups, "the package declares no entry point"
+    (info / "entry_points.txt").write_text("".join(
+        f"[{g}]\n" + "".join(f"{k} = {v}\n" for k, v in eps.items()) for g, eps in groups.items()))
+    return project
+
+
+def test_own_observer_page_installs_and_runs(tmp_path):
+    """The page's files are the plug-in (written out as shown), installed as pip would (its entry points),
+    and each ``$ needle ...`` of the page run in a process of its own (registries read entry points once
+    per process) prints what the page shows; the results file holds the plug-in's estimates, checked by
+    the observer contract on the way."""
+    page = DOCS / "tutorials" / "own-observer.md"
+    text = page.read_text(encoding="utf-8")
+    files = CODE.findall(text)
+    assert {p for p, _ in files} >= {"lab-observers/pyproject.toml", "lab-observers/lab_observers/alpha_beta.py"}
+    for path, body in files:
+        (tmp_path / path).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / path).write_text(body, encoding="utf-8")
+    site = _install(tmp_path / "lab-observers")
+    shutil.copytree(ROOT / "configs", tmp_path / "configs")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(site), str(ROOT)]), "COLUMNS": "120"}
+    ran = 0
+    for kind, _, body in blocks(page):
+        assert kind == "console"
+        for argv, expected in commands(body):
+            assert argv[0] == "needle", argv
+            p = subprocess.run([sys.executable, "-m", "needlecli", *argv[1:]], cwd=tmp_path, env=env,
+                               capture_output=True, text=True, timeout=600)
+            assert p.returncode == 0, f"{' '.join(argv)} exited {p.returncode}:\n{p.stdout}\n{p.stderr}"
+            check_lines(expected, p.stdout.splitlines(), f"{page.name}: {' '.join(argv)}")
+            ran += 1
+    assert ran >= 3
+    import h5py
+
+    with h5py.File(tmp_path / "results" / "tutorials" / "own_observer.h5") as f:
+        g = f["estimates/ab"]
+        assert g.attrs["type"] == "alpha_beta" and list(g.attrs["names"]) == ["x", "y", "z", "v_x", "v_y", "v_z"]
+        assert "cov" not in g and np.isfinite(g["state"][()]).all()
+    assert (tmp_path / "results" / "tutorials" / "own_observer_compare" / "compare.csv").exists()

@@ -106,7 +106,7 @@ def with_channels(problem, **channels):
     return dataclasses.replace(problem, channels=channels)
 
 
-Q_LIN = np.array([0.01, 0.01, 0.01, 0.05, 0.05, 0.05])  # std per tick
+Q_LIN = np.array([0.1, 0.1, 0.1, 0.5, 0.5, 0.5])  # std per sqrt(s): 0.01, 0.05 per 10 ms step
 P0_LIN = np.array([0.25, 0.25, 0.25, 0.5, 0.5, 0.5])
 SIGMA_LIN = {"pos": 0.3, "vel": 0.05}
 
@@ -124,7 +124,8 @@ def ukf(problem, *, alpha=1e-3, rate=None, q=Q_LIN, p0=P0_LIN, growth=False, cha
 
 def kalman_reference(problem, *, stride=1, q=Q_LIN, p0=P0_LIN, growth=False, channels=("pos", "vel")):
     """The linear Kalman filter with the UKF's schedule: filter ticks every ``stride`` grid steps (and the
-    last step), RK4 transition, ``Q`` once per tick, update with the latest valid sample of each channel
+    last step), RK4 transition, ``Q = diag(q^2) dt_tick`` once per tick (``q`` per square-root second, the
+    tick ``stride`` grid steps long), update with the latest valid sample of each channel
     that became available since the previous tick. Returns states ``(N, T, n)`` and covariances
     ``(N, T, n, n)`` on the grid; steps between ticks hold the previous tick's estimate."""
     time = problem.time
@@ -149,7 +150,7 @@ def kalman_reference(problem, *, stride=1, q=Q_LIN, p0=P0_LIN, growth=False, cha
         tick_of[name] = np.array(tk)
     x = problem.initial_truth.astype(float).copy()
     P = np.tile(np.diag(p0), (N, 1, 1))
-    Q = np.diag(np.asarray(q) ** 2)
+    Q = np.diag(np.asarray(q) ** 2) * stride * float(time[1] - time[0])
     states, covs = np.empty((N, T, n)), np.empty((N, T, n, n))
     states[:, 0], covs[:, 0] = x, P
     eye = np.eye(n)

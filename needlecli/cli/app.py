@@ -9,6 +9,7 @@ modules, never the reverse.
 from __future__ import annotations
 
 import typer
+import typer.core
 
 from needlecli.cli import (
     characterize,
@@ -25,7 +26,42 @@ from needlecli.cli import (
     validate,
 )
 
+
+class OneLineErrors(typer.core.TyperGroup):
+    """The ``needle`` group, whose usage errors keep the one-line contract of every other error: ``error:
+    <the option or argument>: <what is wrong> (needle CMD -h)``, exit code 2, instead of click's boxed or
+    three-line message (a value out of range, a missing argument, an unknown option)."""
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):  # noqa: D102
+        import importlib
+        import sys
+
+        click = importlib.import_module(typer.Exit.__module__)  # typer's click (its own copy in typer >= 0.2x)
+        echo = typer.echo
+        if not standalone_mode:
+            return super().main(args=args, prog_name=prog_name, complete_var=complete_var, standalone_mode=False,
+                                **extra)
+        try:
+            rv = super().main(args=args, prog_name=prog_name, complete_var=complete_var, standalone_mode=False,
+                              **extra)
+        except click.NoArgsIsHelpError as e:  # `needle` or `needle log` alone: the help
+            e.show()
+            sys.exit(e.exit_code)
+        except click.ClickException as e:
+            from needlecli.errors import one_line
+
+            ctx = getattr(e, "ctx", None)
+            hint = f" ({ctx.command_path} -h)" if ctx is not None else ""
+            echo(f"error: {one_line(e.format_message())}{hint}", err=True)
+            sys.exit(e.exit_code)
+        except click.Abort:
+            echo("error: aborted", err=True)
+            sys.exit(1)
+        sys.exit(rv if isinstance(rv, int) else 0)  # a command's typer.Exit(code) comes back as its code
+
+
 app = typer.Typer(
+    cls=OneLineErrors,
     name="needle",
     help="Batch experiments with steerable-needle models, emulated sensors and observers.\n\n"
          "Example: needle simulate configs/default.yaml && needle evaluate results/default.h5",

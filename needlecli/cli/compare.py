@@ -22,16 +22,30 @@ def compare(
 ) -> None:
     """Simulate (or replay) once and run every registered observer that can run on the experiment's
     sensors on the same insertions and measurements; print the table in the form of seed 003's
-    appendix A and write it (compare.md, compare.csv) with the results file.
+    appendix A and write it (compare.md, compare.csv) with the results file and the plots (each error
+    against the inserted depth, compare_error_vs_depth.png). Warns when a filter does worse than the
+    model alone from the same start.
 
     Example: needle compare configs/seed003/table1.yaml --runs 20 --observers ukf,ekf,open_loop
     """
+    import logging
     import textwrap
 
+    from needlecli.errors import shown
     from needlecli.experiments.studies.compare import compare_observers
     from needlecli.io.results import read_results
     from needlecli.metrics import compute_errors
-    from needlecli.reports.compare import appendix_form, compare_table, notes, skipped, terminal_form, truth_failed
+    from needlecli.reports.compare import (
+        appendix_form,
+        compare_table,
+        notes,
+        skipped,
+        terminal_form,
+        truth_failed,
+        with_axis_errors,
+        worse_than_model,
+    )
+    from needlecli.reports.plots import draw_plots
     from needlecli.reports.tables import _atomic_text, to_markdown, write_table
 
     setup_logging(quiet)
@@ -41,16 +55,23 @@ def compare(
                                    out_dir=out, progress=bar)
     out_dir = result.path.parent
     res = read_results(result.path)  # the tables, as every table, from the results file alone
-    df = compare_table(res, compute_errors(res))
+    errors = compute_errors(res)
+    df = compare_table(res, errors)
     wide = appendix_form(df, res)
     n_runs = int(res.data["truth"].data["status"].shape[0])
     caption = f"Observers on the same insertions of {res.attrs.get('name', '')} ({n_runs} runs)."
     write_table(df, out_dir / "compare", ["csv"])
-    _atomic_text(out_dir / "compare.md", f"{caption}\n\n{to_markdown(wide)}\n\n{notes(res)}\n")
+    _atomic_text(out_dir / "compare.md", f"{caption}\n\n{to_markdown(wide)}\n\n{notes(res, df)}\n")
+    plots = draw_plots(res, with_axis_errors(res, errors), out_dir / "compare", names=["error_vs_depth"]) if len(df) else []
     typer.echo(terminal_form(df, res) if len(df) else "(no observer could run)")
+    log = logging.getLogger("needlecli")
+    for w in worse_than_model(df):
+        log.warning("compare: %s", w)
     if truth_failed(res):
         typer.echo(f"{truth_failed(res)} run(s) of the truth stopped early (not counted above)")
     for s in skipped(res):
         typer.echo(textwrap.fill(f"skipped: {s}", 80, subsequent_indent="  "))
-    typer.echo(f"table: {out_dir / 'compare.md'}, {out_dir / 'compare.csv'}")
-    typer.echo(f"results: {result.path}")
+    typer.echo(f"table: {shown(out_dir / 'compare.md')}, {shown(out_dir / 'compare.csv')}")
+    if plots:
+        typer.echo(f"plots: {', '.join(shown(p) for p in plots)}")
+    typer.echo(f"results: {shown(result.path)}")

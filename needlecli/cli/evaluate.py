@@ -44,7 +44,7 @@ def evaluate(
 
             fail(f"--tables: unknown table {t!r}; known: {', '.join(TABLES.names())}" + did_you_mean(t, TABLES.names()))
     out_dir = out if out is not None else results.parent / f"{results.stem}_tables"
-    from needlecli.errors import ConfigError
+    from needlecli.errors import ConfigError, shown
     from needlecli.io.atomic import check_output_dir, check_output_file
     from needlecli.reports.baseline import compare, load_baseline, make_baseline
     from needlecli.reports.baseline import write_baseline as store
@@ -68,7 +68,7 @@ def evaluate(
     written = evaluate_results(results, tables=names, out_dir=out_dir, formats=formats, plots=plots, design=design)
     if write_baseline is not None:
         store(write_baseline, make_baseline(written, name, rel_tol, abs_tol))
-        typer.echo(f"baseline: {write_baseline}", err=quiet)
+        typer.echo(f"baseline: {shown(write_baseline)}", err=quiet)
     if not quiet:
         for table, df in written.items():
             typer.echo(f"## {table}\n")
@@ -76,7 +76,7 @@ def evaluate(
                 typer.echo(df.attrs["caption"] + "\n")
             typer.echo(to_markdown(df) if not df.empty else "(empty)")
             typer.echo("")
-        typer.echo(f"tables: {out_dir}")
+        typer.echo(f"tables: {shown(out_dir)}")
     if expected is not None:
         failures = compare(written, expected, name, source=str(baseline))
         if failures:

@@ -31,13 +31,14 @@ def explain(
     if out is not None:
         if format_ != "md" or key:
             raise ConfigError("--out", (), "writes the whole reference: use it with --format md and no KEY")
-        from needlecli.io.atomic import write_text_atomic
+        from needlecli.errors import shown
+        from needlecli.io.atomic import check_output_dir, write_text_atomic
 
-        out.mkdir(parents=True, exist_ok=True)
+        check_output_dir(out, what="the reference pages")
         pages = {**reference_pages(), "mapping": mapping_page()}
         for name, text in pages.items():
             write_text_atomic(out / f"{name}.md", text)
-        typer.echo(f"reference: {len(pages)} page(s) in {out}")
+        typer.echo(f"reference: {len(pages)} page(s) in {shown(out)}")
         return
     sec = explain(key)
     typer.echo(as_markdown(sec) if format_ == "md" else as_text(sec))

@@ -29,7 +29,7 @@ def ultrasteer_cmd(
     Example: needle import ultrasteer ../shared/real-data/ultrasteer --out results/real/ultrasteer.h5
     """
     setup_logging(quiet)
-    from needlecli.errors import DataError
+    from needlecli.errors import DataError, shown
     from needlecli.io.atomic import check_output_file
     from needlecli.io.logs import write_log
     from needlecli.io.ultrasteer import import_ultrasteer
@@ -40,4 +40,4 @@ def ultrasteer_cmd(
     log = import_ultrasteer(data_dir, align=align, frame=frame)
     write_log(out, log, source=data_dir)
     us = sum(1 for tr in log.trials if "us" in tr.sensors)
-    typer.echo(f"log: {out} ({len(log.trials)} trial(s), {us} with ultrasound)")
+    typer.echo(f"log: {shown(out)} ({len(log.trials)} trial(s), {us} with ultrasound)")

@@ -7,6 +7,7 @@ from pathlib import Path
 import typer
 
 from needlecli.cli.common import setup_logging, user_errors
+from needlecli.errors import shown
 
 log_app = typer.Typer(help="Log files of recorded insertions: import, convert, inspect.\n\n"
                            "Example: needle log info datasets/seed003_like.h5", no_args_is_help=True)
@@ -24,6 +25,7 @@ def import_csv_cmd(
     Example: needle log import-csv results/owndata/exports/mapping.yaml --out results/owndata/lab.h5
     """
     setup_logging(quiet)
+    from needlecli.cli.common import log as warn
     from needlecli.io.atomic import check_output_file
     from needlecli.io.csv_import import import_csv
     from needlecli.io.logs import write_log
@@ -31,7 +33,9 @@ def import_csv_cmd(
     check_output_file(out, what="the log file")
     log = import_csv(mapping)
     write_log(out, log, source=mapping)
-    typer.echo(f"log: {out} ({len(log.trials)} trial(s))")
+    for line in axis_warnings(log.trials):
+        warn.warning("warning: %s", line)
+    typer.echo(f"log: {shown(out)} ({len(log.trials)} trial(s))")
 
 
 @log_app.command("from-results")
@@ -56,7 +60,7 @@ def from_results_cmd(
     check_output_file(out, what="the log file")
     log = log_from_results(read_results(results), description=description, truth_every=truth_every, prefix=prefix)
     write_log(out, log, source=results)
-    typer.echo(f"log: {out} ({len(log.trials)} trial(s), synthetic)")
+    typer.echo(f"log: {shown(out)} ({len(log.trials)} trial(s), synthetic)")
 
 
 @log_app.command("export-csv")
@@ -76,11 +80,13 @@ def export_csv_cmd(
     Example: needle log export-csv results/default_log.h5 --out results/exports --tracker-pose 10,80,25,120,-40,15
     """
     setup_logging(quiet)
+    from needlecli.io.atomic import check_output_dir
     from needlecli.io.csv_export import export_lab_csv
     from needlecli.io.logs import read_log
 
+    check_output_dir(out, what="the exports")
     files = export_lab_csv(read_log(log_file), out, sensor=sensor, pose=tracker_pose, roll_deg=sensor_roll)
-    typer.echo(f"exports: {out} ({len(files) - 1} files and mapping.yaml)")
+    typer.echo(f"exports: {shown(out)} ({len(files) - 1} files and mapping.yaml)")
 
 
 @log_app.command("info")
@@ -94,10 +100,14 @@ def info_cmd(
 
     Example: needle log info datasets/seed003_like.h5 --meta
     """
+    import logging
+
+    from needlecli.cli.common import log as warn
     from needlecli.io.logs import read_log
 
+    setup_logging(False, level=logging.WARNING)
     log = read_log(log_file)
-    typer.echo(f"{log_file}: {len(log.trials)} trial(s); {log.attrs.get('description', '')}")
+    typer.echo(f"{shown(log_file)}: {len(log.trials)} trial(s); {log.attrs.get('description', '')}")
     if log.attrs.get("synthetic"):
         typer.echo(f"  synthetic: {log.attrs.get('source', '')}")
     for tr in log.trials:
@@ -109,6 +119,40 @@ def info_cmd(
                    f"sensors {'; '.join(parts)}; {truth}")
         for line in trial_report_lines(tr, meta):
             typer.echo(f"    {line}")
+    if not log.attrs.get("synthetic"):  # a simulation's log is in its model's frame
+        for line in axis_warnings(log.trials):
+            warn.warning("warning: %s", line)
+
+
+def axis_warnings(trials) -> list[str]:
+    """One line per recorded trial and stream whose path starts more than
+    :data:`~needlecli.io.frames.AXIS_WARNING_DEG` from ``+z``, the insertion axis of the models' default pose
+    (a trial frame's ``z``): the streams with a tip position (position sensors with x, y, z; a truth with
+    them)."""
+    import numpy as np
+
+    from needlecli.io.frames import AXIS_WARNING_DEG, axis_angles, initial_directions
+
+    out = []
+    for tr in trials:
+        streams = [(f"sensor {n}", s.names, s.value, s.valid) for n, s in tr.sensors.items()
+                   if s.settings.get("type") == "position"]
+        if tr.truth is not None:
+            streams.append(("the truth", tr.truth.names, tr.truth.state, np.ones(len(tr.truth.t), dtype=bool)))
+        for what, names, value, valid in streams:
+            names = list(names)
+            if not {"x", "y", "z"} <= set(names) or np.ndim(value) != 2:
+                continue
+            pos = np.asarray(value, dtype=float)[:, [names.index(a) for a in "xyz"]]
+            ang = float(axis_angles(initial_directions(pos[None], np.asarray(valid, dtype=bool)[None]), [0.0, 0.0, 1.0])[0])
+            if ang > AXIS_WARNING_DEG:
+                framed = '"frame"' in str(tr.meta.get("import_report", ""))
+                hint = ("the trial frame of its import does not put the insertion on z: check the reference's "
+                        "orientation (its quaternion's convention), or take the axes from the path (frame z: path)"
+                        if framed else "express the trial in its own frame (a CSV mapping's frame: {reference: ...})")
+                out.append(f"trial {tr.id}: the path of {what} starts {ang:.0f} deg from the model's insertion axis +z "
+                           f"(more than {AXIS_WARNING_DEG:g} deg): {hint} before fitting it")
+    return out
 
 
 def trial_report_lines(tr, all_meta: bool = False) -> list[str]:
@@ -183,4 +227,4 @@ def merge_cmd(
     check_output_file(out, what="the merged log")
     merged = merge_logs([read_log(p) for p in logs], description=description)
     write_log(out, merged, source=", ".join(str(p) for p in logs))
-    typer.echo(f"log: {out} ({len(merged.trials)} trial(s))")
+    typer.echo(f"log: {shown(out)} ({len(merged.trials)} trial(s))")

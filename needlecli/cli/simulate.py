@@ -24,6 +24,7 @@ def simulate(
 
     Example: needle simulate configs/default.yaml --runs 10 --set sensors.0.rate=2
     """
+    from needlecli.errors import shown
     from needlecli.experiments.config.load import load_config
     from needlecli.experiments.simulation.runner import default_output, run_experiment
     from needlecli.reports.evaluate import results_tables
@@ -54,4 +55,4 @@ def simulate(
             typer.echo((df.attrs["caption"] + "\n\n" if df.attrs.get("caption") else "") + to_markdown(df) + "\n")
     if not cfg.observers:
         typer.echo("no observers configured: truth and measurements only")
-    typer.echo(f"results: {path}")
+    typer.echo(f"results: {shown(path)}")

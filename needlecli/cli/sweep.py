@@ -3,6 +3,7 @@ cell by its index (``--cell I``, a job array's task) and the table of whatever c
 
 from __future__ import annotations
 
+import shutil
 import sys
 from pathlib import Path
 
@@ -12,7 +13,7 @@ from needlecli.cli.common import fail, log, progress_bar, setup_logging, user_er
 from needlecli.errors import Interrupted
 
 
-@user_errors
+@user_errors(outputs="each")  # each cell kept when complete, for --resume
 def sweep(
     config: Path = typer.Argument(..., help="Experiment config (YAML): the base of every cell."),
     grid: Path = typer.Option(..., "--grid", "-g", help="Grid file: axes, cells or random samples of dotted overrides."),
@@ -34,7 +35,8 @@ def sweep(
 ) -> None:
     """Run one experiment per cell of a grid (each validated first), write DIR/cells/ID.h5, the table
     DIR/sweep.csv and DIR/sweep.md (one row per cell and observer) and a plot of a metric against a
-    parameter. Exit code 1 when a cell failed (the others still ran), 2 for a bad config or grid. On a
+    parameter; print the table's main columns, as many as the terminal's width holds. Exit code 1 when a
+    cell failed or (--collect) is missing (the others still ran), 2 for a bad config or grid. On a
     cluster's batch scheduler: --cell I in each task of a job array, then --collect (docs: sweeps).
 
     Example: needle sweep configs/seed003/table1.yaml --grid configs/sweeps/seed003_q_kappa.yaml --workers 2
@@ -49,7 +51,7 @@ def sweep(
         run_one_cell,
         run_sweep,
     )
-    from needlecli.reports.tables import to_markdown
+    from needlecli.reports.tables import to_terminal
 
     setup_logging(quiet)
     if executor not in ("local", "dask", "inline"):
@@ -100,8 +102,9 @@ def sweep(
     if plot is None and (plot_metric or plot_param):
         fail("nothing to plot: no cell succeeded" if not (table["status"] == "ok").any() else
              "nothing to plot: the sweep varies no parameter besides runs.seed")
-    if not quiet:
-        typer.echo(to_markdown(table) + "\n")
+    if not quiet:  # as much of the table as the terminal holds; all of it is in the files
+        typer.echo(to_terminal(table, shutil.get_terminal_size((120, 24)).columns, terminal_columns(table),
+                               more=f"in {out_dir / 'sweep.csv'}") + "\n")
         if collect:
             typer.echo(f"cells: {len(cells)} ({result.skipped} complete, {result.failed} failed, {result.missing} "
                        "missing: not run, or run by another config or needlecli)")
@@ -134,3 +137,14 @@ def _one_cell(cells, index: int, out_dir: Path, resume: bool, manifest: dict, ru
     typer.echo(f"results: {c.path}")
     if out.status == "failed":
         raise typer.Exit(1)
+
+
+def terminal_columns(table) -> list:
+    """The sweep table's columns in their order of importance for a terminal: the cell, its parameters,
+    status and observer, the first error's mean (E_xyz), the failed runs, the other errors' means, then
+    the rest; errors and failures only where a cell has some."""
+    params = list(table.attrs.get("params", []))
+    means = [c for c in table.columns if c.endswith("_mean")]
+    first = ["cell", *params, "status", "observer", *means[:1], "runs_failed", *means[1:]]
+    notes = [c for c in ("error", "failures") if c in table.columns and table[c].astype(str).str.len().gt(0).any()]
+    return [*first, *notes, *[c for c in table.columns if c not in first and c not in notes]]

@@ -50,6 +50,9 @@ class EMOptions:
 
     q_index : states with process noise (the others' rows and columns of Q stay zero); all if None
     q_hold : states whose process noise is held at the initial guess (rows and columns: not fitted)
+    q_isotropic : groups of states (indices) whose block of Q is fitted as ``s I``, uncorrelated with the
+        other states (:func:`tie_isotropic`): a unit vector's process noise, whose part along the vector
+        the data do not see
     r_floor : per channel, a floor on the eigenvalues of R_j (variance, unit^2) or None
     """
 
@@ -60,6 +63,7 @@ class EMOptions:
     update_x0: bool = True
     q_index: tuple[int, ...] | None = None
     q_hold: tuple[int, ...] = ()
+    q_isotropic: tuple[tuple[int, ...], ...] = ()
     q_floor: float = 0.0
     r_floor: tuple[float | None, ...] = ()
     ll_noise: float = 1e-8
@@ -162,6 +166,7 @@ def fit_em(
         q_keep[:] = False
         q_keep[list(o.q_index)] = True
         Q = Q * (q_keep[:, None] & q_keep[None, :])
+    Q = tie_isotropic(Q, o.q_isotropic)  # the initial guess too (the mean of its variances on a tied block)
     Q0_held = Q.copy()
     R = [np.array(np.broadcast_to(r, (N, mm.m, mm.m)), dtype=float) for r, mm in zip(R0, meas)]
     floors = list(o.r_floor) + [None] * (J - len(o.r_floor))
@@ -283,7 +288,9 @@ def fit_em(
         with np.errstate(all="ignore"):
             Qn = em_process_noise(res.sm, res.lin.A, res.lin.b, dm.dt, index=qi, state_angles=dm.angles,
                                   kernels=dm.kernels)
+            Qn = tie_isotropic(Qn, o.q_isotropic)  # the maximiser with those blocks s I
             Qn[blk], _ = floor_eigenvalues(Qn[blk], np.maximum(o.q_floor, o.rel_floor * _largest(Qn[blk])))
+            Qn = tie_isotropic(Qn, o.q_isotropic)  # (the floor keeps s I up to rounding)
             if o.q_hold:  # held rows and columns: the initial guess (uncorrelated with the fitted states)
                 Qn = hold_rows(Qn, Q0_held[active], o.q_hold)
             Rn = []
@@ -371,6 +378,7 @@ def fit_em(
             phase[active[p1m]] = 2
             phase[active[p2m | rej]] = 0
             Q_next, R_next = _untheta(nxt, Qn, Rn, blk, floors, o.q_floor, o.rel_floor, rel_floors)
+            Q_next = tie_isotropic(Q_next, o.q_isotropic)  # an extrapolation of s I in log space is s' I
             Q_next = np.where(rej[:, None, None], Q_next, np.where(ok[:, None, None], Q_next, Qn))
         keep_rows = ok | rej
         gk = active[keep_rows]
@@ -410,6 +418,31 @@ def fit_em(
         ll_worst_drop=ll_drop, floor_hits=floor_hits, repairs=repairs, history=hist,
         extrapolations=accepted, rejections=rejected,
     )
+
+
+def tie_isotropic(Q: np.ndarray, groups: Sequence[Sequence[int]]) -> np.ndarray:
+    r"""``Q (N, n, n)`` with the block of each group of states replaced by ``s I`` and its covariances with
+    every other state set to zero, ``s`` the mean of the block's variances.
+
+    Applied to the M-step's unconstrained maximiser ``S`` (the expected sufficient statistic of the
+    process noise per second), this is the maximiser under the constraint: with
+    ``Q = blockdiag(Q_rest, s I_d)`` the expected log-likelihood ``-K/2 (log|Q| + tr(Q^-1 S))`` separates
+    into ``Q_rest = S_rest`` and ``s = tr(S_bb) / d``. For the process noise of a unit vector (the MNM's
+    heading ``h`` and field ``B``) the data see only the directions across the vector (the model holds
+    its length at 1 and a direction is measured); a free block would keep its variance along the vector
+    near EM's initial guess, and its trace with it. Tied, ``s`` is set by the directions across the vector
+    (the fixed point of ``s = (d_seen s_seen + d_unseen s) / d`` is ``s = s_seen``).
+    """
+    if not groups:
+        return Q
+    Q = Q.copy()
+    for g in groups:
+        g = np.asarray(g, dtype=np.int64)
+        s = np.trace(Q[:, g[:, None], g[None, :]], axis1=-2, axis2=-1) / len(g)
+        Q[:, g, :] = 0.0
+        Q[:, :, g] = 0.0
+        Q[:, g, g] = s[:, None]
+    return Q
 
 
 def hold_rows(Q: np.ndarray, Q0: np.ndarray, hold: Sequence[int]) -> np.ndarray:

@@ -22,16 +22,34 @@ error of each parameter is ``sqrt(diag((-H)^{-1}))`` (correlations included), of
 (delta method). Pooled over trials, the information is summed: the standard error of a quantity the
 trials share.
 
-Verdicts, per quantity and trial (and pooled):
+Verdicts, per quantity and trial, and per design group (the trials of one level of the design: seed
+004's field strength, a real export's speed; pooled figures sum the information of a group's trials only,
+never across levels whose quantities differ):
 
 ``identified``          the relative standard error is at most ``rse_max`` and, for a noise level,
                         scaling it by 10 and by 1/10 each costs at least ``nats`` of log-likelihood;
+``EM stopped short of the maximum``
+                        a decade of a noise level raises the log-likelihood by more than ``nats``, or (a
+                        group) the mean Newton step of its trials from the estimates to their
+                        log-likelihoods' maxima (:func:`newton_steps`, from the same evaluation points)
+                        is more than ``z_max`` standard errors of that mean: the estimate is where EM
+                        stopped moving, not the likelihood's maximum, and the reason says where that is;
 ``weakly identified``   otherwise, with the reason (a relative SE above the threshold; a likelihood that
-                        stays within ``nats`` over a decade: the data say little about it; or one that
-                        rises by more than ``nats`` over the decade: the estimate is where EM stopped
-                        moving or a floor held it, not the likelihood's maximum);
+                        stays within ``nats`` over a decade: the data say little about it; a floor that
+                        held it; the trace of a unit vector's free process noise that lies mostly along the
+                        vector, a direction the data do not see);
 ``not identified``      the information in that direction is not positive (a flat or non-concave
-                        likelihood at the estimate).
+                        likelihood at the estimate);
+``biased``              (groups, where the truth is known: simulated trials) the group's mean estimate
+                        misses its truth by more than ``z_max`` standard errors (:func:`recovery`); never
+                        "identified", whatever the curvature says (an information-based SE measures the
+                        likelihood's curvature, not bias); the reason gives the miss and what the
+                        assessment found that explains it.
+``outside its bounds``  the estimate lies outside the bounds the quantity declares (a constant: its
+                        model's parameter schema, e.g. ``speed_scale`` in (0, 2], ``kappa >= 0``; a
+                        noise level: ``tr >= 0``): whatever the likelihood's curvature, such a value is
+                        not a measurement of the model's constant but a sign that the model does not fit
+                        the data (a path recorded in another frame), never "identified".
 
 A stopping rule on relative change can stop in a flat direction: the EM's ``ok`` means the parameters
 stopped moving, not that the data determine them; this is what says which do.
@@ -39,30 +57,37 @@ stopped moving, not that the data determine them; this is what says which do.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from needlecli.fitting.smoother import affine_loglik, eks, linearise, take_linearisation
 from needlecli.fitting.statespace import DiscreteModel, MeasurementModel
+from needlecli.io.fit import BIASED, IDENTIFIED, NOT_IDENTIFIED, OUTSIDE, STOPPED_SHORT, VERDICTS, WEAK, verdict_text
 from needlecli.models.base import state_blocks
+from needlecli.numerics.recovery import recovery
 
-IDENTIFIED = "identified"
-WEAK = "weakly identified"
-NOT_IDENTIFIED = "not identified"
+#: the verdicts (their words are the fit file's: :mod:`needlecli.io.fit`)
+__all__ = ["BIASED", "IDENTIFIED", "NOT_IDENTIFIED", "OUTSIDE", "STOPPED_SHORT", "VERDICTS", "WEAK", "recovery",
+           "verdict_text"]
 
 
 @dataclass(frozen=True)
 class IdentifyOptions:
     """``rse_max``: largest relative standard error of an identified quantity; ``nats``: the log-likelihood
     a decade of a noise level must cost; ``step_log``: finite-difference step of the log scales; ``chunk``:
-    evaluation points per batched filter pass (memory)."""
+    evaluation points per batched filter pass (memory); ``z_max``, ``along_max``: below."""
 
     rse_max: float = 0.5
     nats: float = 2.0
     step_log: float = 0.2
     chunk: int = 8
+    #: largest |estimate - truth| of a group, in standard errors, that is not "biased"
+    z_max: float = 2.0
+    #: largest fraction of a free unit vector's tr(Q) that may lie along the vector (unseen) for "identified"
+    along_max: float = 0.1
 
 
 @dataclass
@@ -75,18 +100,72 @@ class Quantity:
     kind: str
     index: object
     unit: str
+    bounds: Bounds | None = None
+
+
+@dataclass(frozen=True)
+class Bounds:
+    """The values a quantity may take: ``low`` to ``high``, each end open (excluded) or not."""
+
+    low: float = -np.inf
+    high: float = np.inf
+    low_open: bool = False
+    high_open: bool = False
+
+    def outside(self, v: np.ndarray) -> np.ndarray:
+        """Where finite values ``v`` (any shape) are outside (NaN is not)."""
+        v = np.asarray(v, dtype=float)
+        with np.errstate(invalid="ignore"):
+            below = (v <= self.low) if self.low_open else (v < self.low)
+            above = (v >= self.high) if self.high_open else (v > self.high)
+        return np.isfinite(v) & (below | above)
+
+    def __str__(self) -> str:
+        lo = f"{'(' if self.low_open else '['}{self.low:g}" if np.isfinite(self.low) else "(-inf"
+        hi = f"{self.high:g}{')' if self.high_open else ']'}" if np.isfinite(self.high) else "inf)"
+        return f"{lo}, {hi}"
+
+
+#: a noise level (the trace of a block of Q, of R_j): never negative
+NOISE_BOUNDS = Bounds(low=0.0)
+
+
+def parameter_bounds(model_cls, name: str) -> Bounds | None:
+    """The bounds a model's parameter ``name`` declares in its schema (``Field(gt=0, le=2)``: (0, 2]), or
+    None when it declares none."""
+    f = model_cls.Params.model_fields.get(name)
+    if f is None:
+        return None
+    b = {}
+    for m in f.metadata:
+        for key, side, is_open in (("gt", "low", True), ("ge", "low", False), ("lt", "high", True), ("le", "high", False)):
+            v = getattr(m, key, None)
+            if v is not None:
+                b[side], b[f"{side}_open"] = float(v), is_open
+    return Bounds(**b) if b else None
 
 
 @dataclass
 class Identifiability:
-    """Per trial (leading axis N) and pooled.
+    """Per trial (leading axis N), per design group (leading axis G) and pooled over every trial.
 
     estimate (N, d) the quantities (constants; traces of Q blocks and R_j, not divided by their dimension);
     theta_step (N, d) the finite-difference steps; hessian (N, d, d) of the log-likelihood in theta;
     se (N, d) standard errors in the quantities' units; rse (N, d) relative; decade (N, d, 2) the
     log-likelihood lost when a noise level is multiplied by 10 and by 1/10 (NaN for constants); verdict,
     reason (N, d); pooled_se, pooled_rse (d,), pooled_verdict, pooled_reason (d,) from the summed
-    information of the trials in ``used`` (N,).
+    information of the trials in ``used`` (N,) (every trial: kept for older readers; the tables pool
+    within groups).
+
+    truth (N, d) the true value where known (simulated trials; NaN otherwise); z (N, d) each trial's
+    ``(estimate - truth) / se``; along (N, d) the fraction of a free unit vector's ``tr(Q)`` along the
+    vector (NaN for other quantities); floored (N, d) an R on its floor; newton (N, d) the Newton step from
+    the estimate to the maximum of the log-likelihood's quadratic model, in the parameters theta (a
+    constant's unit; a noise level's log scale: the maximum at ``e^step`` times it); group (N,) each trial's design
+    group, ``group_labels`` (G,); group_* (G, d): the median estimate, the SE and relative SE from the
+    group's summed information, the mean truth, ``z`` of :func:`recovery`, the mean Newton step and its
+    ``z`` (the step in standard errors of that mean), the verdict and reason (module docstring);
+    group_trials (G,) the trials assessed per group.
     """
 
     quantities: list[Quantity]
@@ -104,6 +183,23 @@ class Identifiability:
     pooled_verdict: np.ndarray
     pooled_reason: np.ndarray
     loglik: np.ndarray  # (N,) at the estimate
+    truth: np.ndarray | None = None
+    z: np.ndarray | None = None
+    along: np.ndarray | None = None
+    floored: np.ndarray | None = None
+    newton: np.ndarray | None = None
+    group: np.ndarray | None = None
+    group_labels: list[str] = field(default_factory=list)
+    group_estimate: np.ndarray | None = None
+    group_se: np.ndarray | None = None
+    group_rse: np.ndarray | None = None
+    group_truth: np.ndarray | None = None
+    group_z: np.ndarray | None = None
+    group_newton: np.ndarray | None = None
+    group_newton_z: np.ndarray | None = None
+    group_verdict: np.ndarray | None = None
+    group_reason: np.ndarray | None = None
+    group_trials: np.ndarray | None = None
 
     @property
     def names(self) -> list[str]:
@@ -114,21 +210,22 @@ def fit_quantities(dm: DiscreteModel, meas: Sequence[MeasurementModel], Q: np.nd
                    held: Sequence[str] = ()) -> list[Quantity]:
     """The quantities of a fit: constants, the Q blocks with process noise (in any trial), each R_j;
     not those ``held`` at their initial guess (constants by name, a Q block when all its states are)."""
-    out = [Quantity(c, "constant", dm.nx + i, dm.units[dm.nx + i]) for i, c in enumerate(dm.augment) if c not in held]
+    out = [Quantity(c, "constant", dm.nx + i, dm.units[dm.nx + i], parameter_bounds(type(dm.model), c))
+           for i, c in enumerate(dm.augment) if c not in held]
     for b, idx in state_blocks(dm.names, skip=dm.augment).items():
         if all(dm.names[i] in held for i in idx):
             continue
         if np.any(Q[:, idx][:, :, idx]):
             unit = dm.units[idx[0]]
-            out.append(Quantity(f"tr(Q_{b})", "Q", idx, f"{unit}^2/s" if unit not in ("", "1") else "1/s"))
+            out.append(Quantity(f"tr(Q_{b})", "Q", idx, f"{unit}^2/s" if unit not in ("", "1") else "1/s", NOISE_BOUNDS))
     for j, mm in enumerate(meas):
         unit = mm.units[0] if getattr(mm, "units", None) else ""
         unit = f"{unit}^2" if unit not in ("", "1") else "1"
         if getattr(mm, "frame", "world") == "needle":  # along and across the needle: what the sensor's geometry separates
-            out.append(Quantity(f"tr(R_{mm.name}_along)", "R", (j, [0]), unit))
-            out.append(Quantity(f"tr(R_{mm.name}_across)", "R", (j, [1, 2]), unit))
+            out.append(Quantity(f"tr(R_{mm.name}_along)", "R", (j, [0]), unit, NOISE_BOUNDS))
+            out.append(Quantity(f"tr(R_{mm.name}_across)", "R", (j, [1, 2]), unit, NOISE_BOUNDS))
         else:
-            out.append(Quantity(f"tr(R_{mm.name})", "R", j, unit))
+            out.append(Quantity(f"tr(R_{mm.name})", "R", j, unit, NOISE_BOUNDS))
     return out
 
 
@@ -170,6 +267,12 @@ def identify(
     options: IdentifyOptions = IdentifyOptions(),
     zbar: np.ndarray | None = None,
     held: Sequence[str] = (),
+    *,
+    truth: np.ndarray | None = None,
+    group: np.ndarray | None = None,
+    group_labels: Sequence[str] | None = None,
+    floors: Sequence[float | None] = (),
+    tied: Sequence[str] = (),
 ) -> Identifiability:
     """Standard errors and verdicts of every quantity of a fit (module docstring).
 
@@ -183,6 +286,12 @@ def identify(
     zbar : (N, K+1, n) the trajectory the model is linearised around (the fit's smoothed one; default: an
         extended Kalman smoother's at the estimate)
     held : names of constants and states held at their initial guess (not fitted: not assessed)
+    truth : (N, d) the true value of each quantity of :func:`fit_quantities` where known (simulated trials:
+        :func:`true_quantities`), NaN elsewhere; None: unknown
+    group : (N,) each trial's design group (indices into ``group_labels``); default one group of all trials
+    floors : per channel, the floor EM held R_j's eigenvalues at (or None)
+    tied : the Q blocks (stems) fitted as ``s I`` (``fit.isotropic``): their part along a unit vector is
+        not free
     """
     o = options
     N, n = x0.shape
@@ -268,18 +377,30 @@ def identify(
             decade[:, k, 1] = l0 - ll[:, E1 + c + 1]
             c += 2
     se_theta, bad = _standard_errors(-H)
+    newton = newton_steps(-H, (lp - lm) / (2.0 * h))
     se = np.where(_is_scale(qs)[None, :], est * se_theta, se_theta)
     with np.errstate(all="ignore"):
         rse = np.abs(se / est)
-    verdict, reason = _verdicts(qs, rse, decade, bad, o)
+    along = along_fraction(dm, qs, Q, zbar, tied)
+    floored = on_floor(qs, R, floors)
+    verdict, reason = _verdicts(qs, rse, decade, bad, o, floored=floored, along=along)
+    _mark_outside(qs, est, verdict, reason)
     verdict[~ok], reason[~ok] = "", "trial not assessed (the fit failed)"
     used = ok & np.isfinite(H).all((-1, -2))
     pse, prse, pverdict, preason = _pooled(qs, est, H, decade, used, o)
-    return Identifiability(qs, est, h, H, se, rse, decade, verdict, reason, used, pse, prse, pverdict, preason, l0)
+    truth = np.full((N, d), np.nan) if truth is None else np.asarray(truth, dtype=float)
+    with np.errstate(all="ignore"):
+        z = (est - truth) / se
+    idf = Identifiability(qs, est, h, H, se, rse, decade, verdict, reason, used, pse, prse, pverdict, preason, l0,
+                          truth=truth, z=z, along=along, floored=floored, newton=newton)
+    return with_groups(idf, np.zeros(N, dtype=np.int64) if group is None else group,
+                       ["all trials"] if group_labels is None else group_labels, o)
 
 
-def _pooled(qs, est, H, decade, used, o: IdentifyOptions):
-    """Pooled SE, relative SE, verdict and reason ``(d,)`` from the summed information of the ``used`` trials."""
+def _pooled(qs, est, H, decade, used, o: IdentifyOptions, floored=None, along=None):
+    """Pooled SE, relative SE, verdict and reason ``(d,)`` from the summed information of the ``used`` trials
+    (``floored``, ``along``: per trial, :func:`on_floor` and :func:`along_fraction`; any trial on its floor
+    counts, the median fraction along a unit vector)."""
     d = len(qs)
     info = -np.nansum(np.where(used[:, None, None], H, 0.0), axis=0)
     pse_theta, pbad = _standard_errors(info[None])
@@ -288,21 +409,190 @@ def _pooled(qs, est, H, decade, used, o: IdentifyOptions):
     with np.errstate(all="ignore"):
         prse = np.abs(pse / pest)
     pdec = np.nansum(np.where(used[:, None, None], decade, 0.0), axis=0)[None] if used.any() else np.full((1, d, 2), np.nan)
-    pverdict, preason = _verdicts(qs, prse[None], pdec, pbad, o)
+    pfl = None if floored is None else (floored & used[:, None]).any(0)[None]
+    pal = None
+    if along is not None and used.any():
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # a quantity without a fraction: all NaN
+            pal = np.nanmedian(np.where(used[:, None], along, np.nan), axis=0)[None]
+    pverdict, preason = _verdicts(qs, prse[None], pdec, pbad, o, floored=pfl, along=pal)
+    _mark_outside(qs, pest[None], pverdict, preason)
     return pse, prse, pverdict[0], preason[0]
 
 
+def _mark_outside(qs: list[Quantity], est: np.ndarray, verdict: np.ndarray, reason: np.ndarray) -> None:
+    """The estimates ``est (M, d)`` outside their quantity's bounds get the verdict :data:`OUTSIDE` (in place,
+    whatever the likelihood says), with the value and the bounds as the reason."""
+    for k, q in enumerate(qs):
+        if q.bounds is None:
+            continue
+        for m in np.flatnonzero(q.bounds.outside(est[:, k])):
+            verdict[m, k] = OUTSIDE
+            reason[m, k] = (f"{q.name} = {est[m, k]:.4g} is outside its bounds {q.bounds}: not a value of the "
+                            "model's constant (does the model fit these data? a path recorded in another frame?)")
+
+
 def take_trials(idf: Identifiability, idx: np.ndarray, options: IdentifyOptions = IdentifyOptions()) -> Identifiability:
-    """The assessment of the trials ``idx`` only: their rows, and the pooled figures from their summed
-    information (what :func:`identify` gives on those trials alone: each trial's information is its own)."""
+    """The assessment of the trials ``idx`` only: their rows, and the pooled and group figures from their
+    summed information (what :func:`identify` gives on those trials alone: each trial's information is
+    its own)."""
     idx = np.asarray(idx)
     rows = {k: getattr(idf, k)[idx] for k in ("estimate", "theta_step", "hessian", "se", "rse", "decade", "verdict",
-                                              "reason", "used", "loglik")}
+                                              "reason", "used", "loglik", "truth", "z", "along", "floored",
+                                              "newton")}
     pse, prse, pverdict, preason = _pooled(idf.quantities, rows["estimate"], rows["hessian"], rows["decade"],
                                            rows["used"], options)
-    return Identifiability(idf.quantities, rows["estimate"], rows["theta_step"], rows["hessian"], rows["se"], rows["rse"],
-                           rows["decade"], rows["verdict"], rows["reason"], rows["used"], pse, prse, pverdict, preason,
-                           rows["loglik"])
+    sub = Identifiability(idf.quantities, rows.pop("estimate"), rows.pop("theta_step"), rows.pop("hessian"),
+                          rows.pop("se"), rows.pop("rse"), rows.pop("decade"), rows.pop("verdict"), rows.pop("reason"),
+                          rows.pop("used"), pse, prse, pverdict, preason, rows.pop("loglik"), **rows)
+    return with_groups(sub, idf.group[idx], idf.group_labels, options)
+
+
+# ---------------------------------------------------------------------------------------------- groups
+def with_groups(idf: Identifiability, group: np.ndarray, labels: Sequence[str],
+                o: IdentifyOptions = IdentifyOptions()) -> Identifiability:
+    """``idf`` with its figures per design group (:class:`Identifiability`'s ``group_*``): each group's
+    information summed over its assessed trials only, where its log-likelihoods peak (:func:`newton_steps`),
+    its recovery (:func:`~needlecli.numerics.recovery.recovery`) where the truth is known, and its verdict
+    (module docstring). Groups without a trial keep their label and NaN figures."""
+    qs = idf.quantities
+    group = np.asarray(group, dtype=np.int64)
+    G, d = len(labels), len(qs)
+    est = np.full((G, d), np.nan)
+    gse, grse, gtruth, gz, gnewton, gnewton_z = (np.full((G, d), np.nan) for _ in range(6))
+    gverdict = np.full((G, d), "", dtype=object)
+    greason = np.full((G, d), "no trial assessed", dtype=object)
+    n = np.zeros(G, dtype=np.int64)
+    scale = _is_scale(qs)
+    for g in range(G):
+        sel = idf.used & (group == g)
+        n[g] = sel.sum()
+        if not n[g]:
+            continue
+        est[g] = np.nanmedian(np.where(sel[:, None], idf.estimate, np.nan), axis=0)
+        gse[g], grse[g], info_v, info_r = _pooled(qs, idf.estimate, idf.hessian, idf.decade, sel, o,
+                                                  floored=idf.floored, along=idf.along)
+        gtruth[g], _, _, gz[g] = recovery(idf.estimate[sel], idf.se[sel], idf.truth[sel])
+        if idf.newton is not None:  # the mean step to the maximum, in SE of that mean (a truth of no step)
+            with np.errstate(all="ignore"):
+                se_theta = np.where(scale[None, :], idf.se / idf.estimate, idf.se)[sel]
+            _, gnewton[g], _, gnewton_z[g] = recovery(idf.newton[sel], se_theta, np.zeros_like(se_theta))
+        floored = idf.floored[sel].any(0) if idf.floored is not None else np.zeros(d, dtype=bool)
+        for k in range(d):
+            v, r = _with_newton(qs[k], info_v[k], info_r[k], gnewton[g, k], gnewton_z[g, k], int(n[g]), o,
+                                bool(floored[k]))
+            gverdict[g, k], greason[g, k] = _with_recovery(v, r, idf, sel, k, gz[g, k], gnewton[g, k], o)
+        _mark_outside(qs, est[g : g + 1], gverdict[g : g + 1], greason[g : g + 1])  # whatever else was found
+    idf.group, idf.group_labels = group, [str(x) for x in labels]
+    idf.group_estimate, idf.group_se, idf.group_rse, idf.group_truth, idf.group_z = est, gse, grse, gtruth, gz
+    idf.group_newton, idf.group_newton_z = gnewton, gnewton_z
+    idf.group_verdict, idf.group_reason, idf.group_trials = gverdict, greason, n
+    return idf
+
+
+def _peak(q: Quantity, shift: float) -> str:
+    """Where a log-likelihood peaks, from the estimate: ``x0.83 of the estimate`` or ``+0.2 1/m from it``."""
+    return f"x{np.exp(shift):.2g} of the estimate" if q.kind != "constant" else f"{shift:+.3g} {q.unit} from the estimate"
+
+
+def _with_newton(q: Quantity, verdict: str, reason: str, shift: float, z: float, n: int,
+                 o: IdentifyOptions, floored: bool = False) -> tuple[str, str]:
+    """A group's verdict once the distance to the likelihood's maximum is in: where the mean Newton step of
+    its trials lies more than ``z_max`` standard errors of that mean from the estimate, "EM stopped short
+    of the maximum", with where the maximum is. Not for a noise level whose step leaves the decade either
+    way (the quadratic model is out of its range there; the decade test, which evaluates the likelihood
+    at x10 and x1/10, decides), nor below a floor that held it (then: held by its floor)."""
+    if not (np.isfinite(z) and abs(z) > o.z_max) or verdict == NOT_IDENTIFIED:
+        return verdict, reason
+    if q.kind != "constant" and abs(shift) > np.log(10.0):
+        return verdict, reason
+    words = f"the log-likelihood peaks at {_peak(q, shift)} (Newton step, {z:+.1f} SE over {n} trials)"
+    if floored and shift < 0:
+        if "floor" in reason:
+            return verdict, reason
+        return (WEAK if verdict == IDENTIFIED else verdict,
+                "; ".join(r for r in (reason, f"held by its floor ({words}, below it)") if r))
+    return STOPPED_SHORT, "; ".join(r for r in (words, reason if verdict != IDENTIFIED else "") if r)
+
+
+def _with_recovery(verdict: str, reason: str, idf: Identifiability, sel: np.ndarray, k: int, z: float,
+                   shift: float, o: IdentifyOptions) -> tuple[str, str]:
+    """A group's verdict and reason once its recovery check is in: ``biased`` beyond ``z_max``, with the
+    miss and what the assessment measured as its cause (EM stopped short: the Newton step to the
+    likelihood's maximum covers the miss; a floor; a unit vector's unseen part), else the information's
+    verdict."""
+    if not (np.isfinite(z) and abs(z) > o.z_max):
+        return verdict, reason
+    q = idf.quantities[k]
+    e = idf.estimate[sel, k]
+    t = idf.truth[sel, k]
+    fin = np.isfinite(e) & np.isfinite(t)
+    em, tm = float(np.mean(e[fin])), float(np.mean(t[fin]))
+    miss = em - tm
+    pct = f", {100.0 * miss / tm:+.0f} % of the truth {tm:.3g}" if tm else ""
+    parts = [f"estimate - truth = {z:+.1f} SE ({miss:+.3g}{pct}, {int(fin.sum())} trials)"]
+    if verdict != IDENTIFIED:
+        parts.append(f"{verdict}: {reason}" if reason else verdict)
+    with np.errstate(all="ignore"):
+        to_truth = np.log(tm / em) if q.kind != "constant" else tm - em  # the step that would reach the truth
+        covered = shift / to_truth
+    if np.isfinite(covered):
+        where = "" if verdict == STOPPED_SHORT else f"the log-likelihood peaks at {_peak(q, shift)} (Newton step); "
+        parts.append(f"{where}the step goes {100.0 * covered:.0f} % of the way to the truth: " +
+                     ("the likelihood's maximum lies near the truth, EM stopped short of it" if covered >= 0.5
+                      else "the likelihood's maximum itself misses the truth"))
+    floored = idf.floored[sel, k] if idf.floored is not None else np.zeros(0, dtype=bool)
+    if floored.any() and "floor" not in reason:
+        parts.append(f"on its floor in {int(floored.sum())} of {int(sel.sum())} trials: the floor cuts the "
+                     "estimates from below")
+    return BIASED, "; ".join(parts)
+
+
+# ---------------------------------------------------------------------------------------------- causes
+def along_fraction(dm: DiscreteModel, qs: list[Quantity], Q: np.ndarray, zbar: np.ndarray,
+                   tied: Sequence[str] = ()) -> np.ndarray:
+    """``(N, d)``: for each Q block that is one of the model's unit vectors (``unit_vectors``: the MNM's
+    heading and field) fitted free (not in ``tied``), the fraction of its trace along the vector, averaged
+    over the trajectory ``zbar (N, K+1, n)``: ``mean_k u_k^T Q_b u_k / tr(Q_b)``. The model holds the
+    vector's length and the data see directions only: that part of the trace is not measured (it stays
+    near EM's initial guess). NaN for every other quantity."""
+    N = Q.shape[0]
+    out = np.full((N, len(qs)), np.nan)
+    vectors = getattr(dm.model, "unit_vectors", {}) or {}
+    for k, q in enumerate(qs):
+        if q.kind != "Q" or q.name[len("tr(Q_"):-1] in tied:
+            continue
+        names = {dm.names[i] for i in q.index}
+        if not any(names == set(v) for v in vectors.values()):
+            continue
+        idx = list(q.index)
+        u = zbar[..., idx]
+        with np.errstate(all="ignore"):
+            u = u / np.linalg.norm(u, axis=-1, keepdims=True)
+            Qb = Q[:, idx][:, :, idx]
+            along = np.einsum("nki,nij,nkj->nk", u, Qb, u).mean(-1)
+            out[:, k] = along / np.trace(Qb, axis1=-2, axis2=-1)
+    return out
+
+
+def on_floor(qs: list[Quantity], R: Sequence[np.ndarray], floors: Sequence[float | None], tol: float = 1e-3) -> np.ndarray:
+    """``(N, d)``: an R quantity whose channel has an eigenvalue on its floor (within ``tol``)."""
+    N = R[0].shape[0] if len(R) else 0
+    out = np.zeros((N, len(qs)), dtype=bool)
+    for k, q in enumerate(qs):
+        if q.kind != "R":
+            continue
+        j = q.index[0] if isinstance(q.index, tuple) else q.index
+        fl = floors[j] if j < len(floors) else None
+        if fl is None or not fl > 0:
+            continue
+        Rj = np.asarray(R[j], dtype=float)
+        fin = np.isfinite(Rj).all((-1, -2))
+        w = np.full(Rj.shape[:-1], np.inf)
+        if fin.any():
+            w[fin] = np.linalg.eigvalsh(Rj[fin])
+        out[:, k] = (w <= fl * (1.0 + tol)).any(-1)
+    return out
 
 
 def _is_scale(qs: list[Quantity]) -> np.ndarray:
@@ -328,14 +618,37 @@ def _standard_errors(info: np.ndarray, flat: float = 1e-10) -> tuple[np.ndarray,
     return se, bad
 
 
-def _verdicts(qs, rse, decade, bad, o: IdentifyOptions):
-    """Verdicts and reasons ``(M, d)`` (module docstring)."""
+def newton_steps(info: np.ndarray, grad: np.ndarray, flat: float = 1e-10) -> np.ndarray:
+    """Newton steps ``info^-1 grad`` ``(M, d)`` from the estimates to the maxima of the log-likelihoods'
+    quadratic models (``info (M, d, d)`` minus the Hessians, ``grad (M, d)`` the gradients), over the
+    directions with positive information only (the pseudo-inverse of :func:`_standard_errors`); NaN where
+    the information is not finite. At a maximum the step is zero; where EM stopped short of it, the step
+    says where the maximum lies."""
+    M, d = grad.shape
+    out = np.full((M, d), np.nan)
+    finite = np.isfinite(info).all((-1, -2)) & np.isfinite(grad).all(-1)
+    if finite.any():
+        w, V = np.linalg.eigh(0.5 * (info[finite] + np.swapaxes(info[finite], -1, -2)))
+        pos = w > flat * np.maximum(w[:, -1:], 0.0)
+        inv_w = np.where(pos, 1.0 / np.where(pos, w, 1.0), 0.0)
+        out[finite] = np.einsum("mkj,mj,mlj,ml->mk", V, inv_w, V, grad[finite])
+    return out
+
+
+def _verdicts(qs, rse, decade, bad, o: IdentifyOptions, floored=None, along=None):
+    """Verdicts and reasons ``(M, d)`` (module docstring); ``floored`` (M, d): an R on its floor (a rise at
+    x1/10 is then the floor's doing, not EM's); ``along`` (M, d): :func:`along_fraction`."""
     scale = _is_scale(qs)[None, :]
+    floored = np.zeros(rse.shape, dtype=bool) if floored is None else np.asarray(floored, dtype=bool)
+    along = np.full(rse.shape, np.nan) if along is None else np.asarray(along, dtype=float)
     with np.errstate(invalid="ignore"):
         big = ~(rse <= o.rse_max)
         flat_up, flat_down = ~(decade[..., 0] >= o.nats) & scale, ~(decade[..., 1] >= o.nats) & scale
-    weak = (big | flat_up | flat_down) & ~bad
-    verdict = np.where(bad, NOT_IDENTIFIED, np.where(weak, WEAK, IDENTIFIED)).astype(object)
+        rise_up, rise_down = (decade[..., 0] < -o.nats) & scale, (decade[..., 1] < -o.nats) & scale
+        unseen = along > o.along_max
+    stopped = (rise_up | (rise_down & ~floored)) & ~bad
+    weak = (big | flat_up | flat_down | unseen) & ~bad & ~stopped
+    verdict = np.where(bad, NOT_IDENTIFIED, np.where(stopped, STOPPED_SHORT, np.where(weak, WEAK, IDENTIFIED))).astype(object)
 
     def why(m: int, k: int) -> str:  # the words for one cell
         if bad[m, k]:
@@ -343,11 +656,19 @@ def _verdicts(qs, rse, decade, bad, o: IdentifyOptions):
         parts = [f"relative SE {rse[m, k]:.2g} > {o.rse_max:g}"] if big[m, k] else []
         scaled = [(f, decade[m, k, i]) for i, f, on in ((0, "10", flat_up[m, k]), (1, "1/10", flat_down[m, k])) if on]
         flat = [f"x{f} costs {c:.2g} nats" for f, c in scaled if not c < -o.nats]
-        rise = [f"x{f} raises it by {-c:.2g} nats" for f, c in scaled if c < -o.nats]
+        rise = [(f, -c) for f, c in scaled if c < -o.nats]
         if flat:
             parts.append(f"flat over a decade ({'; '.join(flat)}; < {o.nats:g})")
-        if rise:  # the estimate is not where the likelihood peaks: EM stopped moving, or a floor holds it
-            parts.append(f"not the log-likelihood's maximum ({'; '.join(rise)}: where EM stopped or a floor held it)")
+        held = [f"x{f} raises it by {c:.2g} nats" for f, c in rise if f == "1/10" and floored[m, k]]
+        short = [f"x{f} raises it by {c:.2g} nats" for f, c in rise if not (f == "1/10" and floored[m, k])]
+        if short:  # the estimate is not where the likelihood peaks: EM stopped moving there
+            parts.append(f"not the log-likelihood's maximum ({'; '.join(short)})")
+        if held:
+            parts.append(f"held by its floor ({'; '.join(held)})")
+        if unseen[m, k]:
+            parts.append(f"{100.0 * along[m, k]:.0f} % of its trace lies along the unit vector, which the data do not "
+                         "see (the model holds its length): that part stays near EM's initial guess (fit.isotropic "
+                         "ties it to the directions across)")
         return "; ".join(parts)
 
     reason = np.array([[why(m, k) for k in range(rse.shape[1])] for m in range(rse.shape[0])], dtype=object).reshape(rse.shape)

@@ -109,8 +109,11 @@ def build_system(
             raise ValueError(f"channel {name!r}: frame needle needs a position with axes x, y, z and a model with a "
                              f"tangent (it has {', '.join(ch.names)}; model {model.registered_name!r})")
         scale = sample_scale(ch)
+        if spec is not None and spec.growth is not None:
+            scale = growth_scale(ch, spec.growth, scale)
         if scale is not None and (frame == "needle" or name in offsets):  # per-axis sigmas of the world's axes
-            raise ValueError(f"channel {name!r}: per-sample sigmas cannot be used with frame needle or along_offset")
+            raise ValueError(f"channel {name!r}: per-sample sigmas (or growth) cannot be used with frame needle or "
+                             "along_offset")
         mm = MeasurementModel(name, h, model.n, tick, ch.value, ch.valid, np.asarray(ch.angle, dtype=bool),
                               tuple(ch.names), tuple(ch.units), bool(ch.unit_vector), scale, frame,
                               model.tangent if frame == "needle" or name in offsets else None,
@@ -168,6 +171,22 @@ def sample_scale(ch) -> np.ndarray | None:
     return w
 
 
+def growth_scale(ch, growth, scale: np.ndarray | None) -> np.ndarray:
+    """Each sample's noise std over the channel's nominal one, ``(N, M, m)``, with a distance ``growth``
+    (:class:`~needlecli.schema.DistanceGrowth`): its position components' by ``1 + a d / d_max`` at the
+    sample's measured position (the UKF's R, :mod:`needlecli.observers.ukf`), times ``scale`` (recorded
+    per-sample sigmas) where given; 1 where a sample is not valid."""
+    cols = [i for i, c in enumerate(ch.names) if c in ("x", "y", "z")]
+    value = np.asarray(ch.value, dtype=float)
+    w = np.ones(value.shape) if scale is None else np.array(scale, dtype=float)
+    if cols:
+        with np.errstate(invalid="ignore"):
+            f = growth.factor(value[..., cols], axes=[("x", "y", "z").index(ch.names[i]) for i in cols])
+        f = np.where(ch.valid & np.isfinite(f), f, 1.0)
+        w[..., cols] *= f[..., None]
+    return w
+
+
 def check_setup(setup: KalmanSetup, model_cls: type[Model], sensors: dict, augment: Sequence[str] = ()) -> list:
     """Config problems of a setup for one model: ``[(loc, message)]`` (the observers' ``check``)."""
     out = []
@@ -218,6 +237,12 @@ def check_channels(setup: KalmanSetup, model_cls: type[Model], sensors: dict) ->
             out.append((("measurements", name, "frame"), f"needle coordinates need a position with axes x, y, z and a "
                         f"model with a tangent (sensor {name!r}: {', '.join(sensors[name].channel_names)}; model "
                         f"{model_cls.registered_name!r})"))
+        if spec.growth is not None and not {"x", "y", "z"} & set(sensors[name].channel_names):
+            out.append((("measurements", name, "growth"), f"a distance law of a position's noise; sensor {name!r} "
+                        f"measures {', '.join(sensors[name].channel_names)}"))
+        if spec.growth is not None and (spec.frame == "needle" or spec.along_offset is not None):
+            out.append((("measurements", name, "growth"), "a distance law of world-axis noise: not with frame: needle "
+                        "or along_offset"))
         if spec.across_axis is not None and spec.frame != "needle":
             out.append((("measurements", name, "across_axis"), "is used only with frame: needle"))
         if spec.along_offset is not None and (tuple(sensors[name].channel_names) != ("x", "y", "z")
@@ -275,6 +300,32 @@ def check_fit(fit, sensors: dict) -> list:
             out.append((("hold", i), f"no fitted model ({', '.join(fit.models)}) has a state or fitted constant {k!r}"))
         elif k not in fit.q and not any(k in fit_augment(cls) for cls in classes):
             out.append((("hold", i), f"{k!r} has no process noise (not in q) and is no fitted constant: nothing to hold"))
+    out += _check_isotropic(fit, classes)
     for cls in classes:
         out += check_channels(fit, cls, sensors)
+    return out
+
+
+def _check_isotropic(fit, classes) -> list:
+    """Problems of ``fit.isotropic``: each a block (a state stem) of a fitted model with at least two of its
+    states in ``q``, none of them held."""
+    from needlecli.models.base import state_blocks
+
+    out = []
+    blocks: dict[str, list[str]] = {}
+    for cls in classes:
+        for stem, idx in state_blocks(cls.state_names).items():
+            blocks.setdefault(stem, [cls.state_names[i] for i in idx])
+    for i, stem in enumerate(fit.isotropic):
+        if stem not in blocks:
+            out.append((("isotropic", i), f"no fitted model ({', '.join(fit.models)}) has a block {stem!r} of states; "
+                        f"blocks: {', '.join(blocks)}"))
+            continue
+        noisy = [s for s in blocks[stem] if s in fit.q]
+        if len(noisy) < 2:
+            out.append((("isotropic", i), f"block {stem!r} has {len(noisy)} state(s) with process noise in q "
+                        f"({', '.join(noisy) or 'none'}): nothing to tie"))
+        held = [s for s in noisy if s in fit.hold]
+        if held:
+            out.append((("isotropic", i), f"block {stem!r} has held states ({', '.join(held)}): a tied block is fitted"))
     return out

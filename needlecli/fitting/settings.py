@@ -13,7 +13,7 @@ from typing import Literal
 from pydantic import Field
 
 from needlecli.initial import InitialEstimate
-from needlecli.schema import NonNeg, Positive, Strict
+from needlecli.schema import DistanceGrowth, NonNeg, Positive, Strict
 
 
 class KalmanInit(InitialEstimate):
@@ -56,6 +56,9 @@ class ChannelNoise(Strict):
     student_t: Positive | None = Field(
         None, description="EM: Student-t noise with these degrees of freedom (robust weights in the E-step: "
                           "outliers weigh less); off if unset")
+    growth: DistanceGrowth | None = Field(
+        None, description="a position's noise growing with the sample's distance to a transducer, sigma (1 + a d / "
+                          "d_max) per sample (as the UKF's growth; world axes only)")
 
 
 Ticks = Literal["grid", "measurements"] | Positive
@@ -110,6 +113,8 @@ class IdentifySettings(Strict):
     enabled: bool = Field(True, description="assess every fitted quantity after EM (adds about 50 filter passes)")
     rse_max: Positive = Field(0.5, description="largest relative standard error of an identified quantity")
     nats: Positive = Field(2.0, description="log-likelihood a decade of a noise level must cost to be identified")
+    z_max: Positive = Field(2.0, description="simulated trials: a design group's mean estimate further than this "
+                            "many standard errors from its truth is 'biased' (never 'identified')")
 
 
 class Regression(Strict):
@@ -142,6 +147,11 @@ class FitSettings(KalmanSetup):
                               description="models fitted by default (needle fit-em --model)")
     hold: list[str] = Field(default_factory=list, description="states whose process noise, and constants, held at "
                             "their initial guess, not fitted (e.g. taken from another fit with from_fit)")
+    isotropic: list[str] = Field(
+        default_factory=list, description="blocks of Q by their stem (h for hx, hy, hz) fitted as a multiple of the "
+        "identity over the block's states with process noise, uncorrelated with the other states: for a unit "
+        "vector (the MNM's h and B) the data see only the noise across it, and a free block keeps its variance "
+        "along the vector near the initial guess (tr(Q) with it)")
     constants: list[str] | None = Field(
         None, description="model parameters EM estimates as constant states (default: the curvature parameter; "
         "e.g. [kappa, speed_scale] for a needle that slips)")

@@ -18,6 +18,14 @@ what is on disk when a command is stopped.
   :class:`~needlecli.errors.Interrupted` (exit codes 130 and 143). Inside :func:`deferred_signals`
   (while h5py builds a file, while a file is renamed into place) a signal is held and acted on when the
   section ends, so that it is never lost inside a library callback and the journal below is true.
+* **One set** (:func:`output_set`): the outputs of one command are written as one set, all or nothing.
+  Inside a set each file is complete in its temporary file when written, and every one is renamed into
+  place only when the command has succeeded (signals held meanwhile); on an error, a signal or a full
+  disk every temporary file of the set is removed, with the folders made for it, and nothing at the
+  targets changed. A file of the set can be read back before then (:func:`staged_path`: the readers of
+  :mod:`needlecli.io.inputs` take it from its temporary file), so that a command may read what it wrote
+  (``needle compare`` its results file, ``needle crossval`` its trials and each fold's fit). Should a
+  rename in the middle fail, the error lists what was renamed and what was not.
 * **The journal** (:data:`JOURNAL`): the outputs a command checked before its work and those it completed,
   for the message of an interrupted command.
 """
@@ -95,6 +103,114 @@ class Journal:
 
 
 JOURNAL = Journal()
+
+
+# ---------------------------------------------------------------------------------------------- one set
+def _key(path: str | Path) -> str:
+    """One spelling of a target, whatever the spelling it was given in (relative, ``..``, a linked folder)."""
+    p = Path(path)
+    return os.path.join(os.path.realpath(p.parent), p.name)
+
+
+@dataclass
+class OutputSet:
+    """The outputs of one command, written as one set (:func:`output_set`).
+
+    ``staged``: target -> its complete temporary file beside it (its key: :func:`_key`), in the order
+    written; ``made``: the folders made for them, outermost first; ``keep``: commit even though the
+    command ends with an exception (a deliberate exit after complete outputs: a regression's exit 1)."""
+
+    staged: dict[str, tuple[Path, Path]] = field(default_factory=dict)
+    made: list[Path] = field(default_factory=list)
+    keep: bool = False
+
+    def stage(self, path: Path, tmp: Path) -> None:
+        old = self.staged.pop(_key(path), None)  # written twice: the later one counts
+        if old is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(old[1])
+            JOURNAL.inflight.discard(old[1])
+        self.staged[_key(path)] = (path, tmp)
+
+    def discard(self) -> None:
+        """Remove every temporary file of the set and the folders made for it (those left empty)."""
+        for _, tmp in self.staged.values():
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+            JOURNAL.inflight.discard(tmp)
+        self.staged.clear()
+        for d in reversed(self.made):
+            with contextlib.suppress(OSError):
+                os.rmdir(d)
+        self.made.clear()
+
+    def commit(self) -> None:
+        """Rename every file into place (signals held until all are). A rename that fails removes the
+        temporary files not yet renamed and raises :class:`OutputError` saying what was written and what
+        was not."""
+        items = list(self.staged.values())
+        self.staged.clear()
+        done: list[Path] = []
+        with deferred_signals():
+            for i, (path, tmp) in enumerate(items):
+                try:
+                    os.replace(tmp, path)
+                except OSError as e:
+                    rest = [p for p, _ in items[i:]]
+                    for _, t in items[i:]:
+                        with contextlib.suppress(OSError):
+                            os.unlink(t)
+                        JOURNAL.inflight.discard(t)
+                    left = (f"{len(done)} of the {len(items)} outputs were written before it ({_listed(done)}); "
+                            if done else "")
+                    raise OutputError(path, f"cannot write: {_os_reason(e)}; {left}not written: {_listed(rest)} "
+                                      "(an earlier file there is unchanged)") from None
+                JOURNAL.inflight.discard(tmp)
+                JOURNAL.written.append(path)
+                done.append(path)
+        self.made.clear()
+
+
+def _listed(paths: list[Path], most: int = 4) -> str:
+    shown = ", ".join(str(p) for p in paths[:most])
+    return shown + (f" and {len(paths) - most} more" if len(paths) > most else "")
+
+
+_SETS: list[OutputSet] = []
+
+
+@contextlib.contextmanager
+def output_set() -> Iterator[OutputSet]:
+    """Write every file of the block as one set: renamed into place together when the block ends
+    normally (or with :attr:`OutputSet.keep`), all removed when it ends with an error or a signal (the
+    module docstring). Nested, the inner block belongs to the outer set."""
+    if _SETS:
+        yield _SETS[-1]
+        return
+    s = OutputSet()
+    _SETS.append(s)
+    try:
+        yield s
+    except BaseException:
+        _SETS.remove(s)
+        if not s.keep:
+            with deferred_signals():
+                s.discard()
+            raise
+        s.commit()
+        raise
+    _SETS.remove(s)
+    s.commit()
+
+
+def staged_path(path: str | Path) -> Path:
+    """Where the content of ``path`` is now: the complete temporary file of an output of the set being
+    written (not yet renamed into place), else ``path`` itself."""
+    if _SETS:
+        hit = _SETS[-1].staged.get(_key(path))
+        if hit is not None:
+            return hit[1]
+    return Path(path)
 
 
 # ---------------------------------------------------------------------------------------------- signals
@@ -423,13 +539,22 @@ def output_stem(name, fallback: str) -> str:
 # ---------------------------------------------------------------------------------------------- writing
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary path beside ``path``; on success rename it to ``path``, on error (a signal too)
-    remove it. An ``OSError`` becomes :class:`OutputError` naming ``path``."""
+    """Yield a temporary path beside ``path``; on success rename it to ``path`` (inside :func:`output_set`:
+    when the whole set is complete), on error (a signal too) remove it. An ``OSError`` becomes
+    :class:`OutputError` naming ``path``."""
     path = Path(path)
+    current = _SETS[-1] if _SETS else None
+    missing = []
+    p = path.parent
+    while not os.path.lexists(p) and p.parent != p:
+        missing.append(p)
+        p = p.parent
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise OutputError(path, f"cannot make the folder {path.parent}: {_os_reason(e)}") from None
+    if current is not None:
+        current.made.extend(reversed(missing))
     remove_stale(path.parent)
     tmp = temp_path(path)
     with deferred_signals():
@@ -443,14 +568,21 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         yield tmp
         with deferred_signals():
             _fsync(tmp)
-            os.replace(tmp, path)
-            JOURNAL.inflight.discard(tmp)
-            JOURNAL.written.append(path)
+            if current is not None:  # renamed with the rest of its set
+                current.stage(path, tmp)
+            else:
+                os.replace(tmp, path)
+                JOURNAL.inflight.discard(tmp)
+                JOURNAL.written.append(path)
     except BaseException as e:
         with deferred_signals():
             with contextlib.suppress(OSError):
                 os.unlink(tmp)
             JOURNAL.inflight.discard(tmp)
+            if current is None:  # the folders made for it (a set removes its own with the rest)
+                for d in missing:
+                    with contextlib.suppress(OSError):
+                        os.rmdir(d)
         if isinstance(e, OSError) and not isinstance(e, OutputError):
             kept = " (the earlier file there is unchanged)" if path.is_file() else ""
             raise OutputError(path, f"cannot write: {_os_reason(e)}; nothing was written{kept}") from None

@@ -27,6 +27,7 @@ import numpy as np
 import yaml
 
 from needlecli.errors import DataError
+from needlecli.io.atomic import write_text_atomic
 from needlecli.io.logs import Log, design_factors
 from needlecli.numerics import euler_xyz_to_matrix, matrix_to_quaternion, rot_z, so3_exp
 
@@ -76,7 +77,6 @@ def export_lab_csv(log: Log, out_dir: str | Path, *, sensor: str = "tracker", po
         if "v" not in tr.inputs:
             raise DataError(f"{where}] needs the insertion speed input v")
         prepared.append((tr, s, float(d[0])))
-    out_dir.mkdir(parents=True, exist_ok=True)
     sigmas, factors = [], None
     for tr, s, period in prepared:
         names = list(s.names)
@@ -93,10 +93,8 @@ def export_lab_csv(log: Log, out_dir: str | Path, *, sensor: str = "tracker", po
         sigmas.append(rms[ok])
         rows = np.where(ok[:, None], np.c_[p, q, rms], 0.0)
         path = out_dir / f"{tr.id}_pose.csv"
-        with path.open("w", encoding="utf-8") as f:
-            f.write("step,px,py,pz,qw,qx,qy,qz,rms\n")
-            for i, r in enumerate(rows):
-                f.write(f"{i}," + ",".join("0" if x == 0 else f"{x:.9g}" for x in r) + "\n")
+        write_text_atomic(path, "step,px,py,pz,qw,qx,qy,qz,rms\n" + "".join(
+            f"{i}," + ",".join("0" if x == 0 else f"{x:.9g}" for x in r) + "\n" for i, r in enumerate(rows)))
         written.append(path)
         v = np.asarray(tr.inputs["v"].value, dtype=float)[:, 0]
         vt = tr.inputs["v"].t
@@ -109,8 +107,8 @@ def export_lab_csv(log: Log, out_dir: str | Path, *, sensor: str = "tracker", po
         for f in fs:
             cmd[f] = tr.meta[f]
         path = out_dir / f"{tr.id}_cmd.csv"
-        path.write_text("".join(f"{k},{v:.12g}\n" if isinstance(v, float) else f"{k},{v}\n" for k, v in cmd.items()),
-                        encoding="utf-8")
+        write_text_atomic(path, "".join(f"{k},{v:.12g}\n" if isinstance(v, float) else f"{k},{v}\n"
+                                        for k, v in cmd.items()))
         written.append(path)
     nominal = float(np.median(np.concatenate(sigmas))) if sigmas and np.concatenate(sigmas).size else 0.2
     mapping = {
@@ -133,7 +131,7 @@ def export_lab_csv(log: Log, out_dir: str | Path, *, sensor: str = "tracker", po
                   "quaternion": {"w": "qw", "x": "qx", "y": "qy", "z": "qz"}},
     }
     path = out_dir / "mapping.yaml"
-    path.write_text("# written by needle log export-csv: imports the exports beside it\n"
-                    + yaml.safe_dump(mapping, sort_keys=False), encoding="utf-8")
+    write_text_atomic(path, "# written by needle log export-csv: imports the exports beside it\n"
+                      + yaml.safe_dump(mapping, sort_keys=False))
     written.append(path)
     return written

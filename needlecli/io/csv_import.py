@@ -49,6 +49,7 @@ from needlecli.io.csv_layout import (
     fill_file,
     first_valid_late,
     frame_trial,
+    merge_meta,
     missing_masks,
     order_rows,
     quaternion_masks,
@@ -187,20 +188,41 @@ class Mapping(Strict):
 
 def read_csv(path: Path, columns: list[str]) -> dict[str, np.ndarray]:
     """Numeric columns of a CSV with a header row; a bad row is an error naming file and line. Empty
-    cells (and nan, NA) are missing values (NaN): a lost sensor sample, an error in an input or truth."""
-    if not path.exists():
-        raise DataError(f"{path}: no such CSV file")
+    cells (and nan, NA) are missing values (NaN): a lost sensor sample, an error in an input or truth.
+
+    Blank lines (nothing but spaces) at the end of the file are ignored; a blank line between rows is an
+    error (a row of empty cells, ``,,,``, is how a lost sample is written: a blank line could be one, or
+    a pasted gap, and a time from the row index would shift by it). A column the mapping reads must be
+    named once in the header (two ``px``: which one is x would be a guess)."""
+    from needlecli.io.inputs import check_kind
+
+    check_kind(path, "a CSV file")  # a regular file (never a FIFO that would wait for ever)
     try:
         with path.open(newline="", encoding="utf-8") as f:
             rows = list(csv.reader(f))
     except (OSError, UnicodeDecodeError, csv.Error) as e:
         raise DataError(f"{path}: cannot read the CSV ({e})") from None
+
+    def blank(row: list[str]) -> bool:
+        return not row or (len(row) == 1 and not row[0].strip())
+
+    while rows and blank(rows[-1]):
+        rows.pop()
     if not rows:
         raise DataError(f"{path}: the CSV is empty")
     header = [h.strip() for h in rows[0]]
     for c in columns:
         if c not in header:
             raise DataError(f"{path}: [column {c}] not in the header ({', '.join(header)})")
+        twice = [j for j, h in enumerate(header) if h == c]
+        if len(twice) > 1:
+            raise DataError(f"{path}: [line 1, column {twice[1] + 1}] the header names {c!r} twice (columns "
+                            f"{twice[0] + 1} and {twice[1] + 1}): which one the mapping reads is ambiguous")
+    if len(header) > 1:
+        gap = next((r for r, row in enumerate(rows[1:]) if blank(row)), None)
+        if gap is not None:
+            raise DataError(f"{path}: [line {gap + 2}] is blank, between rows: blank lines are accepted at the end "
+                            "only (a lost sample is a row of empty cells, e.g. ',,,')")
     idx = [header.index(c) for c in columns]
     out = np.empty((len(rows) - 1, len(columns)))
     for r, row in enumerate(rows[1:]):
@@ -347,11 +369,52 @@ def _check_layout(mp: Mapping, src: str) -> None:
                               "(the frame needs the tip position)")
         if mp.frame.z == "orientation" and ref.quaternion is None:
             raise ConfigError(src, ("frame", "z"), f"stream {mp.frame.reference!r} has no quaternion")
+        if mp.frame.bend == "orientation" and ref.quaternion is None:
+            raise ConfigError(src, ("frame", "bend"), f"stream {mp.frame.reference!r} has no quaternion")
+    _check_unused(mp, src)
+
+
+def _check_unused(mp: Mapping, src: str) -> None:
+    """A key given where nothing reads it is an error, as everywhere in the mapping: a quaternion that
+    neither gives a tangent sensor's direction nor the frame's orientation, ``sigma_unit`` without
+    ``sigma_column``, a truth's ``sigma_column`` (a truth has no noise), a time ``unit`` beside a
+    ``period`` (in s), a constant input's ``time``, ``columns`` or ``units`` of a tangent that comes from
+    its quaternion."""
+    truth_rot = mp.truth is not None and (mp.truth.quaternion is not None
+                                          or {"alpha", "beta", "gamma"} <= set(mp.truth.columns))
     for name, spec in mp.sensors.items():
-        if spec.quaternion is not None and spec.sensor.get("type") != "tangent" and (
-                mp.frame is None or mp.frame.reference != name):
-            raise ConfigError(src, ("sensors", name, "quaternion"), "a sensor's quaternion gives a tangent sensor's "
-                              "direction or the frame's orientation (frame.reference); this one would be unused")
+        loc = ("sensors", name)
+        tangent = spec.sensor.get("type") == "tangent"
+        if spec.quaternion is not None and not tangent:
+            if mp.frame is None or mp.frame.reference != name:
+                raise ConfigError(src, (*loc, "quaternion"), "a sensor's quaternion gives a tangent sensor's "
+                                  "direction or the frame's orientation (frame.reference); this one would be unused")
+            if mp.frame.z == "path" and not (mp.frame.bend in ("auto", "orientation") and truth_rot):
+                raise ConfigError(src, (*loc, "quaternion"), "with frame z: path the frame's axes come from the path"
+                                  + (" and its bending direction too (bend: path)" if mp.frame.bend == "path" else
+                                     ", and the truth has no orientation its bending direction would roll")
+                                  + "; this quaternion would be unused")
+        if tangent and spec.quaternion is not None:
+            for key in ("columns", "units"):
+                if getattr(spec, key):
+                    raise ConfigError(src, (*loc, key), "the tangent comes from the quaternion (R e3); these "
+                                      f"{key} would be unused")
+    streams = [(("sensors", n), s) for n, s in mp.sensors.items()] + ([(("truth",), mp.truth)] if mp.truth else [])
+    for loc, spec in streams:
+        if spec.sigma_unit is not None and spec.sigma_column is None:
+            raise ConfigError(src, (*loc, "sigma_unit"), "without sigma_column it would be unused")
+        if loc == ("truth",) and spec.sigma_column is not None:
+            raise ConfigError(src, (*loc, "sigma_column"), "a truth has no noise: this column would be unused")
+    times = [(("time",), mp.time)] + [((*loc, "time"), s.time) for loc, s in streams] + [
+        (("inputs", n, "time"), s.time) for n, s in mp.inputs.items()]
+    for loc, t in times:
+        if t is not None and t.period is not None and "unit" in t.model_fields_set:
+            raise ConfigError(src, (*loc, "unit"), "a period is in s: this unit would be unused (it is the unit "
+                              "of a time column or formula)")
+    for name, spec in mp.inputs.items():
+        if spec.value is not None and spec.time is not None:
+            raise ConfigError(src, ("inputs", name, "time"), "a constant input (value) has no sample times: this "
+                              "time would be unused")
 
 
 def _start_stream(mp: Mapping) -> str:
@@ -365,7 +428,8 @@ def _trial_list(mp: Mapping, base: Path, src: str) -> list[tuple[str, Path, dict
     for i, ts in enumerate(mp.trials):
         meta = dict(ts.meta)
         if ts.meta_file:
-            meta.update(read_meta_file(base / fill_file(ts.meta_file, ts.id, meta, src, ("trials", i, "meta_file"))))
+            mf = base / fill_file(ts.meta_file, ts.id, meta, src, ("trials", i, "meta_file"))
+            merge_meta(meta, read_meta_file(mf), f"{mf}:", f"the mapping's trials -> {i} -> meta")
         out.append((ts.id, base / ts.dir, meta))
     return out
 
@@ -383,7 +447,7 @@ def _stream_time(mp, spec, default_time, meta, src, loc):
 def _check_formula_names(path: Path, formula, tcols: list[str], meta: dict) -> None:
     """A name of a time formula that is neither the row, the trial's metadata nor a column of the file:
     one error saying all three (before the CSV is read)."""
-    if formula is None or not tcols or not path.exists():
+    if formula is None or not tcols or not path.is_file():
         return
     try:
         with path.open(newline="", encoding="utf-8") as f:

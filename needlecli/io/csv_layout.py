@@ -111,8 +111,9 @@ class FrameSpec(Strict):
         "auto", description="initial direction from the reference's orientation (its quaternion) or from the "
         "path's first chord; auto: the orientation where there is one")
     bend: Literal["auto", "orientation", "path"] = Field(
-        "auto", description="bending direction from the orientations (body-frame change of the tangent) or "
-        "from the path's deviation from its initial line")
+        "auto", description="bending direction (the roll that puts it on -y) from the orientations (body-frame "
+        "change of the tangent) or from the path's deviation from its initial line; auto: the orientations "
+        "where the reference has a quaternion")
     chord: Positive = Field(3.0, description="path length for directions from positions, length unit")
 
 
@@ -144,46 +145,116 @@ def factors_from_label(label: str) -> dict[str, MetaValue]:
     return {k.strip(): parse_value(v) for k, v in pairs if k.strip()}
 
 
+#: the layouts of a command file :func:`read_meta_file` reads, as its errors name them
+META_LAYOUTS = ("YAML/JSON mapping", "a header and one row per step", "name,value lines")
+
+
 def read_meta_file(path: Path) -> dict[str, MetaValue]:
-    """A per-trial command file as metadata: YAML or JSON (by suffix) holding a mapping; else text with
-    one header row and one row of values (comma, semicolon or tab separated), or ``key<sep>value`` lines
-    (``,``, ``=``, ``:``, tab or spaces)."""
-    if not path.exists():
-        raise DataError(f"{path}: no such command file")
+    """A per-trial command file as metadata, in one of three layouts, told apart by their content and
+    named in every error (:data:`META_LAYOUTS`):
+
+    * **YAML/JSON mapping**: a ``.yaml``, ``.yml`` or ``.json`` file, or any file whose text starts with
+      ``{`` (one-line JSON): names to numbers, text or true/false. A nested value (a list, a mapping) is
+      refused with its key; a key given twice with its line (the one YAML reader,
+      :mod:`needlecli.io.yamlfile`).
+    * **a header and one row per step** (comma, semicolon or tab separated): the header's names (no number
+      among them), then one row of values, or one identical row per step (the per-trial layout of many
+      lab exports): each column must hold one value in every row, which becomes the trial's metadata (a
+      column that varies is an error naming it, as a ragged row or a name given twice in the header is).
+      With two columns, the rows below the header must start with a number, or be identical and more than
+      one (else the file is name,value lines); two lines of two texts (``needle,nitinol`` over
+      ``medium,agar``) read either way, and are an error saying both readings.
+    * **name,value lines** (``,``, ``=``, ``:``, tab or spaces between the two): a name given twice is an
+      error naming its two lines.
+
+    ``#`` comment lines and blank lines are skipped anywhere; line numbers in errors are the file's."""
+    from needlecli.io.inputs import check_kind
+
+    check_kind(path, "a command file")  # a regular file (never a FIFO that would wait for ever)
     try:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as e:
         raise DataError(f"{path}: cannot read the command file ({e})") from None
-    if path.suffix.lower() in (".yaml", ".yml", ".json"):
-        import yaml
-
-        try:
-            data = yaml.safe_load(text)
-        except yaml.YAMLError as e:
-            raise DataError(f"{path}: not valid YAML/JSON ({str(e).splitlines()[0]})") from None
-        if not isinstance(data, dict):
-            raise DataError(f"{path}: the command file must hold a mapping of names to values")
-        out = {}
-        for k, v in data.items():
-            if not isinstance(v, (str, int, float, bool)):
-                raise DataError(f"{path}: [{k}] must be a number, a string or true/false")
-            out[str(k)] = v if not isinstance(v, str) else parse_value(v)
-        return out
-    lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    if path.suffix.lower() in (".yaml", ".yml", ".json") or text.lstrip().startswith(("{", "[")):
+        return _meta_mapping(path, text)
+    lines = [(n, ln) for n, ln in enumerate(text.splitlines(), 1) if ln.strip() and not ln.lstrip().startswith("#")]
     if not lines:
         raise DataError(f"{path}: the command file is empty")
-    for sep in (",", ";", "\t"):
-        if len(lines) == 2 and sep in lines[0]:
-            head = next(csv.reader([lines[0]], delimiter=sep))
-            vals = next(csv.reader([lines[1]], delimiter=sep))
-            if len(head) == len(vals) and (len(head) > 2 or not _is_number(head[1])):
-                return {h.strip(): parse_value(v) for h, v in zip(head, vals)}
-    out = {}
-    for n, ln in enumerate(lines, 1):
+    table = _meta_table(path, lines)
+    if table is not None:
+        return table
+    out: dict[str, MetaValue] = {}
+    first: dict[str, int] = {}
+    for n, ln in lines:
         m = re.match(r"\s*([^,=:\t ]+)\s*(?:[,=:\t]|\s)\s*(.*?)\s*$", ln)
         if not m or m.group(2) == "":
-            raise DataError(f"{path}: [line {n}] expected 'name value' (or name,value / name=value), got {ln.strip()!r}")
-        out[m.group(1)] = parse_value(m.group(2))
+            raise DataError(f"{path}: [line {n}] expected 'name value' (or name,value / name=value) as in name,value "
+                            f"lines, got {ln.strip()!r:.60}; a command file holds {', '.join(META_LAYOUTS[:-1])} or "
+                            f"{META_LAYOUTS[-1]}")
+        name = m.group(1)
+        if name in first:
+            raise DataError(f"{path}: [line {n}, column 1] {name!r} is given twice (first on line {first[name]}): which "
+                            "value holds is ambiguous")
+        first[name] = n
+        out[name] = parse_value(m.group(2))
+    return out
+
+
+def _meta_mapping(path: Path, text: str) -> dict[str, MetaValue]:
+    """A YAML/JSON command file (:func:`read_meta_file`)."""
+    from needlecli.io.yamlfile import parse_yaml
+
+    data = parse_yaml(text, str(path), "a command file (YAML/JSON mapping)")
+    out = {}
+    for k, v in data.items():
+        if not isinstance(v, (str, int, float, bool)):
+            kind = ("a list" if isinstance(v, list) else "a mapping" if isinstance(v, dict) else "empty" if v is None
+                    else f"a {type(v).__name__} ({v})")
+            raise DataError(f"{path}: [{k}] is {kind}: a command file (YAML/JSON mapping) gives each name a number, "
+                            "a text or true/false")
+        out[str(k)] = v if not isinstance(v, str) else parse_value(v)
+    return out
+
+
+def _meta_table(path: Path, lines: list[tuple[int, str]]) -> dict[str, MetaValue] | None:
+    """A header and one row per step (:func:`read_meta_file`): the constant columns, or None when the file
+    is not in that layout."""
+    if len(lines) < 2:
+        return None
+    sep = next((c for c in (",", ";", "\t") if c in lines[0][1]), None)
+    if sep is None:
+        return None
+    rows = [[c.strip() for c in next(csv.reader([ln], delimiter=sep))] for _, ln in lines]
+    head = rows[0]
+    if len(head) < 2 or any(not h or _is_number(h) for h in head):
+        return None
+    if len(head) == 2:  # or name,value lines whose first value is a text
+        if len(rows[1]) != 2 or not (all(_is_number(r[0]) for r in rows[1:] if r)
+                                     or (len(rows) > 2 and all(r == rows[1] for r in rows[2:]))):
+            if len(rows) == 2 and len(rows[1]) == 2:  # two texts over two texts: either reading holds
+                raise DataError(f"{path}: [line {lines[1][0]}] two readings hold: name,value lines ({head[0]} = "
+                                f"{head[1]!r}, {rows[1][0]} = {rows[1][1]!r}) or a header and one row ({head[0]} = "
+                                f"{rows[1][0]!r}, {head[1]} = {rows[1][1]!r}); write it so that one does (name = value lines, "
+                                "or a YAML/JSON mapping)")
+            return None
+    layout = META_LAYOUTS[1]
+    seen: dict[str, int] = {}
+    for j, h in enumerate(head, 1):
+        if h in seen:
+            raise DataError(f"{path}: [line {lines[0][0]}, column {j}] {h!r} is given twice in the header (columns "
+                            f"{seen[h]} and {j}) of {layout}: which value holds is ambiguous")
+        seen[h] = j
+    for (n, _), r in zip(lines[1:], rows[1:]):
+        if len(r) != len(head):
+            raise DataError(f"{path}: [line {n}] has {len(r)} fields, the header has {len(head)} ({layout})")
+    out = {}
+    for j, h in enumerate(head):
+        first = rows[1][j]
+        for (n, _), r in zip(lines[2:], rows[2:]):
+            if r[j] != first:
+                raise DataError(f"{path}: [line {n}, column {h}] the column varies ({first!r} on line {lines[1][0]}, "
+                                f"{r[j]!r} here): {layout} holds one value per column, the trial's metadata")
+        out[h] = parse_value(first)
     return out
 
 
@@ -315,15 +386,24 @@ def discover_trials(base: Path, spec: DiscoverSpec, source: str) -> list[tuple[s
             raise DataError(f"{p}: trial id {tid!r} also comes from {seen[tid]}")
         seen[tid] = p
         meta: dict = dict(spec.meta)
-        meta.update({k: parse_value(v) for k, v in found.items()})
+        merge_meta(meta, {k: parse_value(v) for k, v in found.items()}, f"{p}: [file name]", "the mapping's discover.meta")
         if spec.meta_file:
             mf = base / _fill(spec.meta_file, {"id": tid, **found}, source, ("discover", "meta_file"))
-            meta.update(read_meta_file(mf))
+            merge_meta(meta, read_meta_file(mf), f"{mf}:", f"the file name {p.name} or the mapping")
             meta["command_file"] = str(mf.relative_to(base)) if mf.is_relative_to(base) else str(mf)
         out.append((tid, p.parent, meta))
     if not out:
         raise DataError(f"{base / glob}: no file matches the trials' template {spec.files!r}")
     return sorted(out, key=lambda x: x[0])
+
+
+def merge_meta(meta: dict, new: dict, where: str, before: str) -> None:
+    """Add a trial's metadata from another place (in place): a name both give is an error unless they give
+    the same value (``where``: the new place, in words; ``before``: the earlier ones)."""
+    for k, v in new.items():
+        if k in meta and (meta[k] != v or isinstance(meta[k], bool) != isinstance(v, bool)):
+            raise DataError(f"{where} [{k}] is {v!r} here but {meta[k]!r} in {before}: which value holds is ambiguous")
+        meta[k] = v
 
 
 def _fill(template: str, fields: dict, source: str, loc: tuple) -> str:
@@ -428,8 +508,11 @@ def start_trial(trial, mode: str, stream: str, rotations: dict, report: dict) ->
     times shifted so that it is t = 0 (an input keeps the value in effect then); ``trim``: that stream's
     leading invalid rows are dropped, the clock kept; ``keep``: as recorded."""
     first = _first_valid(trial, stream)
-    if first is None:
-        raise DataError(f"trial {trial.id}: stream {stream!r} has no valid sample")
+    if first is None:  # named with the stream's file, as read for this trial (a header only: 0 rows)
+        read = (report.get("streams") or {}).get(stream) or {}
+        rows = f" ({read['rows']} row(s) read)" if "rows" in read else ""
+        raise DataError(f"{read.get('file') or report.get('mapping', 'the mapping')}: [trial {trial.id} -> {stream}] "
+                        f"has no valid sample{rows}: nothing to start the trial at")
     t0, row = first
     rep: dict = {"mode": mode, "stream": stream, "first_valid_row": row, "first_valid_time_s": t0}
     if mode == "keep" or (row == 0 and (mode == "trim" or t0 == 0.0)):
@@ -496,9 +579,10 @@ def frame_trial(trial, spec: FrameSpec, rotations: dict, report: dict, *, path: 
         raise DataError(f"{where} fewer than two valid samples of {ref!r}")
     rot = rotations.get(ref)
     use_rot = rot is not None and spec.z in ("auto", "orientation")
+    bend_rot = rot is not None and spec.bend in ("auto", "orientation")
     psi = 0.0
     info: dict = {"reference": ref}
-    if rot is not None:
+    if bend_rot:
         k = chord_step(pos, ok, spec.chord)
         i, j, _, n = chord_pairs(pos, ok, k, 0.3 * spec.chord)
         if len(i) >= 3:
@@ -508,6 +592,15 @@ def frame_trial(trial, spec: FrameSpec, rotations: dict, report: dict, *, path: 
         else:
             info["roll"] = "none: too little path to see the bending direction"
     first = int(np.nonzero(ok)[0][0])
+    if use_rot and not bend_rot:  # bend: path, seen in the first pose's body frame
+        d = (pos[ok] - pos[first]) @ pose_axes(rot[first]).T
+        d[:, 2] = 0.0  # the deviation from the initial tangent
+        if np.linalg.norm(d.mean(0)) > 1e-9:
+            psi, direction = bend_roll(d)
+            info["roll_psi_deg"] = round(float(np.degrees(psi)), 3)
+            info["bend_from"] = "mean deviation of the path from the initial tangent"
+        else:
+            info["roll"] = "none: a straight path shows no bending direction"
     if use_rot:
         G, p0 = pose_axes(rolled(rot[first], psi)), pos[first]
         info["z_from"] = f"orientation at the first valid pose (sample {first} of the trial)"

@@ -108,3 +108,47 @@ def path_frame(pos: np.ndarray, ok: np.ndarray, chord: float = 3.0) -> tuple[np.
     y = -b / np.linalg.norm(b)
     x = np.cross(y, z)
     return np.stack([x, y, z]), p0, info
+
+
+#: A trial whose recorded path starts more than this many degrees from the model's insertion axis is
+#: warned about (``needle log info``, ``needle fit-em``). In a trial frame a path starts along the axis to
+#: within the guide's misalignment, the tracker's noise over the chord and the bending of its first tenth
+#: (:func:`initial_directions`): at most 20 deg in the 19 recorded ultrasteer insertions (their tracker),
+#: under 10 deg in the synthetic lab exports of ``make owndata``. 30 deg is beyond that, and far short of
+#: where the bevel-tip models' coordinates fail (90 deg, beta = +-pi/2): a path this far off was recorded in
+#: another frame (an insertion along the tracker's x, a frame taken from a flipped pose), and EM fits it
+#: with values outside the model's (a negative speed scale for a path run backwards) rather than failing.
+AXIS_WARNING_DEG = 30.0
+
+
+def initial_directions(pos: np.ndarray, ok: np.ndarray, fraction: float = 0.1) -> np.ndarray:
+    """The direction each path starts in, ``(N, 3)`` unit vectors (NaN for a path with fewer than two valid
+    samples apart): from its first valid sample to the first valid sample at least ``fraction`` of the
+    path's extent (its largest distance from the first valid sample) away, for paths ``pos (N, M, 3)``
+    with valid samples ``ok (N, M)``; all paths at once. Scale-free: the chord is a tenth of the path in
+    any length unit."""
+    pos = np.asarray(pos, dtype=float)
+    ok = np.asarray(ok, dtype=bool) & np.isfinite(pos).all(-1)
+    N = pos.shape[0]
+    out = np.full((N, 3), np.nan)
+    if pos.shape[1] == 0:
+        return out
+    rows = np.arange(N)
+    first = np.argmax(ok, axis=1)
+    d = pos - pos[rows, first][:, None, :]
+    dist = np.where(ok, np.linalg.norm(np.where(ok[..., None], d, 0.0), axis=-1), 0.0)
+    extent = dist.max(axis=1)
+    far = ok & (dist >= fraction * extent[:, None]) & (dist > 0)
+    has = far.any(axis=1) & (extent > 0)
+    j = np.argmax(far, axis=1)
+    out[has] = d[rows[has], j[has]] / dist[rows[has], j[has]][:, None]
+    return out
+
+
+def axis_angles(directions: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """Angles in degrees ``(N,)`` between unit vectors ``directions (N, 3)`` and ``axis`` ``(3,)`` or ``(N, 3)``
+    (NaN where a direction is NaN)."""
+    a = np.asarray(axis, dtype=float)
+    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
+    with np.errstate(invalid="ignore"):
+        return np.degrees(np.arccos(np.clip(np.sum(directions * a, axis=-1), -1.0, 1.0)))

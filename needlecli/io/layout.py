@@ -28,7 +28,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from needlecli.errors import DataError
+from needlecli.errors import DataError, shown
 
 MAX_DEPTH = 8
 _KINDS = {"float": "fiub", "num": "fiub", "int": "iu", "bool": "b", "str": "OSU", "any": None}
@@ -142,6 +142,18 @@ RESULTS = G(attrs={
         "constants": G(optional=True, attrs={"trials_ok": A("int"), "trials": A("int")}, members={
             "name": D("str", _s(("P",))), "median": D("float", _s(("P",))), "se": D("float", _s(("P",))),
         }),
+        # predictions from the held-out trials' own poses, per pose source (truth or an observer)
+        "from_pose": G(optional=True, open=False, members={"*": G(attrs={
+            "depths": A("any"), "pose_from": A("str"), "skipped": A("any", optional=True),
+        }, members={
+            "start_index": D("int", _s(("N", "D"))),
+            "index": D("int", _s(("K",)), index="T"),
+            "*": G(attrs={"names": A("strs", "k", optional=True), "units": A("strs", "k", optional=True)}, members={
+                "state": D("float", _s(("N", "D", "K", "k")), optional=True),
+                "status": D("str", _s(("N", "D"))),
+                "reason": D("str", _s(("N", "D"))),
+            }),
+        })}),
     }),
 })
 
@@ -184,6 +196,18 @@ FIT = G(attrs={
         "constant": G(optional=True, open=False, members={"*": D("float", _s(("N",)))}),
         "R": G(optional=True, open=False, members={"*": D("float", _s(("N", "*", "*"), ("*", "*")))}),
         "history": G(optional=True, open=False, members={"*": D("num", _s(("N", "I"), ("N", "I", "*")))}),
+        # what the data identify (docs/reference/fit-file.md); its recovery and design groups are additions
+        "identifiability": G(optional=True, attrs={"quantities": A("strs", "d"), "group_labels": A("strs", "G", optional=True)},
+                             members={
+            "estimate": D("float", _s(("N", "d"))),
+            "verdict": D("str", _s(("N", "d"))),
+            "used": D("bool", _s(("N",))),
+            "truth": D("float", _s(("N", "d")), optional=True),
+            "group": D("int", _s(("N",)), optional=True),
+            "group_verdict": D("str", _s(("G", "d")), optional=True),
+            "group_reason": D("str", _s(("G", "d")), optional=True),
+            "group_z": D("float", _s(("G", "d")), optional=True),
+        }),
     })}),
 })
 
@@ -217,7 +241,7 @@ class _Check:
         self.seen: set = set()
 
     def fail(self, where: str, msg: str) -> DataError:
-        return DataError(f"{self.path}: [{where or '/'}] {' '.join(msg.split())}")
+        return DataError(f"{shown(self.path)}: [{where or '/'}] {' '.join(msg.split())}")
 
     # ---- attributes
     def attrs(self, obj, spec: dict, where: str, env: dict) -> None:
@@ -479,3 +503,22 @@ def _reason(e: BaseException) -> str:
 def check_layout(f: h5py.File, layout: G, path: str | Path) -> None:
     """Check an open HDF5 file against ``layout``; raise :class:`DataError` at the first problem."""
     _Check(Path(path)).group(f, layout, "", {}, 0)
+
+
+def root_attribute(f: h5py.File, name: str, kind: str, path: str | Path):
+    """The root attribute ``name`` of an open file (decoded; a numpy scalar as a Python one), None when
+    absent; one of the wrong type (an array where a text or an integer is documented, a list ``config``)
+    is a :class:`DataError` naming it: ``r.h5: [/ attribute format] should be an integer, is an array of
+    shape (2,) (integers)``. ``kind``: as :class:`A`'s (``int``, ``str``, ``num``, ``any``)."""
+    check = _Check(Path(path))
+    try:
+        if name not in f.attrs:
+            return None
+        v = f.attrs[name]
+    except (OSError, RuntimeError, KeyError, TypeError, ValueError) as e:
+        raise check.fail("/ attribute " + name, f"cannot be read ({_reason(e)})") from None
+    check.attr_value(v, A(kind), f"/ attribute {name}", {})
+    v = _decode(v)
+    if isinstance(v, np.ndarray) and v.shape == ():
+        v = v.item()
+    return v.item() if isinstance(v, np.generic) else v

@@ -320,19 +320,24 @@ def _read_trial(path, tid: str, g: h5py.Group) -> Trial:
 
 
 def read_log(path: str | Path) -> Log:
-    """Read and check a log file completely."""
+    """Read and check a log file completely, its kind and format checked first (:mod:`needlecli.io.inputs`)."""
+    from needlecli.errors import shown
+    from needlecli.io.inputs import describe, open_hdf5
+    from needlecli.io.layout import root_attribute
+
     path = Path(path)
-    if not path.exists():
-        raise DataError(f"{path}: no such log file")
     try:
-        with h5py.File(path, "r") as f:
-            fmt = _decode(f.attrs.get("format", ""))
-            if fmt != LOG_FORMAT:
-                shown = fmt.item() if isinstance(fmt, np.generic) else fmt
-                raise DataError(f"{path}: not a needlecli log (format attribute {shown!r:.40}, expected {LOG_FORMAT!r})")
-            version = int(f.attrs.get("version", 0))
+        with open_hdf5(path, "a log file") as f:
+            fmt = root_attribute(f, "format", "any", path)
+            if isinstance(fmt, np.ndarray):  # an array where the documented text is: named with its path
+                root_attribute(f, "format", "str", path)
+            if not isinstance(fmt, str) or fmt != LOG_FORMAT:
+                shown_fmt = fmt if isinstance(fmt, (str, int, float)) or fmt is None else f"an array of shape {np.shape(fmt)}"
+                raise DataError(f"{shown(path)}: not a needlecli log: it is {describe(path)} (format attribute "
+                                f"{shown_fmt!r:.40}, expected {LOG_FORMAT!r})")
+            version = root_attribute(f, "version", "int", path) or 0
             if version > LOG_VERSION:
-                raise DataError(f"{path}: log version {version} is newer than this needlecli reads ({LOG_VERSION})")
+                raise DataError(f"{shown(path)}: log version {version} is newer than this needlecli reads ({LOG_VERSION})")
             check_layout(f, LOG, path)
             if not len(f["trials"]):
                 raise DataError(f"{path}: the log holds no trials")

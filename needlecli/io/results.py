@@ -39,9 +39,9 @@ import h5py
 import numpy as np
 
 from needlecli import __version__, platform
-from needlecli.errors import DataError
+from needlecli.errors import DataError, shown
 from needlecli.io.atomic import atomic_path, deferred_signals, write_fd
-from needlecli.io.layout import RESULTS, check_layout
+from needlecli.io.layout import RESULTS, _what, check_layout, root_attribute
 from needlecli.io.tree import Group
 from needlecli.provenance import git_hash
 
@@ -351,27 +351,31 @@ def _one_line(e: BaseException) -> str:
 
 
 def read_results(path: str | Path) -> Group:
-    """Load a results file completely, its structure checked first against the documented layout
-    (:data:`needlecli.io.layout.RESULTS`). Raises :class:`DataError` for missing, corrupt or damaged files,
-    naming the HDF5 path of the first problem."""
+    """Load a results file completely: its kind and format checked first (:mod:`needlecli.io.inputs`), then
+    its structure against the documented layout (:data:`needlecli.io.layout.RESULTS`). Raises
+    :class:`DataError` for missing, corrupt or damaged files and files of another kind, naming the HDF5
+    path of the first problem."""
+    from needlecli.io.inputs import describe, open_hdf5
+
     path = Path(path)
-    if not path.exists():
-        raise DataError(f"{path}: no such results file")
     try:
-        with h5py.File(path, "r") as f:
-            fmt = f.attrs.get("format")
-            if fmt is None or "truth" not in f or "time" not in f:
-                raise DataError(f"{path}: not a needlecli results file (no format attribute, /time or /truth)")
-            fmt = _decode(fmt)
-            if isinstance(fmt, np.ndarray) or not isinstance(fmt, (int, np.integer)):
-                raise DataError(f"{path}: [/ attribute format] should be the integer {RESULTS_FORMAT}, is {fmt!r:.40}")
-            if int(fmt) > RESULTS_FORMAT:
-                raise DataError(
-                    f"{path}: results format {int(fmt)} is newer than this needlecli reads ({RESULTS_FORMAT})"
-                )
+        with open_hdf5(path, "a results file") as f:
+            fmt = root_attribute(f, "format", "any", path)
+            missing = [n for n in ("time", "truth") if n not in f]
+            if fmt is None or missing:
+                kind = describe(path)
+                what = "" if kind.startswith("a results file") else f": it is {kind}"
+                lacks = "no format attribute" if fmt is None else "no " + " or ".join("/" + m for m in missing)
+                raise DataError(f"{shown(path)}: not a needlecli results file{what} ({lacks})")
+            if isinstance(fmt, bool) or not isinstance(fmt, int):
+                raise DataError(f"{shown(path)}: [/ attribute format] should be the integer {RESULTS_FORMAT}, is "
+                                f"{_what(fmt)}")
+            if fmt > RESULTS_FORMAT:
+                raise DataError(f"{shown(path)}: results format {fmt} is newer than this needlecli reads "
+                                f"({RESULTS_FORMAT})")
             check_layout(f, RESULTS, path)
             return _read(f)
     except DataError:
         raise
     except (OSError, KeyError, ValueError, TypeError, RuntimeError) as e:
-        raise DataError(f"{path}: cannot read the results file ({e.__class__.__name__}: {_one_line(e)})") from None
+        raise DataError(f"{shown(path)}: cannot read the results file ({e.__class__.__name__}: {_one_line(e)})") from None

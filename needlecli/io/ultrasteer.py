@@ -104,8 +104,9 @@ def default_data_dir() -> Path | None:
 def read_numbers(path: Path, *, finite: bool = False) -> np.ndarray:
     """A whitespace-separated numeric file as a 2D array (a single row or column stays 2D); with
     ``finite``, a NaN or infinite entry is an error naming its row and column (times, speeds, angles)."""
-    if not path.exists():
-        raise DataError(f"{path}: no such file")
+    from needlecli.io.inputs import check_kind
+
+    check_kind(path, "a file of numbers", missing="no such file")  # a regular file, never a FIFO
     try:
         a = np.loadtxt(path, ndmin=2)
     except (OSError, ValueError, UnicodeDecodeError) as e:
@@ -215,7 +216,7 @@ def _tracker_validity(pos: np.ndarray, rot: np.ndarray) -> tuple[np.ndarray, dic
 def _lut_base(folder: Path) -> tuple[str, str, int | None] | None:
     """``(session, speed folder, trial)`` from ``paramsFullState.dat``'s ``lutBasePath``, if it names one."""
     p = folder / "paramsFullState.dat"
-    if not p.exists():
+    if not p.is_file():
         return None
     for line in p.read_text(errors="replace").splitlines():
         if line.startswith("lutBasePath"):

@@ -167,31 +167,14 @@ def parse_value(text: str, source: str, loc: tuple) -> Any:
 
 
 def read_text(path: str | Path, what: str = "a config") -> str:
-    """The text of a YAML (or other text) file: at most :data:`MAX_BYTES`, UTF-8, no NUL bytes. Raises
+    """The text of a YAML (or other text) file: a regular file (never a folder, a named pipe or a device:
+    :mod:`needlecli.io.inputs`), at most :data:`MAX_BYTES`, UTF-8, no NUL bytes. Raises
     :class:`ConfigError` naming the file (no such file, a folder, too large, binary, unreadable)."""
+    from needlecli.io.inputs import read_text as read_input
+
     source = str(path)
-    p = Path(path)
-    try:
-        with p.open("rb") as f:
-            raw = f.read(65536)  # binary content shows at once (/dev/zero, an HDF5 file)
-            if b"\0" not in raw and len(raw) == 65536:
-                raw += f.read(MAX_BYTES + 1 - len(raw))
-    except FileNotFoundError:
-        raise ConfigError(source, (), "no such file") from None
-    except IsADirectoryError:
-        raise ConfigError(source, (), f"is a folder, not {what}") from None
-    except OSError as e:
-        raise ConfigError(source, (), f"cannot read the file: {e.strerror or e}") from None
-    if len(raw) > MAX_BYTES:
-        raise ConfigError(source, (), f"is larger than {MAX_BYTES // 2**20} MiB: not {what} (a YAML file)")
-    nul = raw.find(b"\0")
-    if nul >= 0:
-        raise ConfigError(source, (), f"is not a text file (a NUL byte at byte {nul}): not {what} (a YAML file)")
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as e:
-        raise ConfigError(source, (), f"is not a UTF-8 text file (byte {e.start}): not {what} (a YAML file)") from None
-    return text[1:] if text.startswith("\ufeff") else text
+    return read_input(path, what, limit=MAX_BYTES, error=lambda m: ConfigError(source, (), m), missing="no such file",
+                      form="a YAML file")
 
 
 def read_yaml(path: str | Path, what: str = "a config") -> tuple[dict, str]:

@@ -1,5 +1,15 @@
 """Error metrics computed from a results file only."""
 
-from needlecli.metrics.errors import ErrorSet, QuantityError, compute_errors, depth_axis
+from needlecli.metrics.errors import (
+    AXIS_QUANTITIES,
+    NEEDLE_QUANTITIES,
+    ErrorSet,
+    QuantityError,
+    compute_errors,
+    depth_axis,
+    reference_tangent,
+    split,
+)
 
-__all__ = ["ErrorSet", "QuantityError", "compute_errors", "depth_axis"]
+__all__ = ["AXIS_QUANTITIES", "NEEDLE_QUANTITIES", "ErrorSet", "QuantityError", "compute_errors", "depth_axis",
+           "reference_tangent", "split"]

@@ -3,6 +3,11 @@
 Quantities, each present when both the truth and the estimate carry it (matched by state names):
 
 ``E_xyz``    tip position error norm, mm (metres of the magnetic models converted here, at the edge)
+``E_x``, ``E_y``, ``E_z``  absolute error of each position axis, mm (an axis no sensor observes shows
+             here: a 2D probe's z); for every axis both the truth and the estimate have
+``E_lat``, ``E_ax``  the position error across and along the true needle axis, mm, where the results
+             file's model has a tangent: with ``e = p_est - p_true`` and the truth's unit tangent ``t``,
+             ``E_ax = |e . t|`` (axial: where along the needle) and ``E_lat = |e - (e . t) t|`` (lateral)
 ``E_<a>``    absolute wrapped error of each angle state (alpha, beta, gamma), deg
 ``E_R``      angle of the rotation error ``R_true^T R_est``, deg, for estimates with a full orientation
 ``E_h``, ``E_B``  angle between true and estimated unit vectors (magnetic models), deg
@@ -24,6 +29,41 @@ from needlecli.numerics import angle_diff, euler_xyz_to_matrix, rotation_angle
 
 _LENGTH_TO_MM = {"mm": 1.0, "m": 1000.0, "cm": 10.0}
 _R = tuple(f"R{i}{j}" for i in range(1, 4) for j in range(1, 4))
+_POSITIONS = (("x", "y", "z"), ("px", "py", "pz"))
+#: the per-axis position errors (named by axis whatever the model calls its position states)
+AXIS_QUANTITIES = ("E_x", "E_y", "E_z")
+#: the position error across and along the true needle axis
+NEEDLE_QUANTITIES = ("E_lat", "E_ax")
+
+
+def _strs(v) -> list[str]:
+    return [x.decode() if isinstance(x, bytes) else str(x) for x in np.atleast_1d(v)]
+
+
+def reference_tangent(res: Group) -> np.ndarray | None:
+    """Unit tangents ``(N, T, 3)`` of the truth's (or a replay's reference's) states, NaN where there is
+    none, from the ``tangent`` of the results file's model; None when that model has no tangent or the
+    truth does not hold its states."""
+    from needlecli.models import MODELS
+
+    name = str(res.attrs.get("model", ""))
+    if name not in MODELS:
+        return None
+    cls = MODELS.get(name)
+    names = _strs(res.data["truth"].attrs.get("names", cls.state_names))
+    if not cls.provides("tangent") or tuple(names) != tuple(cls.state_names):
+        return None
+    with np.errstate(all="ignore"):
+        t = cls().tangent(np.asarray(res.data["truth"].data["state"], dtype=float))
+        return t / np.linalg.norm(t, axis=-1, keepdims=True)
+
+
+def split(err: np.ndarray, tangent: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(along (...), across (...))`` of position errors ``(..., 3)`` against unit tangents ``(..., 3)``:
+    ``along = e . t`` (signed), ``across = |e - along t|``."""
+    along = np.einsum("...i,...i->...", err, tangent)
+    across = np.linalg.norm(err - along[..., None] * tangent, axis=-1)
+    return along, across
 
 
 @dataclass
@@ -127,6 +167,7 @@ def compute_errors(res: Group, *, kernels: str | None = None) -> dict[str, Error
     t_angles = set(truth.attrs.get("angles", []))
     params = truth.data.get("params", Group()).data
     scale = _LENGTH_TO_MM.get(str(res.attrs.get("length_unit", "mm")), 1.0)
+    tangent = reference_tangent(res)  # (N, T, 3) or None: no needle axis
     out: dict[str, ErrorSet] = {}
     for name, grp in res.data.get("estimates", Group()).data.items():
         e_names = list(grp.attrs["names"])
@@ -145,7 +186,7 @@ def compute_errors(res: Group, *, kernels: str | None = None) -> dict[str, Error
             for st in np.unique(grp.data["status"][t_ok & ~e_ok]):
                 es.excluded[f"estimate {st}"] = int(((grp.data["status"] == st) & t_ok).sum())
         ts, xs = (t_state, est) if keep.size == n_runs else (t_state[keep], est[keep])  # no copy when all are kept
-        pos_t = next((ax for ax in (("x", "y", "z"), ("px", "py", "pz")) if all(a in t_names for a in ax)), None)
+        pos_t = next((ax for ax in _POSITIONS if all(a in t_names for a in ax)), None)
         pre = ({} if state_errors is None else
                _compiled_errors(state_errors, t_names, e_names, t_angles, e_angles, pos_t, scale, t_state, est, keep))
 
@@ -154,13 +195,19 @@ def compute_errors(res: Group, *, kernels: str | None = None) -> dict[str, Error
 
         used: set[str] = set()
         if pos_t and all(a in e_names for a in pos_t):
-            if "E_xyz" in pre:
-                err = pre["E_xyz"]
-            else:
-                d = np.stack([col(e_names, xs, a) - col(t_names, ts, a) for a in pos_t], -1)
-                err = scale * np.linalg.norm(d, axis=-1)
+            d = np.stack([col(e_names, xs, a) - col(t_names, ts, a) for a in pos_t], -1)  # (N_kept, T, 3)
+            err = pre["E_xyz"] if "E_xyz" in pre else scale * np.linalg.norm(d, axis=-1)
             es.quantities["E_xyz"] = QuantityError("E_xyz", "mm", err, keep)
+            if tangent is not None:
+                along, across = split(d, tangent if keep.size == n_runs else tangent[keep])
+                es.quantities["E_lat"] = QuantityError("E_lat", "mm", scale * across, keep)
+                es.quantities["E_ax"] = QuantityError("E_ax", "mm", scale * np.abs(along), keep)
             used.update(pos_t)
+        for a in pos_t or ():  # per axis, also where the estimate has some of the axes only (seed 000's x)
+            if a in e_names:
+                es.quantities[f"E_{a[-1]}"] = QuantityError(
+                    f"E_{a[-1]}", "mm", scale * np.abs(col(e_names, xs, a) - col(t_names, ts, a)), keep)
+                used.add(a)
         euler = ("alpha", "beta", "gamma")
         if all(a in t_names for a in euler) and all(a in e_names for a in euler) and rotation_error is not None:
             err = rotation_error(t_state, est, keep, [t_names.index(a) for a in euler],  # without the (N, T, 3, 3)
@@ -199,12 +246,6 @@ def compute_errors(res: Group, *, kernels: str | None = None) -> dict[str, Error
                 es.quantities[f"E_{k}"] = QuantityError(f"E_{k}", unit, np.abs(col(e_names, xs, k) - tv), keep)
         es.not_estimated = [k for k in t_names if k not in e_names and k not in used]
         kind = str(res.attrs.get("truth_kind", "simulation"))
-        if "E_xyz" in es.quantities and not np.isfinite(es.quantities["E_xyz"].values).any() and pos_t:
-            # the reference lacks an axis (e.g. a fit of a 2D image): report the axes it has
-            for a in pos_t:
-                err = scale * np.abs(col(e_names, xs, a) - col(t_names, ts, a))
-                if np.isfinite(err).any():
-                    es.quantities[f"E_{a}"] = QuantityError(f"E_{a}", "mm", err, keep)
         for q in list(es.quantities):
             if not np.isfinite(es.quantities[q].values).any():
                 if kind == "none":

@@ -47,7 +47,8 @@ class OpenLoopSettings(ObserverSettings):
 class OpenLoop(Observer):
     Settings = OpenLoopSettings
     takes_common_start = True
-    fit_takes = FitTakes(q="per_root_second", measurements=False, sensor_states=False)
+    model_only = True  # the reference every filter must beat (needle compare warns when one does not)
+    fit_takes = FitTakes(measurements=False, sensor_states=False)
 
     @classmethod
     def derived_settings(cls, ctx):

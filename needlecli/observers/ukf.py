@@ -120,8 +120,8 @@ class UKFSettings(ObserverSettings):
     beta: NonNeg = Field(2.0, description="prior-distribution weight of the sigma points (2 is optimal for a "
                                           "Gaussian; seed 003: 2)")
     kappa: float = Field(0.0, description="secondary scaling of the sigma points (seed 003: 0); not the curvature")
-    q: dict[str, NonNeg] = Field(default_factory=dict, description="process noise std per state per tick")
-    p0: dict[str, NonNeg] = Field(default_factory=dict, description="initial variance per state")
+    q: dict[str, NonNeg] = Field(default_factory=dict, description="process noise std per state, unit/sqrt(s)")
+    p0: dict[str, NonNeg] = Field(default_factory=dict, description="initial variance per state (unit^2, not a std)")
     measurements: dict[str, MeasurementSpec] = Field(default_factory=dict, description="channels used, by sensor "
                                                      "name, with their noise, growth and gate (default: every channel "
                                                      "the model can predict, with the sensor's own sigma)")
@@ -137,6 +137,22 @@ class UKFSettings(ObserverSettings):
         if any(b <= a for a, b in zip(self.predict_at_depths, self.predict_at_depths[1:])):
             raise ValueError("predict_at_depths must increase strictly")
         return self
+
+
+def tick_stride(rate: float | None, dt: float) -> int:
+    """The filter's tick in grid steps of ``dt`` s: 1 without a ``rate`` (Hz), else the nearest whole
+    number of steps to ``1 / rate`` (at least 1)."""
+    return 1 if rate is None else max(1, int(round(1.0 / (rate * dt))))
+
+
+def tick_length(rate: float | None, dt: float) -> float:
+    """The filter's tick in s, ``tick_stride(rate, dt) * dt``: each tick's process noise is
+    ``diag(q^2) * tick_length`` (``q`` per square-root second)."""
+    return tick_stride(rate, dt) * dt
+
+
+def _real(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and bool(np.isfinite(v))
 
 
 def _chi2_quantile(p: float, m: int) -> float:
@@ -206,7 +222,8 @@ class UnscentedKalmanFilter(Observer):
     r"""Batched multi-rate UKF with Merwe scaled sigma points (seed 003 uses alpha 1e-3, beta 2, kappa 0).
 
     Prediction :math:`\mathcal X_{k|k-1} = f(\mathcal X_{k-1|k-1}, u)`,
-    :math:`P_{k|k-1} = \sum_i W^c_i \delta\mathcal X_i \delta\mathcal X_i^T + Q`; update with the
+    :math:`P_{k|k-1} = \sum_i W^c_i \delta\mathcal X_i \delta\mathcal X_i^T + Q`,
+    :math:`Q = \mathrm{diag}(q^2)\,\Delta t_{tick}` (``q`` per square-root second); update with the
     measurements available at tick ``k`` only. Angles are averaged and differenced wrapped.
     """
 
@@ -214,14 +231,34 @@ class UnscentedKalmanFilter(Observer):
     takes_common_start = True
     compiled_entry = ("ukf", "run")  # the kernel that compiles longest (the warm-up's)
     default_reference = True  # a comparison whose config gives no start starts from this, derived settings
-    fit_takes = FitTakes(q="per_tick", measurements=True, sensor_states=False)
+    fit_takes = FitTakes(measurements=True, sensor_states=False)
 
     @classmethod
     def derived_settings(cls, ctx):
         """:func:`~needlecli.observers.defaults.filter_settings`: every sensor with a nominal sigma, the
-        start from the first samples, ``q`` per tick from the truth's process noise, a prediction from
-        25 % of the insertion."""
+        start from the first samples, ``q`` from the truth's process noise, a prediction from 25 % of the
+        insertion."""
         return filter_settings(ctx)
+
+    @classmethod
+    def upgrade_settings(cls, settings, *, config_format, dt):
+        """Config format 1 gave ``q`` per filter tick, ``sqrt(Q_ii dt_tick)``; it is now per square-root
+        second: each value divided by ``sqrt(dt_tick)`` (the tick of :func:`tick_length`, from ``rate`` and
+        ``dt``)."""
+        q, rate = settings.get("q"), settings.get("rate")
+        if config_format >= 2 or not isinstance(q, dict) or not q:
+            return []
+        if not _real(dt) or dt <= 0 or not (rate is None or (_real(rate) and rate > 0)):
+            return []  # the schema says what is wrong
+        tick = tick_length(rate, float(dt))
+        root = float(np.sqrt(tick))
+        new = {k: (v / root if _real(v) else v) for k, v in q.items()}
+        settings["q"] = new
+        pairs = ", ".join(f"{k} {q[k]:g} -> {new[k]:g}" for k in q if _real(q[k]))
+        if not pairs:
+            return []
+        return [f"q was per filter tick of {tick:g} s (config format {config_format}); now per square-root second "
+                f"(q_tick / sqrt({tick:g} s)): {pairs}"]
 
     # ------------------------------------------------------------------ configuration checks
     @classmethod
@@ -328,7 +365,7 @@ class UnscentedKalmanFilter(Observer):
         for c in chans:  # needle coordinates: the reference axis, given or far from the initial tangent
             if c["frame"] == "needle":
                 c["axis"] = c["axis"] if c["axis"] is not None else reference_axis(model.tangent(x))
-        Q = np.diag(np.array([s.q.get(k, 0.0) for k in model.state_names]) ** 2)
+        Q = np.diag((np.array([s.q.get(k, 0.0) for k in model.state_names]) * np.sqrt(stride * dt_grid)) ** 2)
         kappa_i = model.index(model.curvature_param) if model.curvature_param in model.state_names else None
         interfaces = self._interfaces(problem, N)
         depths = np.asarray(s.predict_at_depths, dtype=float)
@@ -525,8 +562,7 @@ class UnscentedKalmanFilter(Observer):
         stride from 0, and the last grid step."""
         T = len(time)
         dt_grid = float(time[1] - time[0]) if T > 1 else 1.0
-        rate = self.settings.rate
-        stride = 1 if rate is None else max(1, int(round(1.0 / (rate * dt_grid))))
+        stride = tick_stride(self.settings.rate, dt_grid)
         ticks = np.arange(0, T, stride)
         if ticks[-1] != T - 1:
             ticks = np.append(ticks, T - 1)

@@ -12,7 +12,8 @@ _TABLE_MODULES = {
     "needlecli.reports.tables": ("summary", "accuracy", "status"),
     "needlecli.reports.seed003": ("seed003_table1", "prediction"),
     "needlecli.reports.seed000_001": ("seed000_table1", "seed001_convergence", "seed001_half_turns"),
-    "needlecli.reports.seed004": ("seed004_table1", "seed004_table2", "seed004_table3", "seed004_recovery", "fit_status"),
+    "needlecli.reports.seed004": ("fit_parameters", "seed004_table1", "seed004_table2", "seed004_table3", "fit_recovery",
+                                  "seed004_recovery", "fit_status"),
     "needlecli.reports.imaging": ("measurements",),
     "needlecli.reports.control": ("planar_control",),
     "needlecli.reports.consistency": ("consistency",),
@@ -35,11 +36,12 @@ _PLOT_MODULES = {
 }
 
 #: the tables that read a fit file of ``needle fit-em`` (the others read results files); ``needle evaluate
-#: FIT.h5`` writes the first ones by default (:data:`FIT_DEFAULT`), the others when named
-FIT_TABLE_NAMES = ("seed004_table1", "seed004_table2", "seed004_table3", "seed004_recovery", "fit_status",
+#: FIT.h5`` writes those of :data:`FIT_DEFAULT` by default (seed 004's paper tables only for a fit of its
+#: models), the others when named (``seed004_recovery``: the former name of ``fit_recovery``)
+FIT_TABLE_NAMES = ("fit_parameters", "seed004_table1", "seed004_table2", "seed004_table3", "fit_recovery", "fit_status",
                    "identifiability", "fit_by_design", "fit_regression", "fit_warnings",
-                   "em_per_trial", "em_per_speed", "em_loglik")
-FIT_DEFAULT = FIT_TABLE_NAMES[:9]
+                   "seed004_recovery", "em_per_trial", "em_per_speed", "em_loglik")
+FIT_DEFAULT = FIT_TABLE_NAMES[:10]
 
 #: table functions ``(results, errors) -> DataFrame``
 TABLES: Registry = Registry("table", group="needlecli.tables", base=callable,

@@ -16,6 +16,7 @@ import numpy as np
 import pandas as pd
 
 from needlecli.io.results import Group
+from needlecli.metrics import reference_tangent, split
 from needlecli.reports import PLOTS
 from needlecli.reports.tables import TABLES, count_cell
 
@@ -26,39 +27,15 @@ def _strs(v) -> list[str]:
     return [x.decode() if isinstance(x, bytes) else str(x) for x in np.atleast_1d(v)]
 
 
-def reference_tangent(res: Group) -> np.ndarray | None:
-    """Unit tangents ``(N, T, 3)`` of the reference states (NaN where there is none), or None when the
-    file's model has no tangent or no position."""
-    from needlecli.models import MODELS
-
-    name = str(res.attrs.get("model", ""))
-    if name not in MODELS:
-        return None
-    cls = MODELS.get(name)
-    names = _strs(res.data["truth"].attrs.get("names", cls.state_names))
-    if not cls.provides("tangent") or tuple(names) != tuple(cls.state_names) or not all(a in names for a in _AXES):
-        return None
-    with np.errstate(all="ignore"):
-        t = cls().tangent(np.asarray(res.data["truth"].data["state"], dtype=float))
-        return t / np.linalg.norm(t, axis=-1, keepdims=True)
-
-
-def split(err: np.ndarray, tangent: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(along (...), across (...))`` of errors ``(..., 3)`` against unit tangents ``(..., 3)``."""
-    along = np.einsum("...i,...i->...", err, tangent)
-    across = np.linalg.norm(err - along[..., None] * tangent, axis=-1)
-    return along, across
-
-
 def sources(res: Group) -> list[tuple[str, str, np.ndarray, np.ndarray, np.ndarray]]:
     """``(label, kind, depth (N, M), along (N, M), across (N, M))`` per position sensor (its valid samples;
     kind ``sensor``) and per observer that estimates x, y, z (every reference frame; kind ``observer``);
     NaN where not compared. A sensor identical to the reference (the tracker itself) is left out."""
-    t = reference_tangent(res)
-    if t is None:
-        return []
     truth = res.data["truth"]
     names = _strs(truth.attrs["names"])
+    t = reference_tangent(res) if all(a in names for a in _AXES) else None
+    if t is None:
+        return []
     cols = [names.index(a) for a in _AXES]
     ref = np.asarray(truth.data["state"], dtype=float)[..., cols]
     ok_run = (np.asarray(truth.data["status"]).astype(str) == "ok")[:, None]
@@ -132,8 +109,8 @@ def error_along_across(res: Group, errors, path_stem: Path) -> Path | None:
         PlotSkipped,
         curve_against_depth,
         length_scale,
-        observer_colours,
         observer_style,
+        outside_legend,
         save_figure,
         subplots,
     )
@@ -144,7 +121,6 @@ def error_along_across(res: Group, errors, path_stem: Path) -> Path | None:
     if not src:
         raise PlotSkipped("no position sensor or observer to compare with a reference tangent")
     scale = length_scale(res)
-    colours = observer_colours(res)
     fig, axes = subplots(2, 1, figsize=(7.5, 6.0), sharex=True)
     handles = {}
     for label, kind, depth, al, ac in src:
@@ -155,7 +131,7 @@ def error_along_across(res: Group, errors, path_stem: Path) -> Path | None:
                                gid=f"sensor:{label}")
             else:
                 d, m, lo, hi, _ = curve_against_depth(scale * depth, scale * v)
-                st = observer_style(colours, label)
+                st = observer_style(label, n=d.size)
                 (h,) = ax.plot(d, m, lw=1.4, label=label, **st)
                 ax.fill_between(d, lo, hi, alpha=0.15, color=st["color"], lw=0)
             handles.setdefault(label, h)
@@ -165,7 +141,7 @@ def error_along_across(res: Group, errors, path_stem: Path) -> Path | None:
     axes[1].set_xlabel("inserted depth [mm]")
     for ax in axes:
         ax.grid(alpha=0.3)
-    fig.legend(handles.values(), handles.keys(), loc="outside lower center", ncol=min(len(handles), 3), fontsize="small")
+    outside_legend(fig, handles.values(), handles.keys(), ncol=3)
     fig.suptitle(f"{res.attrs.get('name', '')}: tip error along and across the needle "
                  "(observers: mean and 5-95 % over runs; sensor: the first run's samples)", fontsize=9)
     return save_figure(fig, Path(f"{path_stem}_error_along_across.png"))

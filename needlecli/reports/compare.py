@@ -19,10 +19,15 @@ from needlecli.io.results import Group
 from needlecli.metrics import ErrorSet
 from needlecli.reports.tables import TABLES, _float_format, order_quantities
 
-COLUMNS = ["observer", "type", "settings", "start", "causal", "sensors", "sensor_rates", "model", "online_curvature",
-           "insertion_length", "runs", "inst_quantity", "inst_unit", "inst_mean", "inst_std", "kappa_mean", "kappa_std",
-           "pred_depth", "pred_mean_mm", "pred_std_mm", "runs_failed", "failure_reasons", "seconds", "ms_per_step",
-           "us_per_run_step"]
+#: the columns of :func:`compare_table` before and after the error columns, which depend on the experiment:
+#: ``<quantity>_mean`` and ``<quantity>_std`` for every quantity of :func:`quantities` (NaN: not estimated)
+HEAD = ["observer", "type", "settings", "start", "causal", "model_only", "sensors", "sensor_rates", "model",
+        "online_curvature", "insertion_length", "runs"]
+TAIL = ["pred_depth", "pred_mean_mm", "pred_std_mm", "runs_failed", "failure_reasons", "seconds", "ms_per_step",
+        "us_per_run_step"]
+COLUMNS = HEAD + TAIL  # (an empty table: no quantity)
+_AXES = (("x", "y", "z"), ("px", "py", "pz"))
+_LENGTH_TO_MM = {"mm": 1.0, "m": 1000.0, "cm": 10.0}
 
 
 def _texts(values) -> list[str]:
@@ -72,16 +77,46 @@ def _sensor_text(res: Group) -> tuple[str, str]:
     return "; ".join(parts), " & ".join(rates)
 
 
-def _instantaneous(es) -> tuple[str, str, float, float]:
-    """(quantity, unit, mean, std) of the main error after initialisation: E_xyz, else E_R, else the first."""
-    qs = order_quantities(es.quantities) if es is not None else []
-    if not qs:
-        return "", "", float("nan"), float("nan")
-    q = "E_xyz" if "E_xyz" in qs else "E_R" if "E_R" in qs else qs[0]
-    qe = es.quantities[q]
-    v = qe.values[:, 1:]
+def with_axis_errors(res: Group, errors: dict[str, ErrorSet]) -> dict[str, ErrorSet]:
+    """The errors of :func:`~needlecli.metrics.compute_errors` (the tip position's norm, each angle, the
+    rotation, unit vectors, curvature, any other common state) with each position axis an observer
+    estimates on its own, in mm (``E_x``, ``E_y``, ``E_z``; ``E_px``, ... of the magnetic models), over the
+    runs whose truth and estimate are ok: a position error that an observer of fewer axes also has (seed
+    000's E_x), beside every other's. New :class:`~needlecli.metrics.ErrorSet` objects; ``errors`` is
+    left as it is."""
+    import dataclasses
+
+    from needlecli.metrics import QuantityError
+
+    truth = res.data["truth"]
+    t_names = list(truth.attrs["names"])
+    axes = next((ax for ax in _AXES if all(a in t_names for a in ax)), None)
+    scale = _LENGTH_TO_MM.get(str(res.attrs.get("length_unit", "mm")), 1.0)
+    t_state = np.asarray(truth.data["state"])
+    t_ok = np.asarray(truth.data["status"]).astype(str) == "ok"
+    estimates = res.data.get("estimates", Group()).data
+    out = {}
+    for name, es in errors.items():
+        es = dataclasses.replace(es, quantities=dict(es.quantities))
+        g = estimates.get(name)
+        if axes is not None and g is not None:
+            e_names = list(g.attrs["names"])
+            keep = np.nonzero(t_ok & (np.asarray(g.data["status"]).astype(str) == "ok"))[0]
+            est = np.asarray(g.data["state"])
+            for a in axes:
+                if a in e_names:
+                    v = scale * np.abs(est[keep][..., e_names.index(a)] - t_state[keep][..., t_names.index(a)])
+                    if np.isfinite(v).any():
+                        es.quantities[f"E_{a}"] = QuantityError(f"E_{a}", "mm", v, keep)
+        out[name] = es
+    return out
+
+
+def _stats(values: np.ndarray) -> tuple[float, float]:
+    """Mean and std over runs and the steps after initialisation (NaN when there is none)."""
+    v = np.asarray(values)[:, 1:]
     v = v[np.isfinite(v)]
-    return q, qe.unit, (float(np.mean(v)) if v.size else float("nan")), (float(np.std(v)) if v.size else float("nan"))
+    return (float(np.mean(v)), float(np.std(v))) if v.size else (float("nan"), float("nan"))
 
 
 def _online_curvature(est: Group, curvature: str | None) -> str:
@@ -102,11 +137,13 @@ def _curvature_param(res: Group) -> str | None:
 
 @TABLES.register("compare")
 def compare_table(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
-    """Every observer of needle compare on the same insertions, one row each (tidy, numeric): sensors and
-    rates, model, observer, where its settings and its start came from, online curvature estimation,
-    insertion length, instantaneous error (mean, std after initialisation), curvature error, prediction
-    error after 25 % of the insertion (NaN when the observer does not predict), runs, failed runs, runtime
-    per step (the batch of all runs) and per run-step. Empty for a results file of another command."""
+    """Every observer of needle compare on the same insertions, one row each (tidy, numeric), the same
+    columns for all: sensors and rates, model, observer, where its settings and its start came from,
+    online curvature estimation, insertion length, the mean and std after initialisation of every error
+    quantity any observer has (each position axis, the tip position, each angle, the rotation, the
+    curvature...; NaN where the observer does not estimate it), prediction error after 25 % of the insertion
+    (NaN when the observer does not predict), runs, failed runs, runtime per step (the batch of all runs)
+    and per run-step. Empty for a results file of another command."""
     from needlecli.reports.seed003 import prediction_errors
 
     g = comparison(res)
@@ -122,12 +159,19 @@ def compare_table(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
     preds = prediction_errors(res)
     estimates = res.data.get("estimates", Group()).data
     curvature = _curvature_param(res)
+    qs = {n: {q: (qe.values, qe.unit) for q, qe in es.quantities.items()}
+          for n, es in with_axis_errors(res, errors).items()}
+    units: dict[str, str] = {}
+    for per in qs.values():
+        for q, (_, unit) in per.items():
+            units.setdefault(q, unit)
+    axes = [q for a in _AXES for q in (f"E_{x}" for x in a) if q in units]
+    order = [q for q in order_quantities(units) if q == "E_xyz"] + axes + [
+        q for q in order_quantities(units) if q != "E_xyz" and q not in axes]
+    model_only = (np.asarray(g.data["model_only"], dtype=bool) if "model_only" in g.data
+                  else np.zeros(len(g.data["observer"]), dtype=bool))
     rows = []
     for i, name in enumerate(_texts(g.data["observer"])):
-        es = errors.get(name)
-        q, unit, m, s = _instantaneous(es)
-        kq = es.quantities.get("E_kappa") if es is not None else None
-        kv = kq.values[:, 1:][np.isfinite(kq.values[:, 1:])] if kq is not None else np.zeros(0)
         pm = ps = float("nan")
         pred_depth = float("nan")
         if name in preds:
@@ -148,22 +192,81 @@ def compare_table(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
         else:
             failed, reasons = n_runs - int((~t_ok).sum()), "raised"
         seconds = float(g.data["seconds"][i])
-        rows.append({
+        row = {
             "observer": name, "type": _texts(g.data["type"])[i], "settings": _texts(g.data["settings"])[i],
             "start": _texts(g.data["start"])[i], "causal": bool(g.data["causal"][i]),
-            "sensors": sensors, "sensor_rates": rates,
+            "model_only": bool(model_only[i]), "sensors": sensors, "sensor_rates": rates,
             "model": _texts(g.data["model"])[i],
             "online_curvature": _online_curvature(estimates[name], curvature) if name in estimates else "n/a",
             "insertion_length": depth, "runs": n_runs,
-            "inst_quantity": q, "inst_unit": unit, "inst_mean": m, "inst_std": s,
-            "kappa_mean": float(np.mean(kv)) if kv.size else float("nan"),
-            "kappa_std": float(np.std(kv)) if kv.size else float("nan"),
+        }
+        own = qs.get(name, {})
+        for q in order:
+            row[f"{q}_mean"], row[f"{q}_std"] = _stats(own[q][0]) if q in own else (float("nan"), float("nan"))
+        row.update({
             "pred_depth": pred_depth, "pred_mean_mm": pm, "pred_std_mm": ps,
             "runs_failed": failed if not error else n_runs, "failure_reasons": reasons if not error else error,
             "seconds": seconds, "ms_per_step": 1e3 * seconds / n_steps,
             "us_per_run_step": 1e6 * seconds / (n_steps * max(n_runs, 1)),
         })
-    return pd.DataFrame(rows, columns=COLUMNS)
+        rows.append(row)
+    df = pd.DataFrame(rows, columns=HEAD + [f"{q}_{s}" for q in order for s in ("mean", "std")] + TAIL)
+    df.attrs["units"] = {q: units[q] for q in order}
+    return df
+
+
+def error_quantities(df: pd.DataFrame) -> list[tuple[str, str]]:
+    """``(quantity, unit)`` of every error column pair of a :func:`compare_table` (in the table's order; the
+    unit from the table's attributes, or the quantity's usual one for a table read back from CSV)."""
+    units = df.attrs.get("units", {})
+    out = []
+    for c in df.columns:
+        if c.startswith("E_") and c.endswith("_mean"):
+            q = c[: -len("_mean")]
+            out.append((q, units.get(q, _usual_unit(q))))
+    return out
+
+
+def _usual_unit(q: str) -> str:
+    if q in ("E_alpha", "E_beta", "E_gamma", "E_R", "E_h", "E_B"):
+        return "deg"
+    if q in ("E_xyz", "E_x", "E_y", "E_z", "E_px", "E_py", "E_pz"):
+        return "mm"
+    return ""
+
+
+def _position_quantities(df: pd.DataFrame) -> list[str]:
+    """The tip-position quantities of a table: the norm, else each axis."""
+    qs = [q for q, _ in error_quantities(df)]
+    if "E_xyz" in qs:
+        return ["E_xyz"]
+    return [q for q in qs if q in ("E_x", "E_y", "E_z", "E_px", "E_py", "E_pz")]
+
+
+def worse_than_model(df: pd.DataFrame) -> list[str]:
+    """Warnings, one per observer and model-only reference: an observer whose mean tip-position error after
+    initialisation (``E_xyz``; each axis where one of the two has fewer) is larger than that of an
+    observer running the model alone (``model_only``: the open loop) from the same common start -- the
+    measurements made it worse, and its settings do not suit the data."""
+    if df.empty or "model_only" not in df.columns:
+        return []
+    refs = df[df["model_only"].astype(bool) & df["start"].astype(str).str.startswith("common")]
+    out = []
+    for _, r in df.iterrows():
+        if bool(r["model_only"]) or not str(r["start"]).startswith("common"):
+            continue
+        for _, ref in refs.iterrows():
+            both = [q for q in _position_quantities(df)
+                    if np.isfinite(r[f"{q}_mean"]) and np.isfinite(ref[f"{q}_mean"])]
+            if not both:  # the observer has fewer axes than the norm: compare the axes it has
+                both = [q for q in ("E_x", "E_y", "E_z", "E_px", "E_py", "E_pz") if f"{q}_mean" in df.columns
+                        and np.isfinite(r[f"{q}_mean"]) and np.isfinite(ref[f"{q}_mean"])]
+            worse = [q for q in both if r[f"{q}_mean"] > ref[f"{q}_mean"]]
+            if worse:
+                what = ", ".join(f"{q} {_short(r[f'{q}_mean'])} against {_short(ref[f'{q}_mean'])} mm" for q in worse)
+                out.append(f"{r['observer']} does worse than {ref['observer']}, the model alone from the same start "
+                           f"({what}): its settings do not suit these data")
+    return out
 
 
 def _pm(m: float, s: float, unit: str = "") -> str:
@@ -178,13 +281,15 @@ def _num(v: float) -> str:
 
 def appendix_form(df: pd.DataFrame, res: Group) -> pd.DataFrame:
     """The table in the form of seed 003's appendix A (Table A.3): one column per observer, one row per
-    property (``df``: :func:`compare_table`)."""
+    property, one per error quantity (mean ± std after initialisation; n/a: not estimated) (``df``:
+    :func:`compare_table`)."""
     length_unit = str(res.attrs.get("length_unit", "mm"))
+    errs = error_quantities(df)
     rows: dict[str, list[str]] = {
         "Sensor": [], "Sensor frequency": [], "Model": [], "Observer": [], "Settings": [], "Start": [],
         "Online curvature estimation": [], f"Length of insertion ({length_unit})": [],
-        "Instantaneous error": [], "Curvature error": [], "Prediction error* (mm)": [],
-        "Number of insertions": [], "Runs that failed": [], "Runtime per step": [],
+        **{f"{q} ({u})" if u else q: [] for q, u in errs},
+        "Prediction error* (mm)": [], "Number of insertions": [], "Runs that failed": [], "Runtime per step": [],
     }
     for _, r in df.iterrows():
         rows["Sensor"].append(r["sensors"])
@@ -195,9 +300,8 @@ def appendix_form(df: pd.DataFrame, res: Group) -> pd.DataFrame:
         rows["Start"].append(r["start"] + ("" if r["causal"] else " (smoother: every sample of the run)"))
         rows["Online curvature estimation"].append(r["online_curvature"])
         rows[f"Length of insertion ({length_unit})"].append(f"{r['insertion_length']:.3g}")
-        inst = _pm(r["inst_mean"], r["inst_std"], r["inst_unit"])
-        rows["Instantaneous error"].append(f"{inst} ({r['inst_quantity']})" if r["inst_quantity"] else "n/a")
-        rows["Curvature error"].append(_pm(r["kappa_mean"], r["kappa_std"], f"1/{length_unit}"))
+        for q, u in errs:
+            rows[f"{q} ({u})" if u else q].append(_pm(r[f"{q}_mean"], r[f"{q}_std"]))
         rows["Prediction error* (mm)"].append(_pm(r["pred_mean_mm"], r["pred_std_mm"]))
         rows["Number of insertions"].append(str(r["runs"]))
         failed = f"{r['runs_failed']}/{r['runs']}" + (f" ({r['failure_reasons']})" if r["failure_reasons"] else "")
@@ -227,10 +331,6 @@ def _short(v: float) -> str:
     return f"{v:.3g}"
 
 
-def _spread(m: float, s: float) -> str:
-    return "n/a" if not np.isfinite(m) else f"{_short(m)} ± {_short(s)}"
-
-
 def _narrow_markdown(df: pd.DataFrame) -> str:
     """A Markdown table with one space of padding (tabulate pads more): for a terminal's width."""
     cols = [str(c) for c in df.columns]
@@ -244,8 +344,9 @@ def footnote(res: Group) -> str:
     """The note on the prediction error and on what the errors and runtimes count."""
     return (f"*Prediction error of the final tip position from the estimate after observing "
             f"{100 * prediction_fraction(res):g} % of the insertion length (n/a: the observer does not predict). "
-            "Errors over every kept run and time step after initialisation; runtime per step: wall time of one "
-            "grid step for all runs at once.")
+            "Errors: mean and std over every kept run and time step after initialisation, each quantity for "
+            "every observer (n/a: it does not estimate it); runtime per step: wall time of one grid step for all "
+            "runs at once.")
 
 
 def common_start(res: Group) -> str:
@@ -268,16 +369,63 @@ def truth_failed(res: Group) -> int:
     return int((np.asarray(res.data["truth"].data["status"]).astype(str) != "ok").sum())
 
 
-def notes(res: Group) -> str:
-    """What the file form of the table says under it: the footnote, the common start, the skipped observers."""
+def notes(res: Group, df: pd.DataFrame | None = None) -> str:
+    """What the file form of the table says under it: the footnote, the common start, what differs between
+    the filters' settings (``settings_note``), the warnings of :func:`worse_than_model` (``df``: the
+    table), the skipped observers."""
     out = footnote(res) + f"\n\nStart: {common_start(res)}."
+    diff = settings_note(res)
+    if diff:
+        out += f"\n\n{diff}"
+    warn = worse_than_model(df) if df is not None else []
+    if warn:
+        out += "\n\nWarning:\n" + "\n".join(f"- {w}" for w in warn)
     sk = skipped(res)
     return out + ("\n\nSkipped:\n" + "\n".join(f"- {s}" for s in sk) if sk else "")
 
 
+def settings_note(res: Group) -> str:
+    """Whether the compared observers that weigh measurements (those whose settings name
+    ``measurements``: the config's own and the derived ones) weigh them alike, or what differs: the
+    channels each uses and the noise law of each (sigma, a distance growth of R, a gate), from the
+    settings the results file's config records; empty with fewer than two such observers."""
+    from needlecli.io.yamlfile import parse_yaml
+
+    g = comparison(res)
+    if g is None:
+        return ""
+    try:
+        cfg = parse_yaml(str(res.attrs.get("config", "")), "the results file's config")
+    except Exception:  # noqa: BLE001 (a config that cannot be read: nothing to say)
+        return ""
+    compared = set(_texts(g.data["observer"]))
+    laws: dict[str, dict[str, str]] = {}  # observer -> channel -> its law
+    for o in cfg.get("observers") or []:
+        name = o.get("name") or o.get("type")
+        meas = o.get("measurements")
+        if name in compared and isinstance(meas, dict) and meas:
+            laws[name] = {c: f"sigma {m.get('sigma')}" + (" with growth" if m.get("growth") else "")
+                          + (f", gate {m['gate']}" if m.get("gate") else "")
+                          for c, m in sorted(meas.items()) if isinstance(m, dict)}
+    if len(laws) < 2:
+        return ""
+    channels = sorted({c for law in laws.values() for c in law})
+    differ = [c for c in channels if len({law.get(c, "not used") for law in laws.values()}) > 1]
+    if not differ:
+        return f"Measurements weighed alike by {', '.join(sorted(laws))}."
+    parts = []
+    for c in differ:
+        by: dict[str, list[str]] = {}
+        for n, law in sorted(laws.items()):
+            by.setdefault(law.get(c, "not used"), []).append(n)
+        parts.append(f"{c}: " + "; ".join(f"{w} ({', '.join(ns)})" for w, ns in by.items()))
+    return "Measurements weighed differently: " + " | ".join(parts) + "."
+
+
 def terminal_form(df: pd.DataFrame, res: Group, width: int = 80) -> str:
     """The comparison for a terminal of ``width`` columns: what every observer shares in a few lines,
-    then two narrow tables (how each observer ran; its errors), then the notes, wrapped."""
+    then two narrow tables (how each observer ran; the mean of each error quantity, one row each, one
+    column per observer), then the notes, wrapped."""
     unit = str(res.attrs.get("length_unit", "mm"))
     n_runs = int(np.asarray(res.data["truth"].data["status"]).shape[0])
     parts = [textwrap.fill(f"Observers on the same insertions of {res.attrs.get('name', '')}: {n_runs} run(s) of "
@@ -291,23 +439,22 @@ def terminal_form(df: pd.DataFrame, res: Group, width: int = 80) -> str:
         "failed": [f"{f}/{n}" for f, n in zip(df["runs_failed"], df["runs"])],
         "ms/step": [_short(v) for v in df["ms_per_step"]],
     })
-    errs = pd.DataFrame({
-        "observer": df["observer"],
-        "error after init.": [f"{_spread(m, s)} {u} {q}".strip() if q else "n/a"
-                              for m, s, u, q in zip(df["inst_mean"], df["inst_std"], df["inst_unit"], df["inst_quantity"])],
-        f"E_kappa (1/{unit})": [_spread(m, s) for m, s in zip(df["kappa_mean"], df["kappa_std"])],
-        "prediction* (mm)": [_spread(m, s) for m, s in zip(df["pred_mean_mm"], df["pred_std_mm"])],
-    })
-    parts += [_narrow_markdown(how), _narrow_markdown(errs)]
+    errs = {"mean error": [f"{q} ({u})" if u else q for q, u in error_quantities(df)] + ["prediction* (mm)"]}
+    for _, r in df.iterrows():
+        errs[str(r["observer"])] = [_short(r[f"{q}_mean"]) for q, _ in error_quantities(df)] + [_short(r["pred_mean_mm"])]
+    parts += [_narrow_markdown(how), _narrow_markdown(pd.DataFrame(errs))]
     start = common_start(res)
     notes_ = [f"Start: every observer marked 'common' starts from one initial estimate, the {start}."
               if start and not start.startswith("no ") else f"Start: {start}."]
+    diff = settings_note(res)
+    if diff:
+        notes_.append(diff)
     online = [o for o, c in zip(df["observer"], df["online_curvature"]) if c == "yes"]
     notes_.append(f"Curvature estimated online by: {', '.join(online) or 'none'}.")
     offline = [o for o, c in zip(df["observer"], df["causal"]) if not c]
     if offline:
         notes_.append(f"Smoothers (every sample of a run, also later ones; not a filter): {', '.join(offline)}.")
-    notes_.append(footnote(res))
+    notes_.append(footnote(res) + " Mean and std of each in compare.md and compare.csv.")
     failed = [f"{o}: {r}" for o, r in zip(df["observer"], df["failure_reasons"]) if r]
     if failed:
         notes_.append("Failed runs: " + "; ".join(failed) + ".")

@@ -26,7 +26,7 @@ from scipy.stats import chi2
 from needlecli.io.results import Group
 from needlecli.metrics import ErrorSet
 from needlecli.numerics import angle_diff
-from needlecli.reports.plots import PLOTS, PlotSkipped, observer_colours, observer_style, run_depths, save_figure, subplots
+from needlecli.reports.plots import PLOTS, PlotSkipped, observer_style, outside_legend, run_depths, save_figure, subplots
 from needlecli.reports.tables import TABLES, count_cell
 
 PROBABILITY = 0.95
@@ -116,7 +116,11 @@ def nees(res: Group, obs: str) -> list[Normalised] | None:
         out = []
         if full:
             ok = np.isfinite(e).all(-1) & np.isfinite(P).all((-2, -1))
-            sol = np.linalg.solve(np.where(ok[..., None, None], P, np.eye(len(cols))), np.where(ok[..., None], e, 0.0)[..., None])
+            A, b = np.where(ok[..., None, None], P, np.eye(len(cols))), np.where(ok[..., None], e, 0.0)[..., None]
+            try:
+                sol = np.linalg.solve(A, b)
+            except np.linalg.LinAlgError:  # a singular P somewhere (a state no noise reaches): its pseudo-inverse
+                sol = np.linalg.pinv(A, hermitian=True) @ b
             q = np.where(ok, np.einsum("nki,nki->nk", e, sol[..., 0]), np.nan)
             out.append(Normalised(f"all states ({', '.join(names)})", q, len(cols), time, depth, keep))
         else:  # a diagonal covariance: the states' sum, as if uncorrelated (said in the label)
@@ -255,7 +259,6 @@ def nees_vs_depth(res: Group, errors, path_stem: Path) -> Path | None:
             curves.setdefault(key, []).append((obs, d[at], s["_avg"][at], s["_lo"][at], s["_hi"][at], it.dof))
     if not curves:
         raise PlotSkipped("no stored covariance at a time with truth")
-    colours = observer_colours(res)
     ncol = 2 if len(curves) > 3 else 1
     nrow = int(np.ceil(len(curves) / ncol))
     fig, axs = subplots(nrow, ncol, figsize=(6.2 * ncol, 2.2 * nrow + 0.9), squeeze=False)
@@ -265,8 +268,8 @@ def nees_vs_depth(res: Group, errors, path_stem: Path) -> Path | None:
         values = np.concatenate([np.concatenate([it[2], it[3], it[4]]) for it in items])
         values = values[np.isfinite(values) & (values > 0)]
         for obs, d, avg, lo, hi, _ in items:
-            st = observer_style(colours, obs)
-            (line,) = ax.plot(d, avg, lw=1.3, marker="." if d.size < 30 else None, **st)
+            st = observer_style(obs, n=d.size)
+            (line,) = ax.plot(d, avg, lw=1.3, **st)
             ax.fill_between(d, lo, hi, color=st["color"], alpha=0.15, lw=0)
             handles.setdefault(obs, line)
         if values.size and values.max() > 30 * values.min():  # orders of magnitude: a log axis
@@ -280,7 +283,7 @@ def nees_vs_depth(res: Group, errors, path_stem: Path) -> Path | None:
         ax.grid(alpha=0.3, which="both")
     for ax in list(axs.flat)[len(curves):]:
         ax.remove()
-    fig.legend(handles.values(), handles.keys(), loc="outside lower center", ncol=min(len(handles), 4), fontsize="small")
+    outside_legend(fig, handles.values(), handles.keys())
     fig.suptitle(f"{res.attrs.get('name', '')}: ANEES against depth (band: two-sided 95 % chi-square interval "
                  "for the runs at that time; dotted: the consistent value)", fontsize=10)
     return save_figure(fig, Path(f"{path_stem}_nees_vs_depth.png"))

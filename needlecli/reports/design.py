@@ -27,7 +27,7 @@ import pandas as pd
 import yaml
 
 from needlecli.io.results import Group
-from needlecli.reports.plots import PLOTS, plt, save_figure
+from needlecli.reports.plots import PLOTS, beside_legend, observer_colour, save_figure, subplots
 from needlecli.reports.tables import TABLES
 
 FAILED = ("singular", "diverged")
@@ -233,14 +233,13 @@ def regression_plot(res: Group, errors, path_stem: Path, *, regress=None) -> Pat
     if not items:
         return None
     pairs = list(dict.fromkeys((it["constant"], it["factor"]) for it in items))
-    models = list(dict.fromkeys(it["model"] for it in items))
     units = _const_names(res)
-    fig, axs = plt.subplots(1, len(pairs), figsize=(5.2 * len(pairs), 4.2), squeeze=False)
+    fig, axs = subplots(1, len(pairs), figsize=(7.5 * len(pairs), 4.2), squeeze=False)
     for ax, (c, f) in zip(axs[0], pairs):
         for it in items:
             if (it["constant"], it["factor"]) != (c, f):
                 continue
-            col = f"C{models.index(it['model'])}"
+            col = observer_colour(it["model"])
             ok = it["status"] == "ok"
             ax.plot(it["x"][ok], it["y"][ok], "o", color=col, ms=5, label=f"{it['model']}: trials (converged)")
             if (~ok).any():
@@ -256,7 +255,7 @@ def regression_plot(res: Group, errors, path_stem: Path, *, regress=None) -> Pat
         ax.set_xlabel(f)
         ax.set_ylabel(f"{c} [{units.get(c, '')}]")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize="x-small")
+        beside_legend(ax, fontsize="x-small")
     fig.suptitle(f"{res.attrs.get('name', '')}: fitted constants against the design (OLS, SE from the spread)")
     return save_figure(fig, Path(f"{path_stem}_fit_regression.png"))
 

@@ -20,9 +20,10 @@ log = logging.getLogger("needlecli")
 def configured_tables_of(path: str | Path) -> list[str]:
     """The tables a results file's config asks for, or every fit table of a fit file."""
     if is_fit_file(path):
-        from needlecli.reports.seed004 import FIT_TABLES
+        from needlecli.io.fit import read_fit
+        from needlecli.reports.seed004 import default_fit_tables
 
-        return list(FIT_TABLES)
+        return default_fit_tables(read_fit(path))
     return configured_tables(read_results(path))
 
 

@@ -1,10 +1,15 @@
 """PNG plots from a results file: error against depth, and trajectories; the style every plot shares.
 
-Every figure of a run draws each observer in one colour (:func:`observer_colours`: a shared map from the
-observer order of the results file), the truth in black, and gives every axis its unit. A plot function
-``(results, errors, path_stem) -> Path | None`` returns None where it does not apply to the file (a
-fit-file figure on a results file), and raises :class:`PlotSkipped` with the reason where it applies but
-its quantity cannot be computed: ``needle evaluate`` then writes nothing and logs the reason once.
+Every figure of every study draws an observer in the same colour, line dashes and marker
+(:func:`observer_look`: chosen from the observer's name alone, never from its place in a file, so the UKF
+is the same colour in a comparison and in the next study), the truth in black, and gives every axis its
+unit; two observers that share a colour differ in dashes and marker, and the markers of two curves fall at
+different places, so a curve lying on another (the EKF's under the UKF's) stays visible. Legends sit
+outside the data (:func:`outside_legend`). A plot function ``(results, errors, path_stem) -> Path | None``
+returns None where it does not apply to the file (a fit-file figure on a results file), and raises
+:class:`PlotSkipped` with the reason where it applies but its quantity cannot be computed or would be a
+single point (a table line says it better): ``needle evaluate`` then writes nothing and logs the reason
+once.
 """
 
 from __future__ import annotations
@@ -19,7 +24,7 @@ import numpy as np  # noqa: E402
 
 from needlecli.io.atomic import atomic_path  # noqa: E402
 from needlecli.io.results import Group  # noqa: E402
-from needlecli.metrics import ErrorSet, QuantityError  # noqa: E402
+from needlecli.metrics import AXIS_QUANTITIES, ErrorSet, QuantityError  # noqa: E402
 from needlecli.reports import PLOTS  # noqa: E402, F401  (the registry of plots; the plots register in it)
 
 TRUTH_COLOUR = "k"
@@ -32,21 +37,84 @@ class PlotSkipped(Exception):
     """A plot that applies to the file but cannot be drawn from it: the message says why."""
 
 
+#: observer colours: matplotlib's tab10 without its grey (the truth is black, sensor samples grey); an
+#: observer (or fitted model) named ``name`` is drawn in ``OBSERVER_PALETTE[crc32(name, NAME_SALT) % 9]``
+#: in every figure
+OBSERVER_PALETTE = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2", "#bcbd22",
+                    "#17becf")
+#: the hash's starting value, chosen once so that the names that meet in one figure most often get
+#: different colours: the built-in observer types (also their default names and those of needle compare:
+#: the UKF blue, the open loop orange), the built-in models (fitted side by side), and the bundled
+#: configs' tuned variants (ukf, ukf_em, ukf_gated, ...); tests/test_reports.py holds it
+NAME_SALT = 5403
+#: line dashes and markers, chosen from another part of the name's hash: observers that share a colour
+#: differ in them, and curves on top of each other stay visible
+OBSERVER_DASHES = ("-", (0, (6, 2)), (0, (2, 1.5)), (0, (8, 2, 2, 2)), (0, (4, 1.5, 1, 1.5, 1, 1.5)), (0, (3, 3)))
+OBSERVER_MARKERS = ("o", "s", "^", "D", "v", "P", "X", "<")
+
+
+def _name_hash(name: str) -> int:
+    import zlib
+
+    return zlib.crc32(str(name).encode("utf-8"), NAME_SALT)
+
+
+def observer_colour(name: str) -> str:
+    """The colour of observer (or fitted model) ``name`` in every figure: stable across files and studies
+    (:data:`OBSERVER_PALETTE`, :data:`NAME_SALT`)."""
+    return OBSERVER_PALETTE[_name_hash(name) % len(OBSERVER_PALETTE)]
+
+
+#: markers on a curve of many points: about this many, each name's first at another eighth of the spacing
+MARKERS_PER_CURVE = 8
+
+
+def observer_look(name: str, n: int | None = None) -> dict:
+    """Colour, dashes and marker of ``name``'s artists (``color``, ``ls``, ``marker``, ``markevery``), the
+    same in every figure. The markers: on a curve of ``n`` points about :data:`MARKERS_PER_CURVE` of them,
+    every ``n // 8`` points from an offset that depends on the name (so that two curves on top of each
+    other show both); without ``n``, every 12 % of the curve's drawn length."""
+    h = _name_hash(name) // len(OBSERVER_PALETTE)
+    k = h // len(OBSERVER_DASHES)
+    if n is None:
+        every = (0.015 * (k % 8), 0.12)
+    else:
+        step = max(1, int(n) // MARKERS_PER_CURVE)
+        every = ((k % 8) * step // 8, step)
+    return {"color": observer_colour(name), "ls": OBSERVER_DASHES[h % len(OBSERVER_DASHES)],
+            "marker": OBSERVER_MARKERS[k % len(OBSERVER_MARKERS)], "markevery": every}
+
+
 def observer_colours(res: Group) -> dict[str, str]:
-    """One colour per observer (or, in a fit file, per fitted model), the same in every panel and figure
-    of a run: the observer order of the results file (``/estimates``; ``/fit`` of a fit file) mapped
-    onto matplotlib's colour cycle (``tab20`` beyond ten)."""
+    """The colour of every observer of a results file (``/estimates``) or of every fitted model of a fit
+    file (``/fit``): :func:`observer_colour` of each name (not its place in the file)."""
     group = res.data.get("fit") if res.attrs.get("format") == "needlecli-fit" else res.data.get("estimates")
     names = list(group.data) if isinstance(group, Group) else []
-    if len(names) <= 10:
-        return {n: f"C{i}" for i, n in enumerate(names)}
-    cmap = plt.get_cmap("tab20")
-    return {n: matplotlib.colors.to_hex(cmap(i % 20)) for i, n in enumerate(names)}
+    return {n: observer_colour(n) for n in names}
 
 
-def observer_style(colours: dict[str, str], obs: str) -> dict:
-    """Line keywords of an observer's artists: its colour, and a ``gid`` naming it (checked by the tests)."""
-    return {"color": colours.get(obs, "0.4"), "gid": f"observer:{obs}"}
+def observer_style(obs: str, *, line: bool = True, ls=None, n: int | None = None) -> dict:
+    """Keywords of an observer's artists: its look (:func:`observer_look`; ``n``: the curve's number of
+    points) and a ``gid`` naming it (the tests read it). ``line=False``: colour, marker and gid only (error
+    bars, scatter); ``ls``: a line style that means something else in the figure (an input case), in
+    place of the observer's dashes."""
+    look = observer_look(obs, n)
+    out = {"color": look["color"], "marker": look["marker"], "gid": f"observer:{obs}"}
+    if line:
+        out.update(ls=look["ls"] if ls is None else ls, markevery=look["markevery"], ms=4)
+    return out
+
+
+def outside_legend(fig, handles, labels, ncol: int = 4):
+    """One legend for the figure, under its panels: never over the data."""
+    handles, labels = list(handles), list(labels)
+    return fig.legend(handles, labels, loc="outside lower center", ncol=max(1, min(len(labels), ncol)), fontsize="small")
+
+
+def beside_legend(ax, fontsize: str = "small"):
+    """A panel's own legend, to the right of the panel (the constrained layout of :func:`subplots` makes
+    room for it): never over the data."""
+    return ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), borderaxespad=0.0, fontsize=fontsize)
 
 
 def subplots(*args, **kwargs):
@@ -117,36 +185,38 @@ def _band_words(kinds: set[str]) -> str:
 @PLOTS.register("error_vs_depth")
 def error_vs_depth(res: Group, errors: dict[str, ErrorSet], path_stem: Path) -> Path | None:
     """Mean and 5-95 % band of each error quantity against inserted depth, one panel per quantity, from
-    the steps where truth exists; one colour per observer, one legend for all panels."""
+    the steps where truth exists; one colour per observer, one legend for all panels. The per-axis
+    position errors of an observer whose E_xyz is drawn are left to the tables (E_lat and E_ax are drawn)."""
     from needlecli.reports.tables import order_quantities
 
-    quantities = order_quantities({q for es in errors.values() for q, qe in es.quantities.items()
-                                   if np.isfinite(qe.values).any()})
+    shown = {obs: {q: qe for q, qe in es.quantities.items()  # per-axis errors where the norm is drawn: the tables
+                   if np.isfinite(qe.values).any() and not (q in AXIS_QUANTITIES and "E_xyz" in es.quantities)}
+             for obs, es in errors.items()}
+    quantities = order_quantities({q for qs in shown.values() for q in qs})
     if not quantities:
         raise PlotSkipped("no error quantity could be computed (no truth where any observer estimated)")
     depth = run_depths(res)
     unit = res.attrs.get("length_unit", "mm")
-    colours = observer_colours(res)
     fig, axes = subplots(len(quantities), 1, figsize=(7, 1.9 * len(quantities) + 0.9), sharex=True, squeeze=False)
     kinds: set[str] = set()
     handles = {}
     for ax, q in zip(axes[:, 0], quantities):
-        for obs, es in errors.items():
-            qe: QuantityError | None = es.quantities.get(q)
+        for obs in errors:
+            qe: QuantityError | None = shown[obs].get(q)
             if qe is None or qe.values.size == 0:
                 continue
             d, m, lo, hi, kind = curve_against_depth(depth[qe.runs], qe.values)
             if d.size == 0:
                 continue
             kinds.add(kind)
-            st = observer_style(colours, obs)
-            (line,) = ax.plot(d, m, lw=1.3, label=obs, marker="." if d.size < 30 else None, **st)
+            st = observer_style(obs, n=d.size)
+            (line,) = ax.plot(d, m, lw=1.3, label=obs, **st)
             ax.fill_between(d, lo, hi, alpha=0.18, color=st["color"], lw=0)
             handles.setdefault(obs, line)
             ax.set_ylabel(f"{q} [{qe.unit}]")
         ax.grid(alpha=0.3)
     axes[-1, 0].set_xlabel(f"inserted depth [{unit}]")
-    fig.legend(handles.values(), handles.keys(), loc="outside lower center", ncol=min(len(handles), 4), fontsize="small")
+    outside_legend(fig, handles.values(), handles.keys())
     fig.suptitle(f"{res.attrs.get('name', '')}: error against depth ({_band_words(kinds)})", fontsize=10)
     return save_figure(fig, Path(f"{path_stem}_error_vs_depth.png"))
 
@@ -164,7 +234,6 @@ def trajectories(res: Group, errors: dict[str, ErrorSet], path_stem: Path, max_r
     if axes_names is None:
         return None
     scale = length_scale(res)
-    colours = observer_colours(res)
     ix = [names.index(a) for a in axes_names]
     st = truth.data["state"][:max_runs][..., ix] * scale
     n_runs = st.shape[0]
@@ -188,8 +257,8 @@ def trajectories(res: Group, errors: dict[str, ErrorSet], path_stem: Path, max_r
             for r in range(e.shape[0]):
                 fin = np.isfinite(e[r, :, a]) & np.isfinite(e[r, :, b])
                 if fin.sum() >= 2:
-                    (line,) = ax.plot(e[r, fin, a], e[r, fin, b], lw=0.8, ls="--",
-                                      label=obs if obs not in drawn else None, **observer_style(colours, obs))
+                    (line,) = ax.plot(e[r, fin, a], e[r, fin, b], lw=0.8, label=obs if obs not in drawn else None,
+                                      **observer_style(obs, n=int(fin.sum())))
                     drawn.setdefault(obs, line)
         ax.set_xlabel(f"{axes_names[a]} [mm]")
         ax.set_ylabel(f"{axes_names[b]} [mm]")
@@ -197,7 +266,7 @@ def trajectories(res: Group, errors: dict[str, ErrorSet], path_stem: Path, max_r
     if not drawn:
         plt.close(fig)
         raise PlotSkipped("neither the truth nor any estimate has a finite tip position")
-    fig.legend(drawn.values(), drawn.keys(), loc="outside lower center", ncol=min(len(drawn), 5), fontsize="small")
+    outside_legend(fig, drawn.values(), drawn.keys(), ncol=5)
     fig.suptitle(f"{res.attrs.get('name', '')}: tip paths of the first {n_runs} runs", fontsize=10)
     return save_figure(fig, Path(f"{path_stem}_trajectories.png"))
 

@@ -16,8 +16,8 @@ from needlecli.reports.plots import (
     PLOTS,
     PlotSkipped,
     curve_against_depth,
-    observer_colours,
     observer_style,
+    outside_legend,
     plt,
     run_depths,
     save_figure,
@@ -48,8 +48,10 @@ def _x_error(res: Group, obs: str) -> np.ndarray | None:
 @TABLES.register("seed000_table1")
 def seed000_table1(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
     """Seed 000 Table I: average absolute estimation error, RMSE and standard deviation (of the absolute
-    error) of x [mm], beta and gamma [rad], over all kept runs and time steps; Final: mean absolute error
-    at the last step. Paper (experiments): e_x 2e-14 / 5e-13 / 5e-13 mm, e_beta 0.02 / 0.04 / 0.037 rad."""
+    error) of x [mm], beta and gamma [rad], over all kept runs and time steps; Max: the largest absolute
+    error (seed 000's simulation states maxima); Final: mean absolute error at the last step. Paper
+    (experiments): e_x 2e-14 / 5e-13 / 5e-13 mm, e_beta 0.02 / 0.04 / 0.037 rad; (simulation) maxima of
+    1e-14 mm (x) and 0.05 rad (gamma)."""
     unit = res.attrs.get("length_unit", "mm")
     rows = []
     for obs, es in errors.items():
@@ -67,13 +69,13 @@ def seed000_table1(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
             row = {"Observer": obs, "Error": label}
             if finite.size:
                 row.update({_TABLE1_STATS[0]: float(np.mean(finite)), _TABLE1_STATS[1]: float(np.sqrt(np.mean(finite**2))),
-                            _TABLE1_STATS[2]: float(np.std(finite))})
+                            _TABLE1_STATS[2]: float(np.std(finite)), "Max": float(np.max(finite))})
             else:
-                row.update({k: np.nan for k in _TABLE1_STATS})
+                row.update({k: np.nan for k in (*_TABLE1_STATS, "Max")})
             row["Final"] = float(np.mean(last)) if last.size else np.nan
             row["Runs"] = count_cell(kept, es.n_runs)
             rows.append(row)
-    df = pd.DataFrame(rows, columns=["Observer", "Error", *_TABLE1_STATS, "Final", "Runs"])
+    df = pd.DataFrame(rows, columns=["Observer", "Error", *_TABLE1_STATS, "Max", "Final", "Runs"])
     note = _convergence_note(res)
     if note:
         df.attrs["note"] = note
@@ -254,7 +256,6 @@ def rotation_error_plot(res: Group, errors: dict[str, ErrorSet], path_stem: Path
     if not groups:
         return None
     cases = list(dict.fromkeys(g[1] for g in groups))
-    colours = observer_colours(res)
     depth = run_depths(res)
     unit = res.attrs.get("length_unit", "mm")
     fig, axs = subplots(1, len(cases), figsize=(5.5 * len(cases), 4.0), squeeze=False, sharey=True)
@@ -262,15 +263,16 @@ def rotation_error_plot(res: Group, errors: dict[str, ErrorSet], path_stem: Path
     kinds = set()
     for obs, label, e, _, runs in groups:
         ax = axs[0, cases.index(label)]
-        st = observer_style(colours, obs)
+        st = observer_style(obs)
+        thin = {k: v for k, v in st.items() if k not in ("marker", "markevery", "ms")}
         for r in range(min(e.shape[0], max_runs)):
             fin = np.isfinite(e[r]) & np.isfinite(depth[runs[r]])
             if fin.sum() >= 2:
-                ax.plot(depth[runs[r], fin], e[r, fin], lw=0.5, alpha=0.4, **st)
+                ax.plot(depth[runs[r], fin], e[r, fin], lw=0.5, alpha=0.4, **thin)
         d, m, _, _, kind = curve_against_depth(depth[runs], e)
         if d.size:
             kinds.add(kind)
-            (line,) = ax.plot(d, m, lw=1.8, **st)
+            (line,) = ax.plot(d, m, lw=1.8, **{**st, **observer_style(obs, n=d.size)})
             handles.setdefault(obs, line)
     if not handles:
         plt.close(fig)
@@ -287,7 +289,7 @@ def rotation_error_plot(res: Group, errors: dict[str, ErrorSet], path_stem: Path
         ax.set_xlabel(f"insertion distance [{unit}]")
         ax.grid(alpha=0.3)
     axs[0, 0].set_ylabel("rotation error E_R [deg]")
-    fig.legend(handles.values(), handles.keys(), loc="outside lower center", ncol=min(len(handles), 4), fontsize="small")
+    outside_legend(fig, handles.values(), handles.keys())
     what = "thick: mean over runs" + (", binned in depth" if "bins" in kinds else "") + "; thin: single runs"
     fig.suptitle(f"{res.attrs.get('name', '')}: rotation error against insertion distance ({what})", fontsize=10)
     return save_figure(fig, Path(f"{path_stem}_rotation_error.png"))

@@ -16,8 +16,8 @@ from needlecli.reports.plots import (
     PLOTS,
     TRUTH_COLOUR,
     PlotSkipped,
-    observer_colours,
     observer_style,
+    outside_legend,
     plt,
     save_figure,
     subplots,
@@ -96,11 +96,16 @@ def prediction_table(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
 
 @PLOTS.register("prediction")
 def prediction_plot(res: Group, errors, path_stem: Path) -> Path | None:
-    """Fig. 6: mean and std of the final-position prediction error against the depth observed."""
+    """Fig. 6: mean and std of the final-position prediction error against the depth observed; not drawn
+    for a single observation depth (one point per observer on a depth axis says nothing a table line does
+    not: table prediction)."""
     data = prediction_errors(res)
     if not data:
         return None
-    colours = observer_colours(res)
+    n_depths = {d for depths, _ in data.values() for d in np.atleast_1d(depths).tolist()}
+    if len(n_depths) < 2:
+        raise PlotSkipped(f"a single observation depth ({', '.join(f'{d:g}' for d in sorted(n_depths))}): "
+                          "table prediction gives it")
     fig, ax = subplots(figsize=(6.5, 3.8))
     drawn = 0
     for obs, (depths, err) in data.items():
@@ -110,7 +115,7 @@ def prediction_plot(res: Group, errors, path_stem: Path) -> Path | None:
         ok = np.isfinite(m)
         if not ok.any():
             continue
-        ax.errorbar(depths[ok], m[ok], yerr=s[ok], marker="o", capsize=3, label=obs, **observer_style(colours, obs))
+        ax.errorbar(depths[ok], m[ok], yerr=s[ok], capsize=3, label=obs, **observer_style(obs, line=False))
         drawn += 1
     if not drawn:
         plt.close(fig)
@@ -119,7 +124,7 @@ def prediction_plot(res: Group, errors, path_stem: Path) -> Path | None:
     ax.set_xlabel(f"depth observed [{res.attrs.get('length_unit', 'mm')}]")
     ax.set_ylabel("final position prediction error [mm]")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize="small")
+    outside_legend(fig, *ax.get_legend_handles_labels(), ncol=3)
     ax.set_title(f"{res.attrs.get('name', '')}: prediction of the final tip position (mean, std over runs)", fontsize=10)
     return save_figure(fig, Path(f"{path_stem}_prediction.png"))
 
@@ -155,7 +160,6 @@ def curvature_plot(res: Group, errors, path_stem: Path) -> Path | None:
         groups = [(lbl, r) for lbl, r in groups if r.size]
     else:
         groups = [("mean over runs", np.arange(truth.data["state"].shape[0]))]
-    colours = observer_colours(res)
     with_cov = {o: g for o, g in est.items() if g.data.get("cov") is not None}
     fig, axs = subplots(2 if with_cov else 1, 1, figsize=(7, 6.2 if with_cov else 3.6), sharex=True, squeeze=False)
     axs = axs[:, 0]
@@ -164,19 +168,18 @@ def curvature_plot(res: Group, errors, path_stem: Path) -> Path | None:
         en = list(g.attrs["names"])
         ki = en.index("kappa")
         unit = list(g.attrs.get("units", [""] * len(en)))[ki]
-        st = observer_style(colours, obs)
         ok = np.asarray(g.data["status"]).astype(str) == "ok"
         for c, (_, runs) in enumerate(groups):
             runs = runs[ok[runs]]
             if runs.size == 0:
                 continue
-            ls = CASE_STYLES[c % len(CASE_STYLES)]
-            axs[0].plot(time, g.data["state"][runs, :, ki].mean(0), ls=ls, lw=1.4, **st)
+            st = observer_style(obs, ls=CASE_STYLES[c % len(CASE_STYLES)] if len(groups) > 1 else None, n=len(time))
+            axs[0].plot(time, g.data["state"][runs, :, ki].mean(0), lw=1.4, **st)
             if obs in with_cov:
                 cov = g.data["cov"]
                 idx = np.asarray(g.data["cov_index"])
                 pk = cov[runs, :, ki, ki] if cov.ndim == 4 else cov[runs, :, ki]
-                axs[1].semilogy(time[idx], pk.mean(0), ls=ls, lw=1.4, **st)
+                axs[1].semilogy(time[idx], pk.mean(0), lw=1.4, **st)
     if k_true is not None:
         for c, (_, runs) in enumerate(groups):
             kt = k_true[runs]
@@ -187,7 +190,7 @@ def curvature_plot(res: Group, errors, path_stem: Path) -> Path | None:
                 axs[0].plot(time[fin], m[fin], ls=CASE_STYLES[c % len(CASE_STYLES)], color=TRUTH_COLOUR, lw=0.8, gid="truth")
     from matplotlib.lines import Line2D
 
-    handles = [Line2D([], [], lw=1.4, **observer_style(colours, o)) for o in est]
+    handles = [Line2D([], [], lw=1.4, **observer_style(o, ls="-" if len(groups) > 1 else None)) for o in est]
     labels = list(est)
     if k_true is not None:
         handles.append(Line2D([], [], color=TRUTH_COLOUR, lw=0.8))
@@ -195,7 +198,7 @@ def curvature_plot(res: Group, errors, path_stem: Path) -> Path | None:
     if len(groups) > 1:
         handles += [Line2D([], [], color="0.3", ls=CASE_STYLES[c % len(CASE_STYLES)]) for c in range(len(groups))]
         labels += [lbl for lbl, _ in groups]
-    fig.legend(handles, labels, loc="outside lower center", ncol=min(len(labels), 4), fontsize="small")
+    outside_legend(fig, handles, labels)
     axs[0].set_ylabel(f"curvature [{unit}]")
     if with_cov:
         axs[1].set_ylabel(f"P_kappa_kappa [{_variance_unit(unit)}]")

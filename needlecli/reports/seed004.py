@@ -1,5 +1,7 @@
-"""Seed 004's tables and figures from a fit file of ``needle fit-em``.
+"""The tables and figures of a fit file of ``needle fit-em``: seed 004's and their generic forms.
 
+* ``fit_parameters``: for any fitted model, each constant, tr(Q) per block and tr(R_j) per channel: mean,
+  SD and the SD as trajectory error, one row per model and quantity (Tables 1 and 2 below in long form);
 * ``seed004_table1`` (MNM) and ``seed004_table2`` (BiNM): the constant (``c``, ``l_inv``) per parameter case
   (field strength), ``tr(Q_p)``, ``tr(Q_h)``, ``tr(Q_B)`` and ``tr(R_j)`` of every channel, each trace
   divided by its dimension as the seed reports them; rows Mean, SD and "SD as Traj. Err. (mm)": the
@@ -8,8 +10,12 @@
   distance of the tip path to the nominal one averaged (R does not enter the path: 0).
 * ``seed004_table3``: % difference of the BiNM from the MNM, by the mean trace and block-wise by the
   Frobenius norm of the difference of the element-wise median matrices.
-* ``seed004_recovery``: the fits against the truth of a simulated study.
+* ``fit_recovery`` (formerly ``seed004_recovery``, which still names it): the fits against the truth of a
+  simulated study, for any model.
 * ``fit_status``: statuses, reasons, iterations, log-likelihood decreases.
+
+``needle evaluate FIT.h5`` writes seed 004's own tables (``seed004_table1`` to ``3``) by default only for a fit
+of the models they are about (:data:`PAPER_TABLE_MODELS`); a fit of a unicycle gets ``fit_parameters``.
 
 Trials whose fit failed for any model (singular, diverged) are left out for every model (seed 004: 3 of
 44 trials). Figures: ``seed004_fig5`` (a trial's paths and measurements, both models), ``seed004_fig10``
@@ -31,12 +37,15 @@ from needlecli.models import MODELS
 from needlecli.models.base import state_blocks
 from needlecli.reports import FIT_DEFAULT, FIT_TABLE_NAMES
 from needlecli.reports.identify import MARK, mark_label, weak_note, weak_quantities
-from needlecli.reports.plots import PLOTS, draw_plots, observer_colours, observer_style, save_figure, subplots
+from needlecli.reports.plots import PLOTS, beside_legend, draw_plots, observer_style, save_figure, subplots
 from needlecli.reports.tables import TABLES, count_cell, table_caption, write_table
 
 log = logging.getLogger("needlecli")
 
 FIT_TABLES = FIT_DEFAULT  # written by default (the tables of a fit file: needlecli.reports.FIT_TABLE_NAMES)
+#: seed 004's paper tables and the models each is about: written by default only for a fit of those models
+#: (the others' fits get the same content from fit_parameters, under a name that says what it holds)
+PAPER_TABLE_MODELS = {"seed004_table1": ("mnm",), "seed004_table2": ("binm",), "seed004_table3": ("mnm", "binm")}
 #: every table of a fit file: :data:`FIT_TABLES` (written by default) and those asked for by name
 ALL_FIT_TABLES = FIT_TABLE_NAMES
 FIT_PLOTS = ("seed004_fig5", "seed004_fig10", "fit_regression")
@@ -253,6 +262,30 @@ def trajectory_errors(res: Group, model: str, st: dict, moves: list, case: np.nd
     return out
 
 
+@TABLES.register("fit_parameters")
+def fit_parameters_table(res: Group, errors=None) -> pd.DataFrame:
+    """What EM fitted, for every model of the fit file: each constant (per parameter case), tr(Q) per state
+    block and tr(R_j) per channel, traces divided by their dimension (Q per second); mean and SD over the
+    kept trials and the SD as trajectory error (the input cases re-simulated with each quantity moved by one
+    SD; mm). Seed 004's Tables 1 and 2 (tables seed004_table1, seed004_table2) in long form, for any model."""
+    if not is_fit(res):
+        return pd.DataFrame()
+    rows, notes = [], []
+    for model in res.data["fit"].data:
+        wide = parameter_table(res, model)
+        for col in wide.columns[1:]:
+            rows.append({"Model": model, "Quantity": col, "Mean": wide[col].iloc[0], "SD": wide[col].iloc[1],
+                         "SD as Traj. Err. (mm)": wide[col].iloc[2]})
+        if wide.attrs.get("note"):
+            notes.append(wide.attrs["note"])
+    df = pd.DataFrame(rows, columns=["Model", "Quantity", "Mean", "SD", "SD as Traj. Err. (mm)"])
+    keep = kept_trials(res)
+    df["Trials"] = count_cell(keep.sum(), len(keep))
+    if notes:
+        df.attrs["note"] = " ".join(notes)
+    return df
+
+
 # ---------------------------------------------------------------------------------------------- Table 3
 @TABLES.register("seed004_table3")
 def table3(res: Group, errors=None) -> pd.DataFrame:
@@ -292,10 +325,11 @@ def table3(res: Group, errors=None) -> pd.DataFrame:
     df.insert(0, "% difference", ["Trace", "Blockwise"])
     marked = [c for c, q in zip(cols, quantity) if q in either]
     if marked:
-        df.attrs["note"] = (f"{MARK} {', '.join(marked)}: weakly identified in at least one of the fits "
+        df.attrs["note"] = (f"{MARK} {', '.join(marked)}: not identified as fitted in at least one of the fits "
                             f"({'; '.join(f'{m}: ' + ', '.join(w) for m, w in weak.items() if w)}), so their % "
-                            "difference compares values the data do not determine (EM stopped in a flat direction, "
-                            "near its starting guess), not two measurements; see table identifiability.")
+                            "difference compares values the data do not determine (EM stopped short of the "
+                            "likelihood's maximum, a flat direction, or a bias), not two measurements; see table "
+                            "identifiability.")
     return df
 
 
@@ -308,44 +342,71 @@ def _blockwise(ma: np.ndarray, mb: np.ndarray) -> float:
 
 
 # ---------------------------------------------------------------------------------------------- recovery
+@TABLES.register("fit_recovery")
 @TABLES.register("seed004_recovery")
 def recovery_table(res: Group, errors=None) -> pd.DataFrame:
-    """Fitted against true values of a simulated study (the model that made the truth): the constant per
-    parameter case, tr(Q) per block and tr(R) per channel (traces divided by their dimension), mean and
-    SD over the kept trials and the error of the mean."""
+    """Fitted against true values of a simulated study, per design group of trials (seed 004: field
+    strength): each fitted constant (of the model that made the truth), tr(Q) per block (that model) and
+    tr(R) per channel (every model), traces divided by their dimension; mean and SD over the kept trials,
+    the error of the mean, and the fit's recovery check and verdict (table identifiability: estimate -
+    truth in standard errors of the group's mean; "biased" beyond 2); any model (seed004_recovery is its
+    former name)."""
+    from needlecli.reports.identify import assessed, groups
+
     if not is_fit(res) or "params" not in res.data.get("truth", Group()).data:
         return pd.DataFrame()
     truth = res.data["truth"]
     true_model = str(res.attrs.get("model", ""))
     keep = kept_trials(res)
-    case, labels = _cases(res)
     rows = []
     for model in res.data["fit"].data:
         st = _stats(res, model, keep)
         same = model == true_model
-        for c in st["constants"]:
-            tv = np.asarray(truth.data["params"].data.get(c, np.full(len(keep), np.nan)))[keep] if same else None
-            for k, lbl in enumerate(labels):
-                sel = case[keep] == k
+        ig = assessed(res, model)
+        gs = groups(ig) if ig is not None else None
+        if gs is not None:
+            labels, case = gs.labels, gs.group[keep]
+        else:
+            case, labels = _cases(res)
+            case = case[keep]
+
+        def verdict(q: str, g: int, gs=gs) -> tuple[float, str]:
+            if gs is None or q not in gs.names:
+                return np.nan, "not assessed"
+            k = gs.names.index(q)
+            return float(gs.z[g, k]), gs.text(g, k) if gs.trials[g] else "not assessed"
+
+        q_std = np.asarray(truth.data.get("q_std", np.zeros(0)))
+        sig = truth.data.get("sigma", Group()).data
+        for g, lbl in enumerate(labels):
+            sel = case == g
+            n = int(sel.sum())
+            if not n and (gs is None or not (gs.group == g).any()):  # a level no trial of this file has
+                continue
+            for c in st["constants"]:
+                tv = np.asarray(truth.data["params"].data.get(c, np.full(len(keep), np.nan)))[keep] if same else None
                 m, s = _mean_sd(st["const"][c][sel])
                 t = float(np.mean(tv[sel])) if tv is not None and sel.any() else np.nan
-                rows.append((model, f"{c} @ {lbl}", t, m, s))
-        q_std = np.asarray(truth.data.get("q_std", np.zeros(0)))
-        for b, idx in st["blocks"].items():
-            if not np.any(st["Q"][:, idx][:, :, idx]):
-                continue
-            m, s = _mean_sd(_trace(st["Q"], idx))
-            t = float(np.mean(q_std[idx] ** 2)) if same and q_std.size >= max(idx) + 1 else np.nan
-            rows.append((model, f"tr(Q_{b})", t, m, s))
-        sig = truth.data.get("sigma", Group()).data
-        for ch, R in st["R"].items():
-            m, s = _mean_sd(np.trace(R, axis1=-2, axis2=-1) / R.shape[-1])
-            t = float(np.mean(np.asarray(sig[ch]) ** 2)) if ch in sig else np.nan
-            rows.append((model, f"tr(R_{ch})", t, m, s))
-    df = pd.DataFrame(rows, columns=["Model", "Quantity", "Truth", "Fitted mean", "Fitted SD"])
+                rows.append((model, c, lbl, t, m, s, *verdict(c, g), n))
+            for b, idx in st["blocks"].items():
+                if not np.any(st["Q"][:, idx][:, :, idx]):
+                    continue
+                m, s = _mean_sd(_trace(st["Q"][sel], idx))
+                t = float(np.mean(q_std[idx] ** 2)) if same and q_std.size >= max(idx) + 1 else np.nan
+                rows.append((model, f"tr(Q_{b})", lbl, t, m, s, *verdict(f"tr(Q_{b})", g), n))
+            for ch, R in st["R"].items():
+                m, s = _mean_sd(np.trace(R[sel], axis1=-2, axis2=-1) / R.shape[-1])
+                t = float(np.mean(np.asarray(sig[ch]) ** 2)) if ch in sig else np.nan
+                rows.append((model, f"tr(R_{ch})", lbl, t, m, s, *verdict(f"tr(R_{ch})", g), n))
+    df = pd.DataFrame(rows, columns=["Model", "Quantity", "Group", "Truth", "Fitted mean", "Fitted SD",
+                                     "z (estimate - truth)", "Verdict", "Trials"])
     with np.errstate(all="ignore"):
-        df["Error of mean (%)"] = 100.0 * (df["Fitted mean"] - df["Truth"]) / df["Truth"]
-    df["Trials"] = count_cell(keep.sum(), len(keep))
+        df.insert(6, "Error of mean (%)", 100.0 * (df["Fitted mean"] - df["Truth"]) / df["Truth"])
+    df["Trials"] = [count_cell(n, len(keep)) for n in df["Trials"]]
+    biased = [f"{r.Model} {r.Quantity} ({r.Group})" for r in df.itertuples() if str(r.Verdict).startswith("biased")]
+    df.attrs["note"] = (f"Biased (the mean misses its truth by more than 2 standard errors; the cause: table "
+                        f"identifiability): {', '.join(biased)}." if biased else
+                        "Every quantity with a truth is recovered within 2 standard errors in every group.")
     return df
 
 
@@ -432,8 +493,7 @@ def fig5(res: Group, errors, path_stem: Path) -> Path | None:
     y = y_all[:, cols]
     shown = _two_widest(y, valid)  # the plane of the plot: the two axes the path spans most
     t_meas = np.asarray(mg.data["t"])
-    colours = observer_colours(res)
-    fig, axs = subplots(1, 2, figsize=(12, 4.8))
+    fig, axs = subplots(1, 2, figsize=(13, 4.8))
     axs[0].plot(y[valid, shown[0]], y[valid, shown[1]], ".", ms=3, color="0.5", label=f"{ch} measurements")
     tr = res.data.get("truth", Group())
     if "state" in tr.data:
@@ -449,22 +509,23 @@ def fig5(res: Group, errors, path_stem: Path) -> Path | None:
             continue
         z = np.asarray(g.data["state"])[i][:, idx] * scale
         status = str(np.asarray(g.data["status"]).astype(str)[i])
-        sty = observer_style(colours, model)
+        sty = observer_style(model, n=len(z))
+        plain = {k: v for k, v in sty.items() if k not in ("marker", "markevery", "ms")}
         axs[0].plot(z[:, shown[0]], z[:, shown[1]], lw=1.2, label=f"{model} EM ({status})", **sty)
         ticks = np.asarray(g.data["ticks"])
         at = np.clip(np.searchsorted(ticks, np.asarray(mg.data["index"])), 0, len(ticks) - 1)
         d = np.linalg.norm(z[at] - y, axis=-1)
         d = np.where(valid, d, np.nan)
         run = np.sqrt(np.nancumsum(d**2) / np.maximum(np.cumsum(valid), 1))
-        axs[1].plot(t_meas, d, lw=0.5, alpha=0.5, **sty)
+        axs[1].plot(t_meas, d, lw=0.5, alpha=0.5, **plain)
         axs[1].plot(t_meas, run, lw=1.5, label=f"{model}: running RMS {run[-1]:.3f} mm", **sty)
     axs[0].set_xlabel(f"{pairs[shown[0]][1]} [mm]")
     axs[0].set_ylabel(f"{pairs[shown[1]][1]} [mm]")
     axs[0].set_aspect("equal", adjustable="datalim")
-    axs[0].legend(fontsize="small")
+    beside_legend(axs[0])
     axs[1].set_xlabel("time [s]")
     axs[1].set_ylabel("distance from the measurement [mm]")
-    axs[1].legend(fontsize="small")
+    beside_legend(axs[1])
     for ax in axs:
         ax.grid(alpha=0.3)
     labels = [str(x) for x in np.atleast_1d(res.data["inputs"].attrs.get("case_labels", []))]
@@ -527,8 +588,7 @@ def fig10(res: Group, errors, path_stem: Path) -> Path | None:
     closest = np.nanmin(np.abs(_cos_hb(zm, mn)), 1)
     i = int(sing[0]) if sing.size else int(np.nanargmin(closest))
     time = np.asarray(res.data["time"])
-    colours = observer_colours(res)
-    fig, ax = subplots(figsize=(8, 4.2))
+    fig, ax = subplots(figsize=(9.5, 4.2))
     tr = res.data.get("truth", Group())
     if "state" in tr.data:
         tn = [str(x) for x in tr.attrs["names"]]
@@ -540,13 +600,13 @@ def fig10(res: Group, errors, path_stem: Path) -> Path | None:
         z = np.asarray(g.data[key])[i]
         lbl = {"state": "EM estimate", "ekf_state": "EKF forward pass"}[key]
         st = str(np.asarray(g.data["status"]).astype(str)[i])
-        ax.plot(time[ticks], _cos_hb(z, names), style, lw=1.3,
-                label=f"{model} {lbl}" + (f" ({st})" if key == "state" else ""), **observer_style(colours, model))
+        ax.plot(time[ticks], _cos_hb(z, names), lw=1.3, label=f"{model} {lbl}" + (f" ({st})" if key == "state" else ""),
+                **observer_style(model, ls=style, n=len(ticks)))
     ax.axhline(0.0, color="r", lw=0.8, label="BiNM singularity (h . B = 0)")
     ax.set_xlabel("time [s]")
     ax.set_ylabel("h . B / (|h| |B|) [-]")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize="small")
+    beside_legend(ax)
     if sing.size:
         what = f"the BiNM fit reached the singularity ({str(fits['binm'].data['reason'][i])})"
     else:
@@ -573,7 +633,7 @@ def evaluate_fit(
 
     path = Path(path)
     res = read_fit(path)
-    names = tables or list(FIT_TABLES)
+    names = tables or default_fit_tables(res)
     for n in names:
         if n not in ALL_FIT_TABLES:
             raise DataError(f"{path}: table {n!r} needs a results file; a fit file has {', '.join(ALL_FIT_TABLES)}")
@@ -595,3 +655,10 @@ def evaluate_fit(
             draw_plots(res, None, out_dir / stem, FIT_PLOTS,
                        options={"fit_regression": {"regress": design["regress"]}} if design and design.get("regress") else None)
     return out
+
+
+def default_fit_tables(res: Group) -> list[str]:
+    """The tables ``needle evaluate`` writes for a fit file by default: :data:`FIT_TABLES`, seed 004's paper
+    tables only where the fit has their models (:data:`PAPER_TABLE_MODELS`)."""
+    fitted = set(res.data["fit"].data) if is_fit(res) else set()
+    return [n for n in FIT_TABLES if set(PAPER_TABLE_MODELS.get(n, ())) <= fitted]

@@ -240,7 +240,7 @@ def axis_label(key: str, info: Mapping[str, str] | None) -> str:
 def sweep_figure(df: pd.DataFrame, *, metric: str, param: str, units: Mapping[str, str] | None = None,
                  title: str = ""):
     """The figure of :func:`plot_sweep` (returned open, for tests and callers that add to it)."""
-    from needlecli.reports.plots import plt
+    from needlecli.reports.plots import beside_legend, observer_look, subplots
 
     if metric not in df.columns:
         known = [c for c in df.columns if c.endswith(("_mean", "_std", "_max"))]
@@ -252,12 +252,10 @@ def sweep_figure(df: pd.DataFrame, *, metric: str, param: str, units: Mapping[st
     ok = df[df["status"] == "ok"]
     others = [k for k in params if k not in (param, SEED_KEY)]
     groups = ["observer", *others]
-    fig, ax = plt.subplots(figsize=(7.5, 4.6))
+    fig, ax = subplots(figsize=(9.5, 4.6))
     xs_all = pd.to_numeric(ok[param], errors="coerce")
     numeric = bool(len(ok)) and xs_all.notna().all()
     cats = list(dict.fromkeys(ok[param])) if not numeric else None
-    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    observers = list(dict.fromkeys(ok["observer"]))
     combos: list[tuple] = []
     counts: list[int] = []
     seed_sets: set[frozenset] = set()
@@ -275,9 +273,11 @@ def sweep_figure(df: pd.DataFrame, *, metric: str, param: str, units: Mapping[st
         k = combos.index(key[1:])
         label = ", ".join([str(key[0])] + [_legend_entry(o, v, info.get(o)) for o, v in zip(others, key[1:])])
         replicated = bool((agg["count"] > 1).any())
+        look = observer_look(str(key[0]))  # the observer's colour in every figure; a line style per combination
         ax.errorbar(x, agg["mean"], yerr=agg["std"].where(agg["count"] > 1) if replicated else None,
-                    color=colours[observers.index(key[0]) % len(colours)], marker="osD^v<>ph"[k % 9],
-                    linestyle=["-", "--", ":", "-."][k % 4], capsize=3, label=label)
+                    color=look["color"], marker="osD^v<>ph"[k % 9] if others else look["marker"],
+                    linestyle=["-", "--", ":", "-."][k % 4] if others else look["ls"], capsize=3, label=label,
+                    gid=f"observer:{key[0]}")
     if numeric and len(xs_all) and (xs_all > 0).all() and xs_all.max() / xs_all.min() >= 20:
         ax.set_xscale("log")
     if cats is not None:
@@ -289,7 +289,7 @@ def sweep_figure(df: pd.DataFrame, *, metric: str, param: str, units: Mapping[st
     ax.set_ylabel(ylabel + (f" [{unit}]" if unit else ""))
     ax.grid(alpha=0.3)
     if len(ax.get_legend_handles_labels()[0]):
-        ax.legend(fontsize="small")
+        beside_legend(ax)
     ax.set_title(("\n".join(filter(None, [title, f"{metric} against {info.get(param, {}).get('name') or param}"]))
                   + "\n" + _seed_note(counts, seed_sets)), fontsize="medium")
     return fig

@@ -21,11 +21,12 @@ from needlecli.reports import TABLES
 
 TableFn = Callable[[Group, dict[str, ErrorSet]], pd.DataFrame]
 
-_QUANTITY_ORDER = ["E_xyz", "E_x", "E_y", "E_z", "E_alpha", "E_beta", "E_gamma", "E_R", "E_h", "E_B", "E_kappa"]
+_QUANTITY_ORDER = ["E_xyz", "E_x", "E_y", "E_z", "E_lat", "E_ax", "E_alpha", "E_beta", "E_gamma", "E_R", "E_h", "E_B", "E_kappa"]
 
 
 def order_quantities(names):
-    """Quantities in the papers' order (position, angles, rotation, vectors, curvature, the rest)."""
+    """Quantities in the papers' order (position: its norm, per axis, across and along the needle; angles,
+    rotation, vectors, curvature, the rest)."""
     return sorted(names, key=lambda q: (_QUANTITY_ORDER.index(q) if q in _QUANTITY_ORDER else 99, q))
 
 
@@ -63,7 +64,9 @@ def _rows(errors: dict[str, ErrorSet], stats: dict[str, Callable[[np.ndarray], f
 def summary_table(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
     """Instantaneous estimation error over all kept runs and all time steps, the initial one included:
     Mean, Std, Max (seed 003's statistics; its Table 1, table seed003_table1, counts only the steps after
-    initialisation)."""
+    initialisation). The tip position error E_xyz is also given per axis (E_x, E_y, E_z) and, where the
+    model has a needle axis, across it (E_lat, lateral) and along it (E_ax, axial), about the truth's
+    tangent."""
     return _rows(errors, {"Mean": np.mean, "Std": np.std, "Max": np.max})
 
 
@@ -167,6 +170,25 @@ def to_markdown(df: pd.DataFrame) -> str:
     return formatted(df).to_markdown(index=False, tablefmt="github", disable_numparse=True)
 
 
+def to_terminal(df: pd.DataFrame, width: int, columns: list[str] | None = None, more: str = "") -> str:
+    """``df`` as Markdown no wider than ``width`` characters (a terminal's): ``columns`` in their order of
+    importance (default: the frame's), as many as fit (the first two always), each in its one format;
+    a last line says how many were left out and where they are (``more``: e.g. "in sweep.csv")."""
+    order = [c for c in (columns or list(df.columns)) if c in df.columns]
+    keep = order[:2]
+    for c in order[2:]:
+        trial = keep + [c]
+        if max(len(line) for line in to_markdown(df[trial]).splitlines()) > width:
+            break
+        keep = trial
+    shown = [c for c in df.columns if c in keep] if columns is None else keep
+    text = to_markdown(df[shown])
+    left = len(df.columns) - len(shown)
+    if left:
+        text += f"\n({left} more column(s){' ' + more if more else ''})"
+    return text
+
+
 # LaTeX specials and the non-ASCII characters the tables use (pdflatex, OT1: < > | need math mode)
 _LATEX = {"\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "$": r"\$", "#": r"\#", "_": r"\_",
           "{": r"\{", "}": r"\}", "~": r"\textasciitilde{}", "^": r"\textasciicircum{}", "<": r"$<$",
@@ -222,6 +244,25 @@ def to_latex(df: pd.DataFrame, caption: str = "", label: str = "") -> str:
     return "\n".join(lines) + "\n"
 
 
+#: significant digits of a number in a CSV file: the data's precision, without the last bits of rounding
+#: (60, not 60.00000000000378)
+CSV_DIGITS = 12
+
+
+def _csv_number(v):
+    return float(f"{v:.{CSV_DIGITS}g}") if isinstance(v, (float, np.floating)) and np.isfinite(v) else v
+
+
+def to_csv(df: pd.DataFrame) -> str:
+    """``df`` as CSV, every number to :data:`CSV_DIGITS` significant digits (the one place a CSV's numbers
+    are formatted; whole numbers without a decimal point), missing values empty."""
+    out = df.copy()
+    for c in out.columns:
+        if pd.api.types.is_float_dtype(out[c]) or out[c].dtype == object:
+            out[c] = [_csv_number(v) for v in out[c].tolist()]
+    return out.to_csv(index=False, float_format=f"%.{CSV_DIGITS}g")
+
+
 def _atomic_text(path: Path, text: str) -> None:
     write_text_atomic(path, text)
 
@@ -235,7 +276,7 @@ def write_table(df: pd.DataFrame, stem: Path, formats: list[str], caption: str =
         if fmt == "md":
             text = (f"{caption}\n\n" if caption else "") + to_markdown(df) + "\n"
         elif fmt == "csv":
-            text = df.to_csv(index=False)
+            text = to_csv(df)
         elif fmt == "tex":
             text = to_latex(df, caption, label=f"tab:{stem.name}")
         else:
@@ -245,11 +286,32 @@ def write_table(df: pd.DataFrame, stem: Path, formats: list[str], caption: str =
     return out
 
 
+def starts_note(res: Group) -> str:
+    """Which start each observer of a results file had (``/estimates/<observer>`` attribute ``start``,
+    written by the runner from ``runs.common_start``), in one sentence; empty for one observer or a file
+    that does not say."""
+    starts = {n: str(g.attrs["start"]) for n, g in res.data.get("estimates", Group()).data.items()
+              if isinstance(g, Group) and "start" in g.attrs}
+    if len(starts) < 2:
+        return ""
+    ref = next((n for n, s in starts.items() if s.startswith("common (reference)")), None)
+    own = [n for n, s in starts.items() if s.startswith("own")]
+    if ref is None:
+        why = next((s[s.index("(") + 1: -1] for s in starts.values() if "(" in s), "")
+        return f"Start: each observer from its own init{f' ({why})' if why else ''}."
+    sharing = [n for n, s in starts.items() if n != ref and s.startswith("common")]
+    out = f"Start: {', '.join(sharing)} from {ref}'s initial estimate (its own draw, made once; runs.common_start)."
+    return out + (f" From their own init: {', '.join(own)}." if own else "")
+
+
 def table_caption(name: str, df: pd.DataFrame, res: Group | None = None) -> str:
     """A table's caption: the first paragraph of its function's docstring, what a replay compared
-    against, and what the table measured on this file (``df.attrs["note"]``)."""
+    against, which start each observer had (:func:`starts_note`, tables with an ``Observer`` column) and
+    what the table measured on this file (``df.attrs["note"]``)."""
     doc = " ".join((TABLES.get(name).__doc__ or "").strip().split("\n\n")[0].split())
     if res is not None and res.attrs.get("source") == "replay":
         doc += f" Replayed logs; errors against: {res.attrs.get('truth_kind', 'the logs')}."
+    if res is not None and "Observer" in df.columns and (starts := starts_note(res)):
+        doc += f" {starts}"
     note = df.attrs.get("note")
     return f"{doc} {note}" if note else doc

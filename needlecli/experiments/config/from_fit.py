@@ -15,9 +15,9 @@ open loop, and any plug-in that declares it; a subclass takes what its parent ta
 the trials whose fit is ``ok`` (``pick: median`` / ``mean`` element-wise over them, or ``pick: trial``
 with ``trial:`` an index or a trial id):
 
-* ``q``: the standard deviation of each state's process noise, ``sqrt(Q_ii)`` per square-root second
-  (``FitTakes.q: per_root_second``: the EKF, EKS, open loop) or per filter tick, ``sqrt(Q_ii dt_tick)``
-  (``per_tick``: the UKF); the fit's correlations are dropped (these observers take a diagonal ``Q``);
+* ``q``: the standard deviation of each state's process noise per square-root second, ``sqrt(Q_ii)`` (the
+  meaning of ``q`` in every observer); the fit's correlations are dropped (these observers take a
+  diagonal ``Q``);
 * ``measurements.<channel>.sigma``: ``sqrt(diag R_j)`` of each fitted channel the observer has a sensor
   for (``FitTakes.measurements``; not the open loop); a measured direction's R is in its tangent plane
   and is not taken;
@@ -27,10 +27,16 @@ with ``trial:`` an index or a trial id):
   (``measurements.<channel>.along_offset`` with the fitted ``tau`` and ``sigma``); for the others its
   variance joins the channel's sigma along the needle (``offset``: :func:`offset_variance`).
 
-Checked before any work, with the key path: the observer's type can take a fit, the file is a fit file,
-it fitted ``model``, that model is the observer's (its ``model`` key, else the experiment's), the picked
-trial exists and is ``ok``, every channel has a sensor, and the observer does not also set what
-``from_fit`` sets. A weakly identified quantity (the fit's identifiability) is taken but named in the log.
+Checked before any work, with the key path, whatever the observer takes from the fit: the observer's
+type can take a fit, the file is a fit file whose values hold (:func:`needlecli.io.fit.check_fit_values`:
+``Q`` and each ``R`` finite, symmetric and positive semi-definite, each R of its channel's shape), it
+fitted ``model``, that model is the observer's (its ``model`` key, else the experiment's) and the fit's
+states are that model's (:func:`check_fit_model`), every channel of the fit is a sensor of the config (of
+its logs, for a replay) measuring the same components (:func:`check_fit_channels`), the picked trial exists
+and is ``ok``, and the observer does not also set what ``from_fit`` sets. A fit section's ``from_fit``
+takes only ``q`` and the constants: its channels may be other sensors (the needle's motion fitted on a
+tracker, held while EM fits an ultrasound's noise), so they are not checked against the config. A weakly
+identified quantity (the fit's identifiability) is taken but named in the log.
 """
 
 from __future__ import annotations
@@ -83,6 +89,7 @@ def expand_from_fit(data: dict, source: str, base_dir: Path) -> list[str]:
     observers = data.get("observers") if isinstance(data, dict) else None
     if not isinstance(observers, list):
         return changed
+    channels = None
     for i, obs in enumerate(observers):
         if not isinstance(obs, dict) or "from_fit" not in obs:
             continue
@@ -92,7 +99,9 @@ def expand_from_fit(data: dict, source: str, base_dir: Path) -> list[str]:
             spec = FromFit.model_validate(obs["from_fit"])
         except ValidationError as e:
             raise validation_error(e, obs["from_fit"], source, prefix=loc, schema=FromFit) from None
-        values = fitted_values(spec, base_dir, source, loc)
+        if channels is None:
+            channels = config_channels(data, base_dir)
+        values = fitted_values(spec, base_dir, source, loc, channels=channels, replay=data.get("source") is not None)
         changed.append(_apply(obs, takes, values, data, source, ("observers", i)))
         del obs["from_fit"]
     return changed
@@ -181,9 +190,100 @@ def offset_variance(q2: float, tau: float, how: str, meas, sel: np.ndarray, sour
     return 2.0 * var * tau / float(np.median(dts))
 
 
-def fitted_values(spec: FromFit, base_dir: Path, source: str, loc: tuple) -> dict[str, Any]:
+def config_channels(data: dict, base_dir: Path) -> dict[str, tuple[str, ...] | None] | None:
+    """The sensors of a parsed config by name, each with the components it measures: a simulation's
+    ``sensors`` (None for a sensor whose settings cannot be built yet: the config's own checks name what is
+    wrong), or for a replay the sensors its logs recorded. None when the logs cannot be read (their reader
+    says why, later)."""
+    from needlecli.experiments.config.logs import _read_log
+    from needlecli.models import MODELS
+    from needlecli.sensors import SENSORS
+
+    src = data.get("source")
+    if src is not None:
+        logs = src.get("logs") if isinstance(src, dict) else None
+        out: dict[str, tuple[str, ...] | None] = {}
+        for p in logs if isinstance(logs, list) else []:
+            path = Path(str(p))
+            try:
+                log = _read_log(path if path.is_absolute() else base_dir / path)
+            except (DataError, OSError):
+                return None
+            for tr in log.trials:
+                for name, st in tr.sensors.items():
+                    out.setdefault(name, tuple(st.names))
+        return out
+    model_spec = data.get("model") if isinstance(data.get("model"), dict) else {}
+    try:
+        mcls = MODELS.get(model_spec.get("type"))
+        model = mcls(mcls.Params.model_validate(model_spec.get("params") or {}))
+    except Exception:  # noqa: BLE001  (a model the config's checks will name; the components stay unknown)
+        model = None
+    out = {}
+    for s in data.get("sensors") or []:
+        if not isinstance(s, dict):
+            continue
+        name = s.get("name") or s.get("type")
+        comps = None
+        if model is not None and s.get("type") in SENSORS:
+            try:
+                cls = SENSORS.get(s["type"])
+                comps = tuple(cls(cls.Settings.model_validate(s), model).channel_names)
+            except Exception:  # noqa: BLE001  (settings the config's checks will name)
+                comps = None
+        out[str(name)] = comps
+    return out
+
+
+def check_fit_model(g, model: str, where: str) -> str | None:
+    """The fit of ``model`` (its group ``g``) has the model's states, in order, then only fitted constants
+    (parameters of the model) and sensor states: None, or what is wrong (``where``: its HDF5 path)."""
+    from needlecli.models import MODELS
+
+    if model not in MODELS:
+        return f"[{where}] fitted model {model!r}, which is not a model of this needlecli ({', '.join(MODELS.names())})"
+    cls = MODELS.get(model)
+    names = _strs(g.attrs["names"])
+    states = list(cls.state_names)
+    if names[: len(states)] != states:
+        return (f"[{where} attribute names] the fit's states are {', '.join(names[: len(states)])}; model {model!r} has "
+                f"{', '.join(states)}")
+    consts = set(_strs(g.attrs.get("constants", [])))
+    sensor = set(_strs(g.attrs.get("sensor_states", [])))
+    for n in names[len(states):]:
+        if n in sensor:
+            continue
+        if n not in consts or n not in cls.Params.model_fields:
+            return (f"[{where} attribute names] {n!r} is neither a state nor a constant of model {model!r} "
+                    f"(constants: {', '.join(cls.Params.model_fields)})")
+    return None
+
+
+def check_fit_channels(res, g, model: str, channels: dict[str, tuple[str, ...] | None], replay: bool) -> str | None:
+    """Every channel the fit of ``model`` (its group ``g``) has an R for is a sensor in ``channels`` (the
+    config's, :func:`config_channels`) measuring the same components: None, or what is wrong."""
+    meas = res.data["measurements"].data if "measurements" in res.data else {}
+    for ch in g.data["R"].data if "R" in g.data else {}:
+        if ch.endswith("_guess"):
+            continue
+        where = f"/fit/{model}/R/{ch}"
+        if ch not in channels:
+            whose = "the logs of this config" if replay else "this config"
+            return (f"[{where}] the fit's channel {ch!r} is no sensor of {whose} (sensors: "
+                    f"{', '.join(channels) or 'none'})")
+        have = tuple(_strs(meas[ch].attrs.get("names", []))) if ch in meas else None
+        if channels[ch] is not None and have is not None and have != channels[ch]:
+            return (f"[{where}] the fit's channel {ch!r} measured {', '.join(have)}; sensor {ch!r} of "
+                    f"{'the logs' if replay else 'this config'} measures {', '.join(channels[ch])}")
+    return None
+
+
+def fitted_values(spec: FromFit, base_dir: Path, source: str, loc: tuple,
+                  channels: dict[str, tuple[str, ...] | None] | None = None, replay: bool = False) -> dict[str, Any]:
     """What the fit file gives: ``{"model", "names", "q_var" (state -> Q_ii per second), "r_var" (channel ->
-    (m,) variances or None for a direction), "params" (constant -> value), "trials", "weak"}``."""
+    (m,) variances or None for a direction), "params" (constant -> value), "trials", "weak"}``. The file is
+    checked first (module docstring); ``channels``, the config's sensors (:func:`config_channels`), for an
+    observer (None: a fit section's, whose channels are not checked), ``replay``: they are a replay's logs'."""
     from needlecli.io.fit import read_fit
 
     path = Path(spec.file)
@@ -196,6 +296,11 @@ def fitted_values(spec: FromFit, base_dir: Path, source: str, loc: tuple) -> dic
     if spec.model not in fits:
         raise ConfigError(source, loc + ("model",), f"{path} fitted {', '.join(fits) or 'no model'}, not {spec.model!r}")
     g = fits[spec.model]
+    problem = check_fit_model(g, spec.model, f"/fit/{spec.model}")
+    if problem is None and channels is not None:
+        problem = check_fit_channels(res, g, spec.model, channels, replay)
+    if problem is not None:
+        raise ConfigError(source, loc + ("file",), f"{path}: {problem}")
     status = np.asarray(_strs(g.data["status"]))
     N = len(status)
     if spec.trials is not None and spec.pick == "trial":
@@ -253,7 +358,8 @@ def fitted_values(spec: FromFit, base_dir: Path, source: str, loc: tuple) -> dic
         Rm = reduce(np.asarray(R, dtype=float)[sel], axis=0)
         meas = res.data["measurements"].data.get(ch)
         m_raw = np.asarray(meas.data["value"]).shape[-1] if meas is not None else Rm.shape[-1]
-        r_var[ch] = None if m_raw != Rm.shape[-1] else np.diag(Rm).copy()  # a direction: R in its tangent plane
+        # a direction: R in its tangent plane, one component fewer (the file's check holds it to that)
+        r_var[ch] = None if Rm.shape[-1] == m_raw - 1 else np.diag(Rm).copy()
         if ch in dof and r_var[ch] is not None:  # the Gaussian of the Student-t's variance (infinite for nu <= 2)
             nu = float(dof[ch])
             r_var[ch] = r_var[ch] * (nu / (nu - 2.0) if nu > 2.0 else np.inf)
@@ -278,17 +384,10 @@ def _apply(obs: dict, takes: FitTakes, v: dict, data: dict, source: str, loc: tu
     for key in ("q", "params"):
         if key in obs:
             raise ConfigError(source, loc + (key,), "from_fit sets it: give one of them")
-    if takes.q == "per_tick":
-        dt = float((data.get("simulation") or {}).get("dt", 0.01))
-        rate = obs.get("rate")
-        stride = 1 if rate is None else max(1, int(round(1.0 / (float(rate) * dt))))
-        obs["q"] = {s: float(np.sqrt(max(q, 0.0) * stride * dt)) for s, q in v["q_var"].items()}
-    else:
-        obs["q"] = {s: float(np.sqrt(max(q, 0.0))) for s, q in v["q_var"].items()}
+    obs["q"] = {s: float(np.sqrt(max(q, 0.0))) for s, q in v["q_var"].items()}
     obs["params"] = dict(v["params"])
     taken = ["q", "params"]
     if takes.measurements:
-        sensors = {s.get("name") or s.get("type") for s in data.get("sensors") or [] if isinstance(s, dict)}
         meas = obs.setdefault("measurements", {})
         if not isinstance(meas, dict):
             raise ConfigError(source, loc + ("measurements",), "should be a mapping")
@@ -297,9 +396,6 @@ def _apply(obs: dict, takes: FitTakes, v: dict, data: dict, source: str, loc: tu
                 log.info("from_fit: channel %s of %s is a measured direction (R in its tangent plane): not taken",
                          ch, v["path"])
                 continue
-            if sensors and ch not in sensors and not data.get("source"):
-                raise ConfigError(source, loc + ("from_fit",),
-                                  f"the fit has channel {ch!r}, which is not a sensor of this config")
             spec = meas.setdefault(ch, {})
             if "sigma" in spec:
                 raise ConfigError(source, loc + ("measurements", ch, "sigma"), "from_fit sets it: give one of them")

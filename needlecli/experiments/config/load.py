@@ -9,6 +9,7 @@ Errors are :class:`~needlecli.errors.ConfigError` naming the file and the key pa
 from __future__ import annotations
 
 import copy
+import logging
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -23,6 +24,7 @@ from needlecli.experiments.config.from_fit import expand_from_fit
 from needlecli.experiments.config.overrides import apply_overrides
 from needlecli.experiments.config.schedule import signal_size
 from needlecli.experiments.config.schema import all_tags, experiment_schema, used_types
+from needlecli.experiments.config.types import CONFIG_FORMAT, Simulation
 from needlecli.guard import Component
 from needlecli.io.yamlfile import parse_yaml, read_text
 from needlecli.models import MODELS, Model
@@ -34,6 +36,8 @@ from needlecli.sensors import PIPELINES, SENSORS
 
 if TYPE_CHECKING:
     from needlecli.experiments.config.types import ExperimentConfig
+
+log = logging.getLogger("needlecli")
 
 
 def load_config(
@@ -62,12 +66,20 @@ def config_problems(path: str | Path, overrides: list[str] | None = None) -> lis
     """Every problem of a config at once (``needle validate``): each key the schema refuses, then, when the
     schema holds, every problem across sections; the memory check only when nothing else is wrong. A
     file that cannot be read or parsed, or an override that cannot be applied, is one problem. Empty: valid."""
+    return checked_config(path, overrides)[1]
+
+
+def checked_config(path: str | Path, overrides: list[str] | None = None) -> tuple[ExperimentConfig | None,
+                                                                                 list[NeedleError]]:
+    """:func:`config_problems` with the validated config: ``(config, [])`` for a valid one (what ``needle
+    validate`` analyses further), ``(None, problems)`` otherwise."""
     problems: list[NeedleError] = []
+    loaded = None
     try:
-        _load(path, overrides=overrides, problems=problems)
+        loaded = _load(path, overrides=overrides, problems=problems)
     except NeedleError as e:
         problems.append(e)
-    return problems
+    return (loaded[0] if loaded is not None and not problems else None), problems
 
 
 def _load(path, *, text=None, overrides=None, runs=None, seed=None, memory=True, problems=None):
@@ -76,6 +88,7 @@ def _load(path, *, text=None, overrides=None, runs=None, seed=None, memory=True,
         text = read_text(path)  # type: ignore[arg-type]
     data = copy.deepcopy(parse_yaml(text, source))
     changed = apply_overrides(data, overrides, source, runs=runs, seed=seed)
+    upgraded = upgrade_format(data, source)
     fitted = expand_from_fit(data, source, Path(source).parent if path is not None else Path("."))
     types = used_types(data)
     try:
@@ -92,11 +105,48 @@ def _load(path, *, text=None, overrides=None, runs=None, seed=None, memory=True,
     check_consistency(cfg, source, problems)
     if problems:
         return None
+    for line in upgraded:  # said once the config holds (a bad config's one line is its error)
+        log.warning("%s; write format: %d at the top of the config once it gives q per square-root second", line,
+                    CONFIG_FORMAT)
     if memory:
         check_memory(cfg, source, Path(source).parent if source != "<string>" else Path("."))
-    if changed or fitted:  # the config as it ran: from_fit's values written out, where they came from above
-        text = "".join(f"# {line}\n" for line in fitted) + yaml.safe_dump(data, sort_keys=False)
+    if changed or fitted or upgraded:  # the config as it ran: converted keys and from_fit's values written out,
+        # what was converted and where the values came from above it
+        text = "".join(f"# {line}\n" for line in upgraded + fitted) + yaml.safe_dump(data, sort_keys=False)
     return cfg, text
+
+
+def upgrade_format(data: dict, source: str) -> list[str]:
+    """Bring a parsed config (with its overrides) written in an older format to :data:`CONFIG_FORMAT`, in
+    place: each observer converts its own keys (:meth:`Observer.upgrade_settings
+    <needlecli.observers.base.Observer.upgrade_settings>`: format 1's ukf ``q`` per filter tick becomes per
+    square-root second), and ``format`` is set. The format is the config's ``format:``, 1 where it has
+    none. Returns one line per observer converted (the loader logs each as a warning once the config is
+    valid: its numbers now mean something else than its text says); none for a config in the current
+    format."""
+    if not isinstance(data, dict):
+        return []
+    given = data.get("format", 1)
+    if given == CONFIG_FORMAT or given not in (1,) or isinstance(given, bool):
+        return []  # current, or not a format at all: the schema says so
+    sim = data.get("simulation") if isinstance(data.get("simulation"), dict) else {}
+    dt = sim.get("dt", Simulation.model_fields["dt"].default)
+    lines = []
+    for i, obs in enumerate(data.get("observers") or []):
+        if not isinstance(obs, dict) or not isinstance(obs.get("type"), str):
+            continue
+        try:
+            cls = OBSERVERS.get(obs["type"])
+        except (KeyError, PluginError):  # named where the schema is built
+            continue
+        name = obs.get("name") or obs["type"]
+        for line in Component.of(OBSERVERS, obs["type"], str(name)).call(
+                "upgrade_settings", lambda c=cls, o=obs: [str(x) for x in c.upgrade_settings(o, config_format=given, dt=dt)]):
+            lines.append(f"{source}: [observers -> {i}] {name} ({obs['type']}): {line}")
+    rest = {k: v for k, v in data.items() if k != "format"}
+    data.clear()
+    data.update({"format": CONFIG_FORMAT, **rest})  # first, as a config writes it
+    return lines
 
 
 def _named_at(data: dict, type_name: str) -> tuple:
@@ -247,11 +297,11 @@ def check_consistency(cfg: ExperimentConfig, source: str, problems: list | None 
         for loc, msg in _checked(Component.of(OBSERVERS, o.type, name), cls.check, o, model, names):
             report(("observers", i) + loc, msg + _hint(msg, names))
     cs = cfg.runs.common_start
-    if cs is not None:
+    if not isinstance(cs, str):  # shared, none: nothing named to check
         by_name = {o.name or o.type: o for o in cfg.observers if not isinstance(o, dict)}
         known = True
         for loc, name in [(("runs", "common_start", "observer"), cs.observer)] + [
-                (("runs", "common_start", "observers", i), n) for i, n in enumerate(cs.observers)]:
+                (("runs", "common_start", "observers", i), n) for i, n in enumerate(cs.observers or [])]:
             if name not in by_name:
                 report(loc, f"no observer named {name!r}; observers: {', '.join(by_name)}" + did_you_mean(name, by_name))
                 known = False
@@ -259,7 +309,7 @@ def check_consistency(cfg: ExperimentConfig, source: str, problems: list | None 
             if OBSERVERS.get(by_name[cs.observer].type).initial_estimate.__func__ is Observer.initial_estimate.__func__:
                 report(("runs", "common_start", "observer"),
                        f"observer {cs.observer!r} ({by_name[cs.observer].type}) gives no initial estimate to share")
-            for i, n in enumerate(cs.observers):
+            for i, n in enumerate(cs.observers or []):
                 if not OBSERVERS.get(by_name[n].type).takes_common_start:
                     report(("runs", "common_start", "observers", i),
                            f"observer {n!r} ({by_name[n].type}) cannot start from another's estimate")

@@ -28,8 +28,10 @@ def _read_log_once(path: str, mtime_ns: int, size: int):
 
 
 def _read_log(path: Path):
+    from needlecli.io.atomic import staged_path
+
     try:
-        st = path.stat()
+        st = staged_path(path).stat()  # this command's own log, not yet renamed into place: its temporary file
     except OSError:
         return read_log(path)  # says what is wrong with it
     return _read_log_once(str(path), st.st_mtime_ns, st.st_size)

@@ -60,15 +60,24 @@ class CommonStartSettings(Strict):
     numbers for the start, as ``needle compare`` does for every observer."""
 
     observer: str = Field(description="the observer whose initial estimate (mean of every run and covariance) is shared")
-    observers: list[str] = Field(min_length=1, description="the observers that start from it instead of their own init")
+    observers: list[str] | None = Field(None, min_length=1, description="the observers that start from it instead of "
+                                        "their own init (default: every other observer that can)")
 
 
 class Runs(Strict):
     count: int = Field(1, ge=1, le=1_000_000, description="number of Monte-Carlo runs")
     seed: int = Field(0, ge=0, le=MAX_SEED, description="seed of every random stream of the experiment (stored "
                       "in the results file as a 64-bit integer)")
-    common_start: CommonStartSettings | None = Field(
-        None, description="observers that start from the same initial estimate as another (default: each its own)")
+    common_start: Literal["shared", "none"] | CommonStartSettings = Field(
+        "shared", description="where the observers of one study start: shared (the default: every observer that can "
+        "starts from the initial estimate of the first observer that gives one, its own draw made once, as needle "
+        "compare does), none (each from its own init), or {observer: NAME, observers: [...]} (that observer's "
+        "estimate, shared by those named; default all the others that can)")
+
+    @field_validator("common_start", mode="before")
+    @classmethod
+    def _null_is_none(cls, v):
+        return "none" if v is None else v
 
 
 class Stop(Strict):
@@ -177,9 +186,19 @@ class ModelSpec(Strict):
     param_cases: ParamCases | None = Field(None, description="per-run parameter cases (design factor)")
 
 
+#: the format of the configs this version reads (a config's ``format:``): 2, process noise ``q`` per
+#: square-root second in every observer. Format 1 (a config without ``format:``) gave the UKF's ``q`` per
+#: filter tick; :func:`needlecli.experiments.config.load.load_config` converts such a config on loading.
+CONFIG_FORMAT = 2
+
+
 class ExperimentConfig(Strict):
     """A validated experiment config (the static type of every ``cfg``)."""
 
+    format: Literal[1, 2] = Field(
+        CONFIG_FORMAT, description="the config's format: 2, the current (q of every observer per square-root "
+        "second). A file without format: is read as format 1, whose unscented filter's q was per filter tick, "
+        "and converted on loading to 2, with one note per observer converted (the results file keeps the converted config)")
     name: str = Field("experiment", pattern=NAME_PATTERN, max_length=100, description="names the results file: results/<name>.h5")
     description: str = Field("", description="what the experiment is, in words")
     model: ModelSpec = Field(description="the needle model: its type, parameters and initial state")

@@ -91,6 +91,7 @@ def build_problem(cfg: ExperimentConfig, truth: Truth, sensors, streams: dict[st
         params=truth.model.param_arrays(),
         interfaces=truth.interfaces,
         initial_truth=truth.states[:, 0].copy(),
+        initial_state=dict(cfg.model.initial_state),
         cov_stride=cfg.output.store_every,
         cov_layout=cfg.output.covariance,
         kernels=cfg.simulation.kernels,
@@ -121,17 +122,17 @@ def run_experiment(
         warm.wait()
     finally:
         warm.cancel()
-    shared = common_start_problem(cfg, problem)
+    shared = shared_start(cfg, problem)
     estimates: dict[str, Posterior] = {}
     for o in cfg.observers:  # each run guarded and its posterior checked before anything is written
         obs = components.build_observer(o)
         cb = (lambda k, n, _name=obs.name: progress(f"observer {_name}", k, n)) if progress else None
-        own = shared if shared is not None and obs.name in cfg.runs.common_start.observers else problem
+        own = shared.problem_of(obs.name, problem)
         estimates[obs.name] = components.run_observer(obs, o, own, stream(seed, f"observer/{obs.name}"), progress=cb)
     path = tree = None
     if write:
         path = Path(out) if out is not None else default_output(cfg)
-        tree = results_tree(cfg, config_text, truth, streams, estimates, sensors, control)
+        tree = results_tree(cfg, config_text, truth, streams, estimates, sensors, control, starts=shared.starts())
         write_atomic(path, tree, compression=cfg.output.compression,
                      progress=(lambda k, n: progress("results file", k, n)) if progress else None)
     return ExperimentResult(truth=truth, measurements=streams, estimates=estimates, path=path, control=control,
@@ -198,25 +199,84 @@ def _observe_briefly(cfg: ExperimentConfig) -> None:
     sim = cfg.model_copy(update={"simulation": cfg.simulation.model_copy(update={"kernels": "numpy"})})
     truth, sensors, streams, _ = simulate_and_measure(sim)
     problem = build_problem(cfg, truth, sensors, streams)
-    shared = common_start_problem(cfg, problem)
+    shared = shared_start(cfg, problem)
     for o in cfg.observers:
         obs = components.build_observer(o)
-        own = shared if shared is not None and obs.name in cfg.runs.common_start.observers else problem
-        obs.run(own, stream(cfg.runs.seed, f"observer/{obs.name}"))
+        obs.run(shared.problem_of(obs.name, problem), stream(cfg.runs.seed, f"observer/{obs.name}"))
 
 
-def common_start_problem(cfg: ExperimentConfig, problem):
-    """The problem with ``runs.common_start``'s shared initial estimate (the named observer's own draw from
-    its own stream, so that its results do not change), or None without one."""
+@dataclass
+class SharedStart:
+    """Where each observer of a study starts (``runs.common_start``): the reference's initial estimate
+    ``start`` (its own draw from its own stream, made once; None: no shared start), the observers that
+    start from it (``sharing``) and each observer's start in words (``start_of``).
+
+    Attributes
+    ----------
+    reference : the observer whose initial estimate is shared ("" without one)
+    start : the shared :class:`~needlecli.problem.CommonStart`, or None
+    sharing : names of the observers that start from it (never the reference: it starts from its own
+        init, which gives the same start, so that its results are those it has alone)
+    own : names of the observers that start from their own init, in the config's order
+    why : why there is no shared start ("" with one)
+    """
+
+    reference: str = ""
+    start: object = None
+    sharing: tuple[str, ...] = ()
+    own: tuple[str, ...] = ()
+    why: str = ""
+
+    def problem_of(self, name: str, problem: EstimationProblem) -> EstimationProblem:
+        """The problem observer ``name`` runs on: with the shared start, or ``problem`` as it is."""
+        return dataclasses.replace(problem, start=self.start) if name in self.sharing else problem
+
+    def start_of(self, name: str) -> str:
+        """Observer ``name``'s start in words, for the results file and the tables."""
+        if name == self.reference and self.start is not None:
+            return "common (reference): its own init"
+        if name in self.sharing:
+            return f"common: {self.reference}'s initial estimate"
+        return "own init" + (f" ({self.why})" if self.why else "")
+
+    def starts(self) -> dict[str, str]:
+        """Each observer's start in words (:meth:`start_of`); none for a study of one observer."""
+        names = (self.reference,) * bool(self.reference) + self.sharing + self.own
+        return {n: self.start_of(n) for n in names} if len(names) > 1 else {}
+
+
+def shared_start(cfg: ExperimentConfig, problem: EstimationProblem) -> SharedStart:
+    """Which observers of ``cfg`` share one start (``runs.common_start``): ``shared`` (the default) the
+    initial estimate of the config's first observer that gives one (``Observer.initial_estimate``), shared
+    by every other observer that can take it (``Observer.takes_common_start``), as ``needle compare`` does;
+    ``none`` each its own; ``{observer, observers}`` the named one's, shared by those named (default:
+    every other that can take it). The reference draws its start from its own stream, so that its own
+    results do not change."""
     cs = cfg.runs.common_start
-    if cs is None:
-        return None
-    ref = next(o for o in cfg.observers if (o.name or o.type) == cs.observer)
-    start = components.initial_estimate(ref, problem, stream(cfg.runs.seed, f"observer/{cs.observer}"))
-    return dataclasses.replace(problem, start=start)
+    names = [o.name or o.type for o in cfg.observers]
+    if cs == "none" or len(names) < 2:
+        why = "runs.common_start: none" if cs == "none" and len(names) > 1 else ""
+        return SharedStart(own=tuple(names), why=why)
+    candidates = cfg.observers if cs == "shared" else [o for o in cfg.observers if (o.name or o.type) == cs.observer]
+    ref, start = "", None
+    for o in candidates:
+        name = o.name or o.type
+        start = components.initial_estimate(o, problem, stream(cfg.runs.seed, f"observer/{name}"))
+        if start is not None:
+            ref = name
+            break
+    if start is None:
+        return SharedStart(own=tuple(names), why="no observer gives an initial estimate to share")
+    wanted = set(names) if cs == "shared" or cs.observers is None else set(cs.observers)
+    sharing = tuple(n for o, n in zip(cfg.observers, names)
+                    if n != ref and n in wanted and OBSERVERS.get(o.type).takes_common_start)
+    own = tuple(n for n in names if n != ref and n not in sharing)
+    return SharedStart(reference=ref, start=start, sharing=sharing, own=own)
 
 
-def results_tree(cfg: ExperimentConfig, config_text, truth: Truth, streams, estimates, sensors, control=None) -> Group:
+def results_tree(cfg: ExperimentConfig, config_text, truth: Truth, streams, estimates, sensors, control=None,
+                 starts: dict[str, str] | None = None) -> Group:
+    """The results file's content; ``starts``: each observer's start in words (its ``start`` attribute)."""
     model = truth.model
     n_runs, T = truth.states.shape[:2]
     root = Group(
@@ -288,6 +348,8 @@ def results_tree(cfg: ExperimentConfig, config_text, truth: Truth, streams, esti
             data["cov_index"] = cov_steps(T, cfg.output.store_every)
         data.update(post.extras)
         attrs.update(post.attrs)
+        if starts and name in starts:
+            attrs["start"] = starts[name]
         ds = {"state": {"names": post.names, "units": post.units, "angles": post.angle_states}}
         if post.cov is not None:
             ds["cov"] = {"layout": cfg.output.covariance, "stride": cfg.output.store_every}

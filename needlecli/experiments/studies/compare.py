@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -46,7 +47,7 @@ import numpy as np
 import yaml
 from pydantic import ValidationError
 
-from needlecli.errors import ComponentError, ConfigError, DataError, NeedleError
+from needlecli.errors import ComponentError, ConfigError, DataError, NeedleError, shown
 from needlecli.observers.defaults import PREDICTION_FRACTION, ComparisonContext, NotApplicable
 
 if TYPE_CHECKING:
@@ -54,23 +55,15 @@ if TYPE_CHECKING:
     from needlecli.io.results import Group
 
 Progress = Callable[[str, int, int], None]
+log = logging.getLogger("needlecli")
 
 
 # ---------------------------------------------------------------------------------------------- config
 def is_log(path: str | Path) -> bool:
     """Whether ``path`` is an HDF5 log file (format needlecli-log)."""
-    import h5py
+    from needlecli.io.inputs import root_format
 
-    p = Path(path)
-    if not p.is_file() or not h5py.is_hdf5(p):
-        return False
-    try:
-        with h5py.File(p, "r") as f:
-            fmt = f.attrs.get("format")
-        fmt = fmt.decode() if isinstance(fmt, bytes) else fmt
-        return fmt == "needlecli-log"
-    except OSError:
-        return False
+    return root_format(path) == "log"
 
 
 def load_compare_config(
@@ -84,15 +77,14 @@ def load_compare_config(
     """The experiment to compare on: a config (``runs``, ``seed``, ``overrides`` as in ``needle
     simulate``), or a log file replayed with ``model`` (``runs``: its first trials). Returns
     ``(config, text, source)``."""
-    import h5py
-
     from needlecli.experiments.config.load import load_config
+    from needlecli.io.inputs import describe, root_format
     from needlecli.models import MODELS
 
     path = Path(path)
     if not is_log(path):
-        if path.is_file() and h5py.is_hdf5(path):
-            raise DataError(f"{path}: an HDF5 file that is not a log (format needlecli-log); give a config or a log")
+        if root_format(path) is not None:
+            raise DataError(f"{shown(path)}: is {describe(path)}, not a log (format needlecli-log); give a config or a log")
         if model is not None:
             raise ConfigError(str(path), (), "--model is for log files; a config names its model")
         cfg, text = load_config(path, overrides=overrides, runs=runs, seed=seed)
@@ -125,6 +117,7 @@ class Candidate:
     skip: str = ""  # why it does not run
     start: str = ""  # where it starts: "common (reference)", "common", "common; x, beta = 0", "own settings"
     causal: bool = True  # an estimate at t uses samples up to t only (False: a smoother)
+    model_only: bool = False  # the model alone from its start (the reference a filter must beat)
 
 
 @dataclass
@@ -212,6 +205,98 @@ def candidates(ctx: ComparisonContext, raw_observers: list[dict], wanted: list[s
     return out
 
 
+@dataclass
+class Comparison:
+    """A comparison set up and ready to run (:func:`prepare_comparison`): the config as it will run (every
+    chosen observer's settings written out, ``cfg``, ``text``), the insertions simulated or replayed once
+    (``truth``, ``sensors``, ``streams``, ``control``), what derived settings were given
+    (``context``), the observers chosen and skipped, and the problem every observer runs on, carrying the
+    common start (``problem.start``; ``start`` its recipe)."""
+
+    cfg: ExperimentConfig
+    text: str
+    source: str
+    truth: Any
+    sensors: list
+    streams: dict
+    control: dict
+    context: ComparisonContext
+    chosen: list[Candidate]
+    skipped: list[Candidate]
+    problem: Any
+    start: str
+
+
+def comparison_context(cfg: ExperimentConfig, truth, sensors, problem) -> ComparisonContext:
+    """What the observers' derived settings may use (:class:`ComparisonContext`): the config's nominal
+    start and spreads (a simulation), the recorded samples and whether the truth's start was recorded (a
+    replay)."""
+    depth = np.asarray(truth.depth, dtype=float)
+    replay = cfg.source is not None
+    first = np.asarray(truth.states[:, 0], dtype=float)
+    return ComparisonContext(
+        model=truth.model, sensors={s.name: s for s in sensors}, replay=replay,
+        final_depth=float(np.nanmean(depth[..., -1])) if depth.size else 0.0, dt=float(cfg.simulation.dt),
+        process_std={} if replay else dict(cfg.process_noise.std),
+        param_std={} if replay else parameter_spread(cfg),
+        initial_state=dict(cfg.model.initial_state),
+        initial_std={} if replay else dict(cfg.model.initial_std),
+        time=np.asarray(truth.time, dtype=float), inputs=np.asarray(truth.inputs, dtype=float),
+        channels=problem.channels if replay else None,
+        initial_truth_recorded=bool(first.size and np.isfinite(first).all()),
+    )
+
+
+def prepare_comparison(
+    config: str | Path,
+    *,
+    observers: list[str] | None = None,
+    runs: int | None = None,
+    seed: int | None = None,
+    model: str | None = None,
+    overrides: list[str] | None = None,
+    progress: Progress | None = None,
+    loaded: tuple | None = None,
+) -> Comparison:
+    """Load the experiment (``loaded``: what :func:`load_compare_config` returned, if already loaded),
+    simulate (or replay) it once, choose the observers (:func:`candidates`) and make the common start
+    (:func:`common_start`): everything :func:`compare_observers` runs, nothing run yet."""
+    from needlecli.experiments.config.load import load_config
+    from needlecli.experiments.config.types import CONFIG_FORMAT
+    from needlecli.experiments.simulation.replay import replay_truth
+    from needlecli.experiments.simulation.runner import build_problem, simulate_and_measure
+    from needlecli.io.yamlfile import parse_yaml
+    from needlecli.observers import OBSERVERS
+
+    cfg, text, source = loaded or load_compare_config(config, model=model, runs=runs, seed=seed, overrides=overrides)
+    base_dir = Path(source.split(" (replay config)")[0]).parent if cfg.source is not None else Path(config).parent
+    if observers:  # names checked before the simulation
+        known = {o.name or o.type for o in cfg.observers} | set(OBSERVERS.names()) | {f"{t}_defaults" for t in OBSERVERS.names()}
+        bad = [w for w in observers if w not in known]
+        if bad:
+            raise ConfigError("--observers", (), f"unknown observer {bad[0]!r}; known: {', '.join(sorted(known))}")
+    control = {}
+    if cfg.source is not None:
+        truth, sensors, streams = replay_truth(cfg, base_dir)
+    else:
+        truth, sensors, streams, control = simulate_and_measure(
+            cfg, progress=(lambda k, n: progress("truth", k, n)) if progress else None)
+    ctx = comparison_context(cfg, truth, sensors, build_problem(cfg, truth, sensors, streams))
+    raw = parse_yaml(text, source)
+    cands = candidates(ctx, list(raw.get("observers") or []), observers)
+    chosen = [c for c in cands if not c.skip]
+    skipped = [c for c in cands if c.skip]
+    data = copy.deepcopy(raw)
+    data["observers"] = [c.settings for c in chosen]
+    data["format"] = CONFIG_FORMAT  # the derived settings' meaning (the config's own are converted in text)
+    cfg1, text1 = load_config(source, text=yaml.safe_dump(data, sort_keys=False))
+    problem = build_problem(cfg1, truth, sensors, streams)
+    start, start_text = common_start(ctx, chosen, cfg1, problem, cfg.runs.seed)
+    return Comparison(cfg=cfg1, text=text1, source=source, truth=truth, sensors=sensors, streams=streams,
+                      control=control, context=ctx, chosen=chosen, skipped=skipped,
+                      problem=dataclasses.replace(problem, start=start), start=start_text)
+
+
 def compare_observers(
     config: str | Path,
     *,
@@ -226,75 +311,64 @@ def compare_observers(
     """Simulate (or replay) once, run every applicable observer on the same problem and write the results
     file ``<out_dir>/<name>_compare.h5`` with the comparison's ``/compare`` group (the tables of
     :mod:`needlecli.reports.compare` read it)."""
-    from needlecli.experiments.config.load import load_config
     from needlecli.experiments.simulation import components
-    from needlecli.experiments.simulation.replay import replay_truth
-    from needlecli.experiments.simulation.runner import build_problem, results_tree, simulate_and_measure
+    from needlecli.experiments.simulation.observability import unobservable_states
+    from needlecli.experiments.simulation.runner import results_tree
     from needlecli.experiments.simulation.truth import stream
     from needlecli.io.atomic import check_output_dir, raised_signal
     from needlecli.io.results import write_atomic
-    from needlecli.io.yamlfile import parse_yaml
-    from needlecli.observers import OBSERVERS
 
-    cfg, text, source = load_compare_config(config, model=model, runs=runs, seed=seed, overrides=overrides)
-    out = Path(out_dir) if out_dir is not None else Path("results") / f"{cfg.name}_compare"
+    loaded = load_compare_config(config, model=model, runs=runs, seed=seed, overrides=overrides)
+    name = loaded[0].name
+    for u in unobservable_states(loaded[0]):  # what no observer can estimate with these sensors, before the table
+        log.warning("%s: [sensors] %s", loaded[2], u.message())
+    out = Path(out_dir) if out_dir is not None else Path("results") / f"{name}_compare"
     check_output_dir(out, what="the comparison")
-    base_dir = Path(source.split(" (replay config)")[0]).parent if cfg.source is not None else Path(config).parent
-    if observers:  # names checked before the simulation
-        known = {o.name or o.type for o in cfg.observers} | set(OBSERVERS.names()) | {f"{t}_defaults" for t in OBSERVERS.names()}
-        bad = [w for w in observers if w not in known]
-        if bad:
-            raise ConfigError("--observers", (), f"unknown observer {bad[0]!r}; known: {', '.join(sorted(known))}")
-    seed_ = cfg.runs.seed
-    control = {}
-    if cfg.source is not None:
-        truth, sensors, streams = replay_truth(cfg, base_dir)
-    else:
-        truth, sensors, streams, control = simulate_and_measure(
-            cfg, progress=(lambda k, n: progress("truth", k, n)) if progress else None)
-    depth = np.asarray(truth.depth, dtype=float)
-    final_depth = float(np.nanmean(depth[..., -1])) if depth.size else 0.0
-    replay = cfg.source is not None
-    ctx = ComparisonContext(model=truth.model, sensors={s.name: s for s in sensors}, replay=replay,
-                            final_depth=final_depth, dt=float(cfg.simulation.dt),
-                            process_std={} if replay else dict(cfg.process_noise.std),
-                            param_std={} if replay else dict(cfg.model.param_std))
-    raw = parse_yaml(text, source)
-    cands = candidates(ctx, list(raw.get("observers") or []), observers)
-    chosen = [c for c in cands if not c.skip]
-    skipped = [c for c in cands if c.skip]
-    data = copy.deepcopy(raw)
-    data["observers"] = [c.settings for c in chosen]
-    cfg1, text1 = load_config(source, text=yaml.safe_dump(data, sort_keys=False))
-    problem = build_problem(cfg1, truth, sensors, streams)
-    start, start_text = common_start(ctx, chosen, cfg1, problem, seed_)
-    problem = dataclasses.replace(problem, start=start)
+    cmp = prepare_comparison(config, observers=observers, progress=progress, loaded=loaded)
+    cfg1, problem, seed_ = cmp.cfg, cmp.problem, cmp.cfg.runs.seed
     estimates, runs_out = {}, []
-    for c, o in zip(chosen, cfg1.observers):
-        name = o.name or o.type
-        cb = (lambda k, n, _name=name: progress(f"observer {_name}", k, n)) if progress else None
+    for c, o in zip(cmp.chosen, cfg1.observers):
+        oname = o.name or o.type
+        cb = (lambda k, n, _name=oname: progress(f"observer {_name}", k, n)) if progress else None
         r = ObserverRun(candidate=c)
         t0 = time.perf_counter()
         try:  # guarded and checked (components): one observer's failure is a row of the table, not the end
             obs = components.build_observer(o)
-            estimates[name] = components.run_observer(obs, o, problem, stream(seed_, f"observer/{name}"), progress=cb)
+            estimates[oname] = components.run_observer(obs, o, problem, stream(seed_, f"observer/{oname}"), progress=cb)
         except NeedleError as e:  # a crash, sys.exit, a posterior that breaks the contract, a user error inside
             if raised_signal() is not None:  # a signal that the observer's code swallowed: the end after all
                 raise
             r.error = e.reason if isinstance(e, ComponentError) else " ".join(str(e).split())
         r.seconds = time.perf_counter() - t0
         runs_out.append(r)
-    tree = results_tree(cfg1, text1, truth, streams, estimates, sensors, control)
-    tree.data["compare"] = comparison_group(runs_out, skipped, start_text, [s.name for s in sensors], cfg1)
-    path = write_atomic(out / f"{cfg.name}_compare.h5", tree)
-    return CompareResult(cfg=cfg1, source=source, path=path, runs=runs_out, skipped=skipped, start=start_text)
+    tree = results_tree(cfg1, cmp.text, cmp.truth, cmp.streams, estimates, cmp.sensors, cmp.control)
+    tree.data["compare"] = comparison_group(runs_out, cmp.skipped, cmp.start, [s.name for s in cmp.sensors], cfg1)
+    path = write_atomic(out / f"{name}_compare.h5", tree)
+    return CompareResult(cfg=cfg1, source=cmp.source, path=path, runs=runs_out, skipped=cmp.skipped, start=cmp.start)
+
+
+def parameter_spread(cfg: ExperimentConfig) -> dict[str, float]:
+    """The spread over runs of each model parameter that varies between runs: ``model.param_std`` and
+    the std of the values of ``model.param_cases`` (over the cases, which the runs share alike) in
+    quadrature."""
+    out = {k: float(v) for k, v in cfg.model.param_std.items()}
+    pc = cfg.model.param_cases
+    if pc is not None:
+        nominal = cfg.model.params.model_dump()
+        for k in {k for c in pc.cases for k in c}:
+            values = np.array([c.get(k, float(nominal.get(k, 0.0))) for c in pc.cases], dtype=float)
+            sd = float(np.std(values))
+            if sd > 0:
+                out[k] = float(np.hypot(out.get(k, 0.0), sd))
+    return out
 
 
 def comparison_group(runs: list[ObserverRun], skipped: list[Candidate], start: str, sensors: list[str],
                      cfg: ExperimentConfig) -> Group:
     """The results file's ``/compare`` group: per observer that was run, in the table's order (``(K,)``
     each): ``observer``, ``type``, ``settings`` (``config`` or ``defaults``), ``start`` (where it started),
-    ``causal``, ``model`` (its own), ``seconds`` (wall time of its run over every run at once), ``error``
+    ``causal``, ``model_only`` (the model alone, no measurement: ``Observer.model_only``), ``model`` (its
+    own), ``seconds`` (wall time of its run over every run at once), ``error``
     (the exception that ended it, empty when it ran); ``skipped/observer``, ``skipped/type``,
     ``skipped/reason`` ``(S,)``; attributes ``start`` (the common start's recipe, or why there is none),
     ``prediction_fraction`` and ``sensors`` (their names in the experiment's order)."""
@@ -311,6 +385,7 @@ def comparison_group(runs: list[ObserverRun], skipped: list[Candidate], start: s
             "settings": text(c.origin for c in cands),
             "start": text(c.start for c in cands),
             "causal": np.array([bool(c.causal) for c in cands], dtype=bool),
+            "model_only": np.array([bool(c.model_only) for c in cands], dtype=bool),
             "model": text((c.settings or {}).get("model") or cfg.model.type for c in cands),
             "seconds": np.array([r.seconds for r in runs], dtype=float),
             "error": text(r.error for r in runs),
@@ -379,6 +454,7 @@ def common_start(ctx: ComparisonContext, chosen: list[Candidate], cfg: Experimen
         else:
             c.start = "common"
         c.causal = cls.causal
+        c.model_only = cls.model_only
     if start is None:
         return None, "no observer gives an initial estimate: each starts from its own settings"
     return start, start.source + (" (derived settings; not run)" if fallback else "")

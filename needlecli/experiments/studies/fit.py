@@ -9,13 +9,13 @@ files are refused with a message that says what to do. Everything after that poi
 from __future__ import annotations
 
 import contextlib
+import logging
 import multiprocessing as mp
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import h5py
 import numpy as np
 
 from needlecli import kernels, platform
@@ -26,7 +26,7 @@ from needlecli.experiments.simulation.runner import build_problem, simulate_and_
 from needlecli.experiments.simulation.truth import Truth
 from needlecli.fitting.canonical import flip_negative_curvature
 from needlecli.fitting.em import EMOptions, EMResult, fit_em
-from needlecli.fitting.identify import Identifiability, IdentifyOptions, identify, take_trials
+from needlecli.fitting.identify import Identifiability, IdentifyOptions, Quantity, fit_quantities, identify, take_trials
 from needlecli.fitting.problem import System, build_system, fit_augment, own_model
 from needlecli.fitting.robust import RobustInfo, fit_em_robust
 from needlecli.fitting.settings import FitSettings
@@ -38,6 +38,8 @@ from needlecli.numerics.needle_frame import AXES
 
 if TYPE_CHECKING:
     from needlecli.experiments.config.types import ExperimentConfig
+
+log = logging.getLogger("needlecli")
 
 CONFIG_SUFFIXES = (".yaml", ".yml")
 
@@ -156,24 +158,21 @@ def _fit_briefly(cfg: ExperimentConfig, models: list[str] | None) -> None:
 
 
 def _not_a_config(path: Path) -> str:
-    if not path.exists():
-        return f"{path}: no such file (fit-em takes experiment configs, .yaml)"
-    kind = ""
-    try:
-        with h5py.File(path, "r") as f:
-            fmt = f.attrs.get("format")
-            fmt = fmt.decode() if isinstance(fmt, bytes) else fmt
-            kind = "log" if fmt == "needlecli-log" else "fit" if fmt == FIT_FORMAT else "results" if "truth" in f else "hdf5"
-    except (OSError, ValueError):
-        pass
+    from needlecli.errors import shown
+    from needlecli.io.inputs import describe, root_format
+
+    if not (path.exists() or path.is_symlink()):
+        return f"{shown(path)}: no such file (fit-em takes experiment configs, .yaml)"
+    kind = root_format(path) or ""
     if kind == "log":
-        return (f"{path}: is a log file; fit-em takes a config: write one with `source: {{logs: [{path.name}]}}`, "
+        return (f"{shown(path)}: is a log file; fit-em takes a config: write one with `source: {{logs: [{path.name}]}}`, "
                 "the model and a `fit:` section (see configs/replay/seed004_like.yaml) and pass that")
     if kind == "results":
-        return f"{path}: is a results file; fit-em takes the experiment's config (.yaml)"
+        return f"{shown(path)}: is a results file; fit-em takes the experiment's config (.yaml)"
     if kind == "fit":
-        return f"{path}: is a fit file already; evaluate it with `needle evaluate {path}`"
-    return f"{path}: not an experiment config (.yaml); fit-em takes configs (recorded trials through `source: logs`)"
+        return f"{shown(path)}: is a fit file already; evaluate it with `needle evaluate {path}`"
+    return (f"{shown(path)}: is {describe(path)}, not an experiment config (.yaml); fit-em takes configs (recorded "
+            "trials through `source: logs`)")
 
 
 def em_options(fit: FitSettings, system: System) -> EMOptions:
@@ -183,7 +182,22 @@ def em_options(fit: FitSettings, system: System) -> EMOptions:
         q_index=system.q_index, q_floor=e.q_floor, r_floor=tuple(system.floors), ll_noise=e.ll_noise,
         accelerate=e.accelerate, relin_tol=e.relin_tol,
         q_hold=tuple(i for i, s in enumerate(system.names) if s in fit.hold and i in system.q_index),
+        q_isotropic=isotropic_groups(fit, system),
     )
+
+
+def isotropic_groups(fit: FitSettings, system: System) -> tuple[tuple[int, ...], ...]:
+    """The state indices of each block of ``fit.isotropic`` that this system has, its states with process
+    noise only (a model without the block: none)."""
+    from needlecli.models.base import state_blocks
+
+    blocks = state_blocks(system.names, skip=system.dm.augment)
+    out = []
+    for stem in fit.isotropic:
+        idx = tuple(i for i in blocks.get(stem, []) if i in system.q_index)
+        if len(idx) > 1:
+            out.append(idx)
+    return tuple(out)
 
 
 @dataclass
@@ -234,6 +248,8 @@ def fit_trials(
             raise DataError(f"{trials.source}: [fit] {e}") from None
         S = systems[name]  # a state held at zero process noise has none (not a block of Q that EM fits)
         S.q_index = tuple(i for i in S.q_index if not (S.names[i] in fit.hold and S.Qc[i, i] == 0.0))
+        for line in axis_warnings(problem, S, name, trials.truth.trial_ids):
+            log.warning("warning: %s", line)
 
     def run(name, cb):
         S = systems[name]
@@ -245,8 +261,9 @@ def fit_trials(
         else:
             res, rob, meas = fit_em(S.dm, S.meas, S.m0, S.P0, S.Qc, S.R, em_options(fit, S), progress=cb), None, S.meas
         res.roll_flipped = flip_negative_curvature(S.dm.names, type(S.dm.model), res)  # kappa < 0 = roll + pi
-        return res, assess(S, res, fit, meas), time.perf_counter() - t0, rob
+        return res, assess(S, res, fit, meas, trials=trials, groups=groups), time.perf_counter() - t0, rob
 
+    groups = design_groups(trials.truth, cfg)
     # models are independent: all but the first go to child processes (forked, so nothing is pickled
     # but the results), the first runs here; the children report progress through a queue. Where
     # processes cannot be forked (macOS, Windows) the models run here one after another, on every core
@@ -257,19 +274,129 @@ def fit_trials(
     out.fits = {name: out.fits[name] for name in names}
     for mf in out.fits.values():
         add_data_hints(mf.result, problem)
+        for line in outside_warnings(mf, trials.truth.trial_ids):
+            log.warning("warning: %s", line)
     return out
 
 
-def assess(S: System, res: EMResult, fit: FitSettings, meas=None) -> Identifiability | None:
+def _trial_name(ids, i: int) -> str:
+    return str(ids[i]) if ids is not None else f"run {i}"
+
+
+def axis_warnings(problem, S: System, model: str, ids=None) -> list[str]:
+    """One line per trial and position channel (x, y, z) whose recorded path starts more than
+    :data:`~needlecli.io.frames.AXIS_WARNING_DEG` from the model's insertion axis at the fit's start (the
+    tangent of each trial's initial state ``S.m0``), all trials at once."""
+    from needlecli.io.frames import AXIS_WARNING_DEG, axis_angles, initial_directions
+
+    dm = S.dm
+    if not type(dm.model).provides("tangent"):
+        return []
+    with np.errstate(all="ignore"):
+        axis = dm.model.tangent(np.asarray(S.m0, dtype=float)[:, : dm.model.n])  # (N, 3)
+    out = []
+    for ch in problem.channels.values():
+        if ch.sensor_type != "position" or not {"x", "y", "z"} <= set(ch.names):
+            continue
+        pos = ch.value[..., [list(ch.names).index(a) for a in "xyz"]]
+        ang = axis_angles(initial_directions(pos, ch.valid), axis)
+        for i in np.flatnonzero(ang > AXIS_WARNING_DEG):
+            out.append(f"{model}: trial {_trial_name(ids, i)}: the path of {ch.name} starts {ang[i]:.0f} deg from the "
+                       f"model's insertion axis at the fit's start (more than {AXIS_WARNING_DEG:g} deg): the data are "
+                       "not in the model's frame; what EM fits is not the needle's (express the trial in its own frame)")
+    return out
+
+
+def outside_warnings(mf: ModelFit, ids=None) -> list[str]:
+    """One line per fitted constant whose value lies outside the bounds its model declares
+    (:func:`needlecli.fitting.identify.parameter_bounds`; the verdict ``outside its bounds`` of the trials
+    assessed), in the trials whose fit did not fail (those that stopped at the iteration limit too)."""
+    from needlecli.fitting.em import STATUS_DIVERGED, STATUS_SINGULAR
+    from needlecli.fitting.identify import parameter_bounds
+
+    r, dm = mf.result, mf.system.dm
+    use = ~np.isin(np.asarray(r.status).astype(str), (STATUS_SINGULAR, STATUS_DIVERGED))
+    out = []
+    for i, c in enumerate(dm.augment):
+        b = parameter_bounds(type(dm.model), c)
+        if b is None:
+            continue
+        v = r.x0[:, dm.nx + i]
+        bad = np.flatnonzero(use & b.outside(v))
+        if bad.size:
+            trials = ", ".join(f"{_trial_name(ids, j)} ({v[j]:.4g})" for j in bad[:5])
+            out.append(f"{mf.name}: {c} is outside its bounds {b} in {bad.size} of {len(v)} trial(s): {trials}"
+                       f"{', ...' if bad.size > 5 else ''}; never identified (not a value of the model's constant)")
+    return out
+
+
+def assess(S: System, res: EMResult, fit: FitSettings, meas=None, *, trials: Trials | None = None,
+           groups: tuple[np.ndarray, list[str]] | None = None) -> Identifiability | None:
     """What the data identify in each trial's fit (None when ``fit.identify.enabled`` is off); ``meas``:
-    the channels as fitted (with their robust weights), default the system's."""
+    the channels as fitted (with their robust weights), default the system's; ``trials``: where they are
+    simulated, the truth each quantity is checked against (the recovery check of the verdicts);
+    ``groups``: ``(group (N,), labels)`` the trials' design groups (:func:`design_groups`), pooled apart."""
     s = fit.identify
     if not s.enabled:
         return None
+    meas = S.meas if meas is None else meas
     sd = np.sqrt(np.maximum(np.diagonal(res.P[:, 0], axis1=-2, axis2=-1), 0.0))[:, S.dm.nx:]
-    return identify(S.dm, S.meas if meas is None else meas, res.x0, S.P0, res.Qc, res.R, res.status == "ok",
-                    const_sd=sd, options=IdentifyOptions(rse_max=s.rse_max, nats=s.nats), zbar=res.m,
-                    held=tuple(fit.hold))
+    truth = None
+    if trials is not None and trials.simulated:
+        truth = true_quantities(fit_quantities(S.dm, meas, res.Qc, tuple(fit.hold)), S, trials)
+    group, labels = groups if groups is not None else (None, None)
+    return identify(S.dm, meas, res.x0, S.P0, res.Qc, res.R, res.status == "ok",
+                    const_sd=sd, options=identify_options(fit), zbar=res.m, held=tuple(fit.hold),
+                    truth=truth, group=group, group_labels=labels, floors=S.floors, tied=tuple(fit.isotropic))
+
+
+def identify_options(fit: FitSettings) -> IdentifyOptions:
+    s = fit.identify
+    return IdentifyOptions(rse_max=s.rse_max, nats=s.nats, z_max=s.z_max)
+
+
+def true_quantities(qs: list[Quantity], S: System, trials: Trials) -> np.ndarray:
+    """``(N, d)``: the true value of each quantity of a fit of simulated trials (NaN where there is none to
+    compare with). A constant and a Q block only for the model that made the truth (another model's
+    constants and process noise are its own): the truth's parameter per trial, and the trace of its
+    process noise per second over the block, ``sum q_std^2`` (the truth adds ``q_std sqrt(dt)`` noise per
+    grid step). R of a channel whose samples have one Gaussian sigma per component (``pipeline:
+    gaussian``): the trace of ``diag(sigma^2)`` over the components fitted (a measured direction: its two
+    components across it, each the mean sigma^2; a needle-frame block when the axes share one sigma)."""
+    truth = trials.truth
+    N = len(S.m0)
+    out = np.full((N, len(qs)), np.nan)
+    same = type(S.dm.model) is type(truth.model)
+    qstd = trials.cfg.process_noise.std
+    for k, q in enumerate(qs):
+        if q.kind == "constant" and same:
+            p = np.asarray(truth.params.get(q.name, np.full((N, 1), np.nan)), dtype=float).reshape(N, -1)
+            out[:, k] = np.where(np.ptp(p, axis=1) == 0, p[:, 0], np.nan)  # a schedule in time: no one truth
+        elif q.kind == "Q" and same:
+            out[:, k] = sum(float(qstd.get(S.dm.names[i], 0.0)) ** 2 for i in q.index)
+        elif q.kind == "R":
+            j, comps = q.index if isinstance(q.index, tuple) else (q.index, None)
+            out[:, k] = _true_trace_r(S.meas[j], trials.streams.get(S.meas[j].name), comps)
+    return out
+
+
+def _true_trace_r(mm, stream, comps) -> np.ndarray | float:
+    """The true ``tr(R)`` of one channel per trial ``(N,)`` (NaN where the sigma is not one per component)."""
+    if stream is None or str(stream.attrs.get("pipeline", "gaussian")) != "gaussian" or getattr(stream, "sigma", None) is None:
+        return np.nan
+    sig = np.asarray(stream.sigma, dtype=float)  # (N, M, m)
+    valid = np.asarray(stream.valid, dtype=bool)
+    with np.errstate(all="ignore"):
+        lo = np.where(valid[..., None], sig, np.inf).min(1)
+        hi = np.where(valid[..., None], sig, -np.inf).max(1)
+    one = np.isfinite(lo).all(-1) & (hi - lo <= 1e-12 * np.maximum(np.abs(hi), 1e-300)).all(-1)
+    var = np.where(one[:, None], lo, np.nan) ** 2  # (N, m)
+    if mm.tangent:
+        return 2.0 * var.mean(-1)
+    if mm.frame == "needle":
+        same = np.where(np.ptp(var, axis=-1) == 0, var[:, 0], np.nan)
+        return same * len(comps)
+    return var.sum(-1)
 
 
 def add_data_hints(result: EMResult, problem) -> None:
@@ -386,8 +513,7 @@ def take_fit(out: FitOutput, trials: Trials, idx) -> FitOutput:
         system, res = _trim_ticks(system, res, len(trials.truth.time))
         idf = None
         if mf.identifiability is not None:
-            s = trials.cfg.fit.identify
-            idf = take_trials(mf.identifiability, idx, IdentifyOptions(rse_max=s.rse_max, nats=s.nats))
+            idf = take_trials(mf.identifiability, idx, identify_options(trials.cfg.fit))
         rob = None
         if mf.robust is not None:
             rb = mf.robust
@@ -562,17 +688,53 @@ def channel_coordinates(mm) -> str:
 
 def identifiability_group(idf: Identifiability, fit: FitSettings) -> Group:
     """``/fit/<model>/identifiability`` (docs/reference/fit-file.md)."""
+    strs = {k: getattr(idf, k).astype(str) for k in ("verdict", "reason", "pooled_verdict", "pooled_reason",
+                                                       "group_verdict", "group_reason")}
     return Group(
         data={
             "estimate": idf.estimate, "se": idf.se, "rse": idf.rse, "hessian": idf.hessian, "step": idf.theta_step,
-            "decade": idf.decade, "verdict": idf.verdict.astype(str), "reason": idf.reason.astype(str),
+            "decade": idf.decade, "verdict": strs["verdict"], "reason": strs["reason"],
             "used": idf.used, "loglik": idf.loglik, "pooled_se": idf.pooled_se, "pooled_rse": idf.pooled_rse,
-            "pooled_verdict": idf.pooled_verdict.astype(str), "pooled_reason": idf.pooled_reason.astype(str),
+            "pooled_verdict": strs["pooled_verdict"], "pooled_reason": strs["pooled_reason"],
+            # additions older readers ignore: the recovery check and the design groups
+            "truth": idf.truth, "z": idf.z, "along": idf.along, "floored": idf.floored, "newton": idf.newton,
+            "group": idf.group, "group_trials": idf.group_trials, "group_estimate": idf.group_estimate,
+            "group_se": idf.group_se, "group_rse": idf.group_rse, "group_truth": idf.group_truth, "group_z": idf.group_z,
+            "group_newton": idf.group_newton, "group_newton_z": idf.group_newton_z,
+            "group_verdict": strs["group_verdict"], "group_reason": strs["group_reason"],
         },
         attrs={"quantities": idf.names, "units": [q.unit for q in idf.quantities],
                "kinds": [q.kind for q in idf.quantities], "rse_max": fit.identify.rse_max, "nats": fit.identify.nats,
+               "z_max": fit.identify.z_max, "group_labels": list(idf.group_labels),
                "parameters": "constants as they are; Q blocks and R_j by a log scale (tr scales by exp)"},
     )
+
+
+def design_groups(truth: Truth, cfg: ExperimentConfig) -> tuple[np.ndarray, list[str]]:
+    """The trials' design groups, ``(group (N,), labels)``: the combinations of the design factors
+    (``fit.design.group_by`` of the config, else the trials' ``design_factors``: a real export's speed), else
+    the parameter cases of a simulated study (seed 004: its field strengths), else one group of every trial.
+    Identifiability pools the information of one group's trials only."""
+    N = truth.states.shape[0]
+    meta = design_columns(truth, cfg)
+    want = list(cfg.fit.design.group_by) if cfg.fit is not None else []
+    keys = [k for k in (want or (meta["design_factors"] if meta else [])) if meta and k in meta["columns"]]
+    if keys:
+        def word(v) -> str:
+            return f"{v:g}" if isinstance(v, (float, np.floating)) else str(v)
+
+        combos = [", ".join(f"{k}={word(meta['columns'][k][i])}" for k in keys) for i in range(N)]
+        order = sorted(range(N), key=lambda i: [_sort_key(meta["columns"][k][i]) for k in keys])
+        labels = list(dict.fromkeys(combos[i] for i in order))
+        return np.array([labels.index(c) for c in combos], dtype=np.int64), labels
+    if truth.param_case is not None:
+        labels = list(truth.param_case_labels or [f"case {i}" for i in range(int(np.max(truth.param_case)) + 1)])
+        return np.asarray(truth.param_case, dtype=np.int64), [str(x) for x in labels]
+    return np.zeros(N, dtype=np.int64), ["all trials"]
+
+
+def _sort_key(v):
+    return (0, float(v), "") if isinstance(v, (int, float, np.integer, np.floating)) and np.isfinite(v) else (1, 0.0, str(v))
 
 
 def design_columns(truth: Truth, cfg: ExperimentConfig) -> dict | None:

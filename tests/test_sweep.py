@@ -526,3 +526,41 @@ cells:
     assert sum("running it again" in ln for ln in r.stderr.splitlines()) == 2, r.stderr  # each dying cell once
     r = needle(env, d, "sweep", "tiny.yaml", "--grid", "grid.yaml", "--out", "out", "--resume", "--quiet")
     assert r.returncode == 1 and len(list((d / "out" / "cells").glob("*.error.txt"))) == 1  # beside the failed one
+
+
+def test_the_code_state_counts_the_packages_own_changes_only(tmp_path):
+    """What a sweep's resume key and its workers compare: the commit, and a hash of uncommitted changes to
+    the package's files only; the same code gives the same answer, other code another."""
+    import shutil
+    import subprocess
+
+    from needlecli.provenance import code_state
+
+    if shutil.which("git") is None:
+        pytest.skip("needs git")
+    env = {**os.environ, "GIT_AUTHOR_NAME": "t", "GIT_AUTHOR_EMAIL": "t@t", "GIT_COMMITTER_NAME": "t",
+           "GIT_COMMITTER_EMAIL": "t@t"}
+
+    def git(*args):
+        subprocess.run(["git", *args], cwd=tmp_path, env=env, check=True, capture_output=True)
+
+    pkg = tmp_path / "pkg"
+    pkg.mkdir()
+    (pkg / "a.py").write_text("X = 1\n")
+    (tmp_path / "notes.md").write_text("notes\n")
+    git("init", "-q")
+    git("add", ".")
+    git("commit", "-qm", "first")
+    clean = code_state(pkg)
+    assert len(clean) == 40 and "+" not in clean
+    (tmp_path / "notes.md").write_text("other notes\n")  # outside the package: not its code
+    assert code_state(pkg) == clean
+    (pkg / "a.py").write_text("X = 2\n")
+    two = code_state(pkg)
+    assert two.startswith(clean + "+") and len(two) == 41 + 12
+    (pkg / "a.py").write_text("X = 3\n")
+    assert code_state(pkg) not in (clean, two)  # other uncommitted code: another state
+    (pkg / "a.py").write_text("X = 2\n")
+    assert code_state(pkg) == two  # the same code: the same state
+    (pkg / "b.py").write_text("Y = 1\n")  # a new file of the package, not yet added
+    assert code_state(pkg) not in (clean, two)

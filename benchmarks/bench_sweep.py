@@ -20,13 +20,13 @@
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
 import sys
 import tempfile
 import time
 from pathlib import Path
+from unittest import mock
 
 from needlecli.experiments.studies.sweep import Grid, plan_sweep, run_cell, run_sweep
 from needlecli.experiments.studies.sweep.execution import _pin_worker_threads, _thread_env
@@ -126,20 +126,6 @@ def _warm_kernels(cell) -> None:
         run_cell(dataclasses.replace(cell, path=str(Path(d) / "warm.h5")))
 
 
-@contextlib.contextmanager
-def environ(**kw):
-    old = {k: os.environ.get(k) for k in kw}
-    os.environ.update(kw)
-    try:
-        yield
-    finally:
-        for k, v in old.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
-
-
 def table1_on_dask(tmp: Path, n: int) -> dict | None:
     """Item 3: ``n`` cells of Table 1 inline and on 1 and 2 Dask workers (one core each), warm; then 2
     workers on an empty kernel cache, with their compilations per kernel."""
@@ -154,7 +140,7 @@ def table1_on_dask(tmp: Path, n: int) -> dict | None:
     grid = Grid.model_validate({"fixed": {"output.covariance": "none"}, "grid": {"runs.seed": list(range(n))}})
     cells = plan_sweep(TABLE1, grid, out_dir=tmp / "t1")
     one_core = {"NEEDLECLI_THREADS": "1", "NEEDLECLI_COLD": "wait"}
-    with environ(**one_core):
+    with mock.patch.dict(os.environ, one_core):
         timed(cells[:1], tmp / "t1_warm", executor="inline")  # the kernels in the cache before any clock
         t_inline = timed(cells, tmp / "t1_inline", executor="inline")
     t = {}

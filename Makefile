@@ -3,7 +3,11 @@ PY ?= python
 
 STUDIES := results/studies
 
-.PHONY: help install demo test bench lint docs clean seed000 seed001 seed003 seed004 datasets regress real real-tau real-plane real-poses owndata faults papers seed000-numbers seed001-numbers seed003-numbers seed004-numbers
+.PHONY: help install demo test bench lint docs clean datasets regress real real-tau real-plane real-poses owndata faults papers
+PAPERS := highgain-us2d so3-invariant multirate-ukf-us3d em-magnetic-pratt2022
+# the papers' former names (needlecli/papers.py: the seed texts' numbers), kept as aliases of their targets
+ALIASES := seed000 seed001 seed003 seed004
+.PHONY: $(PAPERS) $(PAPERS:=-numbers) $(ALIASES) $(ALIASES:=-numbers)
 
 help:
 	@echo "make install  - install needlecli with test extras (editable)"
@@ -12,10 +16,11 @@ help:
 	@echo "make bench    - speed benchmarks (ratios against in-run references; issue 14's targets) -> docs/benchmarks.md"
 	@echo "make lint     - ruff"
 	@echo "make docs     - the documentation site in site/ (mkdocs build --strict; pip install -e '.[docs]')"
-	@echo "make seed000  - seed 000's simulation and experiment-like studies: Table I, the sweep of theta (in $(STUDIES))"
-	@echo "make seed001  - seed 001's helix studies: convergence, half turns, Fig. 3, the alternative reading (in $(STUDIES))"
-	@echo "make seed003  - seed 003's simulation study: Table 1 (and its variant), Figs. 6-8 (results and tables in $(STUDIES))"
-	@echo "make papers   - every number each paper states beside needlecli's over three seeds, into its page (seed00x-numbers: one paper)"
+	@echo "make highgain-us2d (formerly seed000) - the high-gain observer paper (2D transverse ultrasound): simulation and experiment-like studies, Table I, the sweep of theta (in $(STUDIES))"
+	@echo "make so3-invariant (formerly seed001) - the SO(3) observer paper: helix studies, convergence, half turns, Fig. 3, the alternative reading (in $(STUDIES))"
+	@echo "make multirate-ukf-us3d (formerly seed003) - the multi-rate UKF paper (3D ultrasound): Table 1 (and its variant), Figs. 6-8 (results and tables in $(STUDIES))"
+	@echo "make em-magnetic-pratt2022 (formerly seed004) - the magnetic needle EM paper (Pratt and Petruska 2022): EM fits, Tables 1-3, Figs. 5, 10 (in $(STUDIES))"
+	@echo "make papers   - every number each paper states beside needlecli's over three seeds, into its page (PAPER-numbers: one paper)"
 	@echo "make datasets - rebuild the synthetic logs in datasets/ from configs/datasets/"
 	@echo "make regress  - replay every bundled data set and check its tables against datasets/baselines/"
 	@echo "make faults   - kill simulate, sweep, crossval, compare, log import-csv and fit-em at 20 random points each; check what is on disk"
@@ -23,7 +28,6 @@ help:
 	@echo "make real-tau - after make real: the ultrasound's likelihood against the image plane offset's time constant"
 	@echo "make real-plane - after make real: the image plane's bound with margins 0-8 mm and lost frames only (tip error against the tracker)"
 	@echo "make real-poses - after make real: the held-out tracker trials predicted from the start and from their own pose at 0-60 mm"
-	@echo "make seed004  - seed 004's synthetic study and T2prelim: EM fits, Tables 1-3, Figs. 5, 10 (in $(STUDIES))"
 	@echo "make owndata  - a lab's exports made by needlecli, imported by a mapping, fitted with and without the slip (in $(OWN))"
 	@echo "make clean    - remove results/ and caches"
 
@@ -54,28 +58,28 @@ docs:
 clean:
 	rm -rf results site .pytest_cache .ruff_cache .hypothesis
 
-seed000:
+highgain-us2d:
 	@for c in simulation experiment_like; do \
-	  needle simulate configs/seed000/$$c.yaml --out $(STUDIES)/seed000_$$c.h5 --quiet > /dev/null && \
-	  needle evaluate $(STUDIES)/seed000_$$c.h5 --out $(STUDIES)/seed000 || exit 1; \
+	  needle simulate configs/highgain-us2d/$$c.yaml --out $(STUDIES)/highgain-us2d_$$c.h5 --quiet > /dev/null && \
+	  needle evaluate $(STUDIES)/highgain-us2d_$$c.h5 --out $(STUDIES)/highgain-us2d || exit 1; \
 	done
 
-seed001:
+so3-invariant:
 	@for c in helix helix_batch helix_kappa35; do \
-	  needle simulate configs/seed001/$$c.yaml --out $(STUDIES)/seed001_$$c.h5 --quiet > /dev/null && \
-	  needle evaluate $(STUDIES)/seed001_$$c.h5 --out $(STUDIES)/seed001 || exit 1; \
+	  needle simulate configs/so3-invariant/$$c.yaml --out $(STUDIES)/so3-invariant_$$c.h5 --quiet > /dev/null && \
+	  needle evaluate $(STUDIES)/so3-invariant_$$c.h5 --out $(STUDIES)/so3-invariant || exit 1; \
 	done
 
-seed003:
+multirate-ukf-us3d:
 	@for c in table1 table1_growth_stream fig6 fig7 fig8; do \
-	  needle simulate configs/seed003/$$c.yaml --out $(STUDIES)/seed003_$$c.h5 --quiet > /dev/null && \
-	  needle evaluate $(STUDIES)/seed003_$$c.h5 --out $(STUDIES)/seed003 || exit 1; \
+	  needle simulate configs/multirate-ukf-us3d/$$c.yaml --out $(STUDIES)/multirate-ukf-us3d_$$c.h5 --quiet > /dev/null && \
+	  needle evaluate $(STUDIES)/multirate-ukf-us3d_$$c.h5 --out $(STUDIES)/multirate-ukf-us3d || exit 1; \
 	done
 
-seed004:
+em-magnetic-pratt2022:
 	@for c in study t2prelim; do \
-	  needle fit-em configs/seed004/$$c.yaml --model both --out $(STUDIES)/seed004_$$c.h5 && \
-	  needle evaluate $(STUDIES)/seed004_$$c.h5 --out $(STUDIES)/seed004 || exit 1; \
+	  needle fit-em configs/em-magnetic-pratt2022/$$c.yaml --model both --out $(STUDIES)/em-magnetic-pratt2022_$$c.h5 && \
+	  needle evaluate $(STUDIES)/em-magnetic-pratt2022_$$c.h5 --out $(STUDIES)/em-magnetic-pratt2022 || exit 1; \
 	done
 
 # Every number a paper states beside needlecli's over three seeds (--set runs.seed=S), with a verdict: the
@@ -83,25 +87,35 @@ seed004:
 # into docs/papers/numbers/PAPER_values.yaml, the table written into the paper's page (tools/paper_numbers.py;
 # PAPER_ARGS=--reuse keeps results files already there, --render only rewrites the page). Times on the shared
 # 2-core machine: docs/papers/numbers/PAPER_values.yaml, made_with.seconds.
-seed000-numbers seed001-numbers seed003-numbers seed004-numbers:
+$(PAPERS:=-numbers):
 	$(PY) tools/paper_numbers.py $(@:-numbers=) $(PAPER_ARGS)
 
-papers: seed000-numbers seed001-numbers seed003-numbers seed004-numbers
+papers: $(PAPERS:=-numbers)
+
+# the former names: seed000 is highgain-us2d, seed000-numbers is highgain-us2d-numbers, ...
+seed000: highgain-us2d
+seed001: so3-invariant
+seed003: multirate-ukf-us3d
+seed004: em-magnetic-pratt2022
+seed000-numbers: highgain-us2d-numbers
+seed001-numbers: so3-invariant-numbers
+seed003-numbers: multirate-ukf-us3d-numbers
+seed004-numbers: em-magnetic-pratt2022-numbers
 
 DSTMP := results/datasets
 
 datasets:
 	@mkdir -p $(DSTMP)
-	needle simulate configs/datasets/seed000_like.yaml --out $(DSTMP)/seed000_like.h5 --quiet > /dev/null
-	needle log from-results $(DSTMP)/seed000_like.h5 --out datasets/seed000_like.h5 --truth-every 5 --prefix s000_
+	needle simulate configs/datasets/highgain-us2d_like.yaml --out $(DSTMP)/highgain-us2d_like.h5 --quiet > /dev/null
+	needle log from-results $(DSTMP)/highgain-us2d_like.h5 --out datasets/highgain-us2d_like.h5 --truth-every 5 --prefix s000_
 	for p in a b c; do \
-	  needle simulate configs/datasets/seed003_like_$$p.yaml --out $(DSTMP)/seed003_like_$$p.h5 --quiet > /dev/null && \
-	  needle log from-results $(DSTMP)/seed003_like_$$p.h5 --out $(DSTMP)/seed003_like_$$p.log.h5 --truth-every 10 --prefix s003$$p\_ || exit 1; \
+	  needle simulate configs/datasets/multirate-ukf-us3d_like_$$p.yaml --out $(DSTMP)/multirate-ukf-us3d_like_$$p.h5 --quiet > /dev/null && \
+	  needle log from-results $(DSTMP)/multirate-ukf-us3d_like_$$p.h5 --out $(DSTMP)/multirate-ukf-us3d_like_$$p.log.h5 --truth-every 10 --prefix s003$$p\_ || exit 1; \
 	done
-	needle log merge $(DSTMP)/seed003_like_a.log.h5 $(DSTMP)/seed003_like_b.log.h5 $(DSTMP)/seed003_like_c.log.h5 \
-	  --out datasets/seed003_like.h5 --description "synthetic, seed 003 manner: media A (4), B (5), two-layer phantom (1)"
-	needle simulate configs/datasets/seed004_like.yaml --out $(DSTMP)/seed004_like.h5 --quiet > /dev/null
-	needle log from-results $(DSTMP)/seed004_like.h5 --out datasets/seed004_like.h5 --truth-every 2 --prefix s004_
+	needle log merge $(DSTMP)/multirate-ukf-us3d_like_a.log.h5 $(DSTMP)/multirate-ukf-us3d_like_b.log.h5 $(DSTMP)/multirate-ukf-us3d_like_c.log.h5 \
+	  --out datasets/multirate-ukf-us3d_like.h5 --description "synthetic, multirate-ukf-us3d manner: media A (4), B (5), two-layer phantom (1)"
+	needle simulate configs/datasets/em-magnetic-pratt2022_like.yaml --out $(DSTMP)/em-magnetic-pratt2022_like.h5 --quiet > /dev/null
+	needle log from-results $(DSTMP)/em-magnetic-pratt2022_like.h5 --out datasets/em-magnetic-pratt2022_like.h5 --truth-every 2 --prefix s004_
 
 regress:
 	@for c in configs/replay/*.yaml; do \

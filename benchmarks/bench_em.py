@@ -1,10 +1,10 @@
-"""Benchmark: EM (seed 004, Algorithm 1) on the full 48-trial synthetic study, both models (MNM, BiNM),
+"""Benchmark: EM (the magnetic needle EM paper, Algorithm 1) on the full 48-trial synthetic study, both models (MNM, BiNM),
 100 iterations at most (goal: under 60 s on 2 cores; the two models run in parallel processes).
 
 Times are noisy on a shared machine, so the fit is also printed as a ratio against a reference measured
 in the same run: the bare numpy RK4 loop of ``bench_simulate.py`` (1,000 runs x 5,333 steps).
 
-    python benchmarks/bench_em.py [--config configs/seed004/study.yaml] [--workers 2]
+    python benchmarks/bench_em.py [--config configs/em-magnetic-pratt2022/study.yaml] [--workers 2]
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--config", default=str(ROOT / "configs" / "seed004" / "study.yaml"))
+    ap.add_argument("--config", default=str(ROOT / "configs" / "em-magnetic-pratt2022" / "study.yaml"))
     ap.add_argument("--workers", type=int, default=2)
     args = ap.parse_args()
     t0 = time.perf_counter()
@@ -37,7 +37,7 @@ def main() -> None:
     t_fit = time.perf_counter() - t0
     t_ref = reference(1000, 5333)
     n = trials.truth.states.shape[0]
-    print(f"EM: {n} trials x 2 models (seed 004 study), at most {trials.cfg.fit.em.max_iter} iterations, "
+    print(f"EM: {n} trials x 2 models (the magnetic needle EM paper's study), at most {trials.cfg.fit.em.max_iter} iterations, "
           f"{args.workers} worker(s)")
     for name, mf in out.fits.items():
         r = mf.result

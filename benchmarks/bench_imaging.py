@@ -1,11 +1,11 @@
 """Benchmark: frames per second of each imaging pipeline (render + measure), with two targets:
 
-* seed 004's design through the overhead camera: 48 trials x 27 s x 6 Hz = 7,776 frames of 800 x 668 px
+* the magnetic needle EM paper's design through the overhead camera: 48 trials x 27 s x 6 Hz = 7,776 frames of 800 x 668 px
   in under 60 s;
 * 3D ultrasound volumes at 1 Hz over an 80 mm insertion at 1.5 mm/s, tracked: under 50 ms per volume
   (the whole-volume coarse-to-fine search, needed before the first detection, is timed on its own);
 
-plus the 2D transverse ultrasound of seed 000 (25 Hz). Times are noisy on a shared machine, so each is
+plus the 2D transverse ultrasound of the high-gain observer paper (25 Hz). Times are noisy on a shared machine, so each is
 also printed as a ratio against ``reference`` of ``benchmarks/bench_simulate.py`` (a bare numpy RK4 loop)
 measured in the same run.
 
@@ -78,7 +78,7 @@ def _measure(text: str, runs: int | None, repeat: int):
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--trials", type=int, default=48, help="camera trials (seed 004: 48)")
+    ap.add_argument("--trials", type=int, default=48, help="camera trials (the magnetic needle EM paper: 48)")
     ap.add_argument("--runs", type=int, default=10, help="3D ultrasound insertions")
     ap.add_argument("--repeat", type=int, default=1)
     args = ap.parse_args()

@@ -6,15 +6,15 @@ as ratios against FilterPy's UKF on the same model and data written as FilterPy 
 
 1. FilterPy: one Table 1 insertion (5,334 steps), microseconds per insertion-step (best of ``--repeat``);
    its estimate must agree with needlecli's to 1e-6 mm (alpha 1e-3).
-2. ``needle simulate configs/seed003/table1.yaml`` (100 insertions, whole process: start-up, truth,
+2. ``needle simulate configs/multirate-ukf-us3d/table1.yaml`` (100 insertions, whole process: start-up, truth,
    sensors, UKF, results file, summary table): target at least 150x FilterPy per insertion-step.
-3. ``needle simulate configs/seed003/table1.yaml --runs 1000 --set output.covariance=none``: target under
+3. ``needle simulate configs/multirate-ukf-us3d/table1.yaml --runs 1000 --set output.covariance=none``: target under
    2 us per insertion-step (at least 400x FilterPy); its peak memory (the process's maximum resident set).
-4. ``needle fit-em configs/seed004/study.yaml --model both``: target at most 3x one FilterPy insertion.
+4. ``needle fit-em configs/em-magnetic-pratt2022/study.yaml --model both``: target at most 3x one FilterPy insertion.
 5. The first run after a fresh install (an empty kernel cache) against a warm run, side by side (each
    repeat: a cold run in a fresh cache, the background compilation it leaves waited for, then a warm run
    in that cache; best of ``--repeat`` each), for ``needle simulate configs/default.yaml`` and ``needle
-   fit-em configs/seed004/study.yaml --model both``: target at most 2x the warm run (issue 27); what the
+   fit-em configs/em-magnetic-pratt2022/study.yaml --model both``: target at most 2x the warm run; what the
    cold run did (the numpy path while the kernels compile for the next run, or the compilation first);
    and that a later run compiles nothing (the cache files stay as they are).
 6. Scaling (in process, no file): runs 10, 100, 1,000, 10,000 at 20 mm (1,334 steps), and steps at 100
@@ -52,8 +52,8 @@ from needlecli.experiments.config.load import load_config  # noqa: E402
 from needlecli.experiments.simulation.runner import run_experiment  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
-TABLE1 = "configs/seed003/table1.yaml"
-STUDY = "configs/seed004/study.yaml"
+TABLE1 = "configs/multirate-ukf-us3d/table1.yaml"
+STUDY = "configs/em-magnetic-pratt2022/study.yaml"
 T1_RATIO, K_RATIO, K_US, EM_RATIO, COLD_RATIO = 150.0, 400.0, 2.0, 3.0, 2.0
 DEFAULT = "configs/default.yaml"
 
@@ -194,7 +194,7 @@ def main() -> None:
         print(f"  numpy      {t_kn:6.2f} s   {1e6 * t_kn / n_k:5.2f} us per insertion-step   "
               f"{us_fp * n_k * 1e-6 / t_kn:6.1f}x FilterPy   peak {mem_kn:.0f} MB   (compiled: {t_kn / t_k:.1f}x)")
 
-    # ---- 4. EM on seed 004's study, both models
+    # ---- 4. EM on the magnetic needle EM paper's study, both models
     args_em = ["fit-em", STUDY, "--model", "both", "--out", str(tmp / "fit.h5"), "--quiet"]
     t_em, mem_em = best(args_em, a.repeat)
     print(f"\nneedle fit-em {STUDY} --model both (48 trials x 2 models, whole process)")

@@ -1,4 +1,4 @@
-"""Benchmark: the high-gain observer (seed 000) and the invariant SO(3) observer (seed 001) on a batch of
+"""Benchmark: the high-gain observer (the high-gain observer paper) and the invariant SO(3) observer (the SO(3) observer paper) on a batch of
 1,000 insertions, time per insertion step (all runs at once).
 
 Each figure is also printed as a ratio against a bare numpy RK4 loop of the same size measured in the
@@ -61,7 +61,7 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=1000)
     ap.add_argument("--repeat", type=int, default=3)
     args = ap.parse_args()
-    for label, text in (("high_gain (seed 000)", HIGH_GAIN), ("so3_invariant (seed 001)", SO3)):
+    for label, text in (("high_gain (the high-gain observer paper)", HIGH_GAIN), ("so3_invariant (the SO(3) observer paper)", SO3)):
         cfg, prob = problem(text, args.runs)
         obs = OBSERVERS.get(cfg.observers[0].type)(cfg.observers[0])
         n_steps = len(prob.time) - 1

@@ -7,7 +7,7 @@
 2. Overhead per cell: trivial cells (one run of a few steps, no observer) run inline in this process, on a
    local process pool of 1 worker and on a Dask cluster of 1 worker (started before the clock; the
    client connects within it), printed as the extra time per cell and as ratios to inline.
-3. Table 1 on Dask (issue 27): 8 cells of seed 003's Table 1 study (``runs.seed`` 0 to 7, 100 insertions
+3. Table 1 on Dask (issue 27): 8 cells of the multi-rate UKF paper's Table 1 study (``runs.seed`` 0 to 7, 100 insertions
    each, no covariances stored) on a local Dask cluster of 1 and of 2 workers, one core each
    (``NEEDLECLI_THREADS=1``), the kernel cache warm, inline in this process beside them (one core too):
    target 2 workers at least 1.6x as fast as 1. Then the same sweep on 2 workers with an empty kernel
@@ -32,7 +32,7 @@ from needlecli.experiments.studies.sweep import Grid, plan_sweep, run_cell, run_
 from needlecli.experiments.studies.sweep.execution import _pin_worker_threads, _thread_env
 
 ROOT = Path(__file__).resolve().parent.parent
-TABLE1 = ROOT / "configs" / "seed003" / "table1.yaml"
+TABLE1 = ROOT / "configs" / "multirate-ukf-us3d" / "table1.yaml"
 DASK_RATIO = 1.6
 
 SMALL = """

@@ -15,8 +15,8 @@ The initial mean of every run, in this order:
    (``{x: us3d.x}``), where a run has one;
 5. angles wrapped, the state brought back onto its manifold.
 
-The observers that start as a paper prescribes in other terms (seed 000's high-gain observer, seed
-001's rotation error about the measured axis) have their own ``init`` sections.
+The observers that start as a paper prescribes in other terms (the high-gain observer (`highgain-us2d`),
+the SO(3) observer paper's rotation error about the measured axis) have their own ``init`` sections.
 
 **A common start.** When the problem carries a :class:`~needlecli.problem.CommonStart` (``needle
 compare``: the reference observer's initial estimate, drawn once), :func:`initial_mean` and

@@ -80,14 +80,20 @@ class Registry(Generic[T]):
     base : str or callable, optional
         What every component is: ``"module:Class"`` (each a subclass of that class; imported when a plug-in
         is loaded), or the builtin ``callable`` (each a function, or any callable object). None: anything.
+    aliases : mapping, optional
+        ``former name -> name`` of built-in components renamed: a former name still finds the component
+        (:meth:`get`, ``in``) and :meth:`canonical` gives its name; :meth:`names` lists current names only.
     """
 
     def __init__(self, what: str, *, group: str | None = None, builtins: Mapping[str, str] | None = None,
-                 base: str | Callable[[object], bool] | None = None) -> None:
+                 base: str | Callable[[object], bool] | None = None, aliases: Mapping[str, str] | None = None) -> None:
         self.what = what
         self.group = group
         self.base = base
         self._builtins = dict(builtins or {})
+        self.aliases = dict(aliases or {})
+        if unknown := sorted(set(self.aliases.values()) - set(self._builtins)):
+            raise ValueError(f"{what} aliases of no built-in: {', '.join(unknown)}")
         self._items: dict[str, T] = {}
         self._plugins: dict[str, Any] | None = None  # name -> importlib.metadata.EntryPoint, read once
 
@@ -133,7 +139,7 @@ class Registry(Generic[T]):
     def _load_plugin(self, name: str) -> None:
         ep = self.plugins()[name]
         where = f"{self.what} {name!r} of package {self.origin(name)!r} (entry point {self.group}: {ep.value})"
-        if name in self._builtins:
+        if name in self._builtins or name in self.aliases:
             raise PluginError(f"{where}: the name is taken by needlecli's own {self.what}; rename the entry point",
                               name=name, registry=self.what)
         try:
@@ -177,6 +183,7 @@ class Registry(Generic[T]):
         PluginError
             A plug-in that cannot be loaded.
         """
+        name = self.canonical(name)
         if name not in self._items:
             if name in self._builtins:
                 importlib.import_module(self._builtins[name])
@@ -204,8 +211,13 @@ class Registry(Generic[T]):
         self.load_all()
         return {n: self._items[n] for n in self.names() if n in self._items}
 
+    def canonical(self, name: str) -> str:
+        """The current name of a component named by a former name (:attr:`aliases`), else ``name``."""
+        return self.aliases.get(name, name)
+
     def __contains__(self, name: object) -> bool:
-        return name in self._items or name in self._builtins or name in self.plugins()
+        return (name in self._items or name in self._builtins or name in self.aliases
+                or name in self.plugins())
 
     def names(self) -> list[str]:
         return sorted(set(self._items) | set(self._builtins) | set(self.plugins()))

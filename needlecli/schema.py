@@ -68,7 +68,7 @@ Probability = Annotated[float, Field(ge=0.0, lt=1.0)]
 
 
 class DistanceGrowth(Strict):
-    """Noise growing with distance from a transducer: ``sigma = (1 + a d / d_max) sigma_c`` (seed 003)."""
+    """Noise growing with distance from a transducer: ``sigma = (1 + a d / d_max) sigma_c`` (the multi-rate UKF paper)."""
 
     transducer: tuple[float, float, float] = Field(description="transducer position, model length unit")
     a: NonNeg = Field(1.0, description="growth coefficient (dimensionless): sigma is (1 + a) times sigma_c at d_max")

@@ -18,9 +18,9 @@ os.environ.setdefault("NEEDLECLI_COLD", "wait")
 
 @pytest.fixture(scope="session")
 def seed004_fit(tmp_path_factory):
-    """Seed 004's study, reduced to 6 trials (both models), fitted by needle fit-em."""
+    """The magnetic needle EM paper's study, reduced to 6 trials (both models), fitted by needle fit-em."""
     d = tmp_path_factory.mktemp("ident")
-    cfg = Path(__file__).resolve().parents[1] / "configs" / "seed004" / "study.yaml"
+    cfg = Path(__file__).resolve().parents[1] / "configs" / "em-magnetic-pratt2022" / "study.yaml"
     r = CliRunner().invoke(app, ["fit-em", str(cfg), "--model", "both", "--set", "runs.count=6",
                                  "--out", str(d / "fit.h5"), "--quiet"])
     assert r.exit_code == 0, r.output

@@ -42,7 +42,7 @@ LAYERS: dict[str, set[str]] = {
             "fitting", "control", "reports", "metrics", "problem", "sensors", "io", "models", "numerics",
             "foundation", "kernels"},
 }
-FOUNDATION = {"needlecli", "needlecli.errors", "needlecli.guard", "needlecli.registry", "needlecli.schema",
+FOUNDATION = {"needlecli", "needlecli.errors", "needlecli.guard", "needlecli.registry", "needlecli.schema", "needlecli.papers",
               "needlecli.provenance", "needlecli.platform"}
 
 

@@ -21,7 +21,7 @@ from needlecli.models.base import Model  # noqa: E402
 
 
 def test_filterpy_runs_without_needlecli_model_code_and_agrees(monkeypatch):
-    cfg, text = load_config(ROOT / "configs" / "seed003" / "table1.yaml", runs=2, overrides=["stop.depth=6"])
+    cfg, text = load_config(ROOT / "configs" / "multirate-ukf-us3d" / "table1.yaml", runs=2, overrides=["stop.depth=6"])
     _, res = bench_ukf.time_study(cfg, text, 1)
     _, obs_name, post = bench_ukf.time_ukf(cfg, res, 1)
 

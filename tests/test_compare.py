@@ -1,5 +1,5 @@
 """``needle compare``: every applicable observer on the same simulated (or replayed) insertions, the table in
-the form of seed 003's appendix A, skipped observers with their reasons."""
+the form of the multi-rate UKF paper's appendix A, skipped observers with their reasons."""
 
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ from needlecli.observers import OBSERVERS
 from needlecli.observers.defaults import ComparisonContext, direct_components
 from needlecli.reports.compare import compare_table
 
-# seed 003's Table 1 set-up, tiny: 3 insertions of 15 mm, no observers (every one comes from defaults)
+# the multi-rate UKF paper's Table 1 set-up, tiny: 3 insertions of 15 mm, no observers (every one comes from defaults)
 TINY003 = """\
 name: tiny003
 model: {type: modified_unicycle, params: {kappa: 0.005, beta_cut: 0.035}, param_std: {kappa: 0.001}}
@@ -239,7 +239,7 @@ def test_no_observer_starts_better_informed_than_the_reference(tiny, tmp_path):
     df = table(res).set_index("observer")
     assert df.loc["my_ukf", "start"] == "common (reference)"
     assert (df.drop(index="my_ukf")["start"].str.startswith("common")).all()
-    assert df.loc["high_gain", "start"] == "common; x, beta = 0"  # seed 000's prescribed start on top
+    assert df.loc["high_gain", "start"] == "common; x, beta = 0"  # the high-gain observer paper's prescribed start on top
     assert not df.loc["eks", "causal"] and df.loc["ekf", "causal"]
     assert "my_ukf's initial estimate" in res.start and "EXACT TRUTH" not in res.start
 
@@ -294,8 +294,8 @@ def test_a_filter_worse_than_the_model_alone_is_warned_about(tiny, tmp_path):
     kappa_max: 1.0e-7
     init: {from: truth, std: {alpha: 0.0873, beta: 0.0873}, values: {kappa: 0.0}, first_measurement: {x: us3d.x, y: us3d.y, z: us3d.z}}
 """)
-    r = invoke("compare", cfg_path, "--observers", "straight,ekf,open_loop", "--out", tmp_path / "o", "--quiet")
-    assert r.exit_code == 0, r.output
+    r = invoke("compare", cfg_path, "--observers", "straight,ekf,open_loop", "--out", tmp_path / "o")  # (--quiet
+    assert r.exit_code == 0, r.output                                                         # silences warnings)
     df = pd.read_csv(tmp_path / "o" / "compare.csv").set_index("observer")
     assert df.loc["straight", "E_xyz_mean"] > df.loc["open_loop", "E_xyz_mean"] > df.loc["ekf", "E_xyz_mean"]
     said = " ".join(r.output.split())  # (the log's warning, on stderr)
@@ -307,7 +307,7 @@ def test_a_filter_worse_than_the_model_alone_is_warned_about(tiny, tmp_path):
 
 def test_worse_than_model_compares_like_with_like():
     """Only observers from the common start against a model-only one from it; the tip norm where both have
-    it, else the axes the observer has (seed 000's high-gain observer: E_x)."""
+    it, else the axes the observer has (the high-gain observer (`highgain-us2d`): E_x)."""
     from needlecli.reports.compare import worse_than_model
 
     nan = float("nan")

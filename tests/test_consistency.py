@@ -1,6 +1,6 @@
 """Consistency statistics (issue 15, item 4): NEES against a hand computation on a linear model, NIS
-against an independent Kalman filter, the chi-square intervals, the verdicts, wrapped angles, and seed
-003's UKF whose alpha and beta are optimistic over the first seconds (P0 below the 5 deg initial error)."""
+against an independent Kalman filter, the chi-square intervals, the verdicts, wrapped angles, and
+the multi-rate UKF paper's UKF whose alpha and beta are optimistic over the first seconds (P0 below the 5 deg initial error)."""
 
 from __future__ import annotations
 
@@ -172,16 +172,16 @@ def test_cli_table_and_observers_without_a_covariance(linear, tmp_path):
     assert "## consistency" in r.output and "two-sided 95 % chi-square" in r.output
     text = (tmp_path / "lin_consistency.md").read_text()
     assert "Innovations not recorded (no ANIS): model_only." in text
-    cfg, raw = load_config(ROOT / "configs/seed000/simulation.yaml", overrides=["runs.count=2", "stop.depth=5"])
+    cfg, raw = load_config(ROOT / "configs/highgain-us2d/simulation.yaml", overrides=["runs.count=2", "stop.depth=5"])
     out = run_experiment(cfg, raw, out=tmp_path / "hg.h5").path
     df = evaluate_results(out, tables=["consistency"])["consistency"]
     assert df.empty and "Without a covariance (not tabulated): high_gain" in df.attrs["note"]
 
 
 def test_seed003_alpha_and_beta_are_optimistic_over_the_first_seconds(tmp_path):
-    """configs/seed003/table1.yaml: P0 of alpha and beta (5e-3 rad^2, 4.1 deg std) is below the 5 deg
+    """configs/multirate-ukf-us3d/table1.yaml: P0 of alpha and beta (5e-3 rad^2, 4.1 deg std) is below the 5 deg
     initial error, so their NEES stays above the interval for the first seconds, then settles."""
-    cfg, raw = load_config(ROOT / "configs/seed003/table1.yaml", overrides=["stop.depth=12", "observers.0.predict_at_depths=[]"])
+    cfg, raw = load_config(ROOT / "configs/multirate-ukf-us3d/table1.yaml", overrides=["stop.depth=12", "observers.0.predict_at_depths=[]"])
     out = run_experiment(cfg, raw, out=tmp_path / "t1.h5").path
     df = evaluate_results(out, tables=["consistency"])["consistency"]
     for s in ("alpha", "beta"):

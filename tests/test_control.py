@@ -1,4 +1,4 @@
-"""Closed loops (config section ``control:``): seed 004's planar control on the camera's opacity.
+"""Closed loops (config section ``control:``): the magnetic needle EM paper's planar control on the camera's opacity.
 
 The loop must hold the needle nearer its plane than the same insertions without it (and the opposite sign
 must not), the applied command must be eq. (7) of the recorded opacity from each sample's availability on,
@@ -74,7 +74,7 @@ def drift_mm(states: np.ndarray) -> np.ndarray:
 
 
 def expected_command(opacity, t_available, time, gain, limit):
-    """Seed 004 eq. (7) on the grid, by plain loops: the command of the last sample with a detection that
+    """The magnetic needle EM paper's eq. (7) on the grid, by plain loops: the command of the last sample with a detection that
     is available at ``time[k]`` (``t_available <= t_k``), 0 before any; ``opacity_0`` the first detection."""
     N, M = opacity.shape
     out = np.zeros((N, len(time)))

@@ -36,7 +36,7 @@ def test_folds_keep_groups_together_and_leave_one_out_within_a_group():
 
 
 def test_crossval_tunes_a_wrong_constant_on_held_out_trials(tmp_path, monkeypatch):
-    data = yaml.safe_load((ROOT / "configs" / "seed004" / "study.yaml").read_text())
+    data = yaml.safe_load((ROOT / "configs" / "em-magnetic-pratt2022" / "study.yaml").read_text())
     data["model"].pop("param_cases")
     data["runs"]["count"] = 4
     data["stop"]["time"] = 12.0

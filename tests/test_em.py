@@ -1,4 +1,4 @@
-"""EM (seed 004, Algorithm 1): on a linear-Gaussian model with known Q and R it recovers them within
+"""EM (the magnetic needle EM paper, Algorithm 1): on a linear-Gaussian model with known Q and R it recovers them within
 sampling error and never lowers the log-likelihood; floors hold; the per-run parameter cases of the
 config; ``needle fit-em`` end to end (a fit file, its tables, clear errors); the BiNM fit fails with the
 singularity as the reason where the field crosses the heading."""
@@ -289,11 +289,11 @@ def test_evaluate_reads_the_fit_file(fitted):
     d, out = fitted
     r = invoke("evaluate", out, "--out", d / "tables")
     assert r.exit_code == 0, r.output + repr(r.exception)
-    for t in ("fit_parameters", "seed004_table1", "seed004_table2", "seed004_table3", "fit_recovery", "fit_status"):
+    for t in ("fit_parameters", "mnm_parameters", "binm_parameters", "binm_vs_mnm", "fit_recovery", "fit_status"):
         assert (d / "tables" / f"tiny_fit_{t}.csv").exists()
         assert f"## {t}" in r.output
     assert "c @ a" in r.output and "SD as Traj. Err. (mm)" in r.output
-    assert (d / "tables" / "tiny_fit_seed004_fig5.png").exists()
+    assert (d / "tables" / "tiny_fit_fit_paths.png").exists()
     r = invoke("evaluate", out, "--tables", "summary", "--no-plots")
     assert r.exit_code == 2 and "needs a results file" in r.output
 
@@ -306,7 +306,7 @@ def test_fit_em_user_errors(tmp_path, fitted):
     assert r.exit_code == 2 and "not an experiment config" in r.output and "Traceback" not in r.output
     r = invoke("fit-em", out)
     assert r.exit_code == 2 and "is a fit file already" in r.output
-    logfile = Path(__file__).resolve().parents[1] / "datasets" / "seed004_like.h5"
+    logfile = Path(__file__).resolve().parents[1] / "datasets" / "em-magnetic-pratt2022_like.h5"
     if logfile.exists():
         r = invoke("fit-em", logfile)
         assert r.exit_code == 2 and "is a log file" in r.output and "source" in r.output

@@ -15,9 +15,10 @@ from needlecli.experiments.studies.compare import prepare_comparison
 from needlecli.models import MODELS
 from needlecli.numerics import angle_diff
 from needlecli.observers import OBSERVERS
+from needlecli.papers import PAPERS
 
 ROOT = Path(__file__).resolve().parents[1]
-PAPER_CONFIGS = sorted(p for p in (ROOT / "configs").glob("seed00*/**/*.yaml"))
+PAPER_CONFIGS = sorted(p for paper in PAPERS for p in (ROOT / paper.configs).glob("*.yaml"))
 RUNS = 200
 
 
@@ -37,7 +38,7 @@ def expected_start(path: Path) -> tuple[dict[str, float], dict[str, float], set[
 def test_compared_observers_start_from_the_configs_initial_state(path):
     """Every observer that takes the common start starts from a draw around the config's initial state: the
     mean over runs within 4 standard errors of it (the truth's spread and the start's own variance), and
-    every run exactly at it where neither spreads (seed 004's heading and field, once reversed)."""
+    every run exactly at it where neither spreads (the magnetic needle EM paper's heading and field, once reversed)."""
     cmp = prepare_comparison(path, runs=RUNS, overrides=["stop={time: 0.3}"])
     start = cmp.problem.start
     assert start is not None, cmp.start
@@ -48,7 +49,7 @@ def test_compared_observers_start_from_the_configs_initial_state(path):
     ref = next((c for c in cmp.chosen if c.start == "common (reference)"), None)
     init = (ref.settings or {}).get("init") or {} if ref is not None and ref.origin == "config" else {}
     prescribed = set(init.get("values") or {})  # a config's own reference that starts a state elsewhere on
-    for j, k in enumerate(start.names):  # purpose (seed 003 Fig. 7: a wrong curvature) says so
+    for j, k in enumerate(start.names):  # purpose (the multi-rate UKF paper's Fig. 7: a wrong curvature) says so
         if k not in mean or k in prescribed:  # (or an augmented constant)
             continue
         x = start.mean[:, j]
@@ -59,7 +60,7 @@ def test_compared_observers_start_from_the_configs_initial_state(path):
             np.testing.assert_allclose(d, 0.0, atol=4 * np.sqrt(start.cov[j, j]) + 1e-9, err_msg=k)
 
 
-# seed 003's set-up, tiny: 2 insertions of 6 mm, two UKFs alike but for their names, and the open loop
+# the multi-rate UKF paper's set-up, tiny: 2 insertions of 6 mm, two UKFs alike but for their names, and the open loop
 TWINS = """\
 name: twins
 model: {type: modified_unicycle, params: {kappa: 0.005, beta_cut: 0.035}, param_std: {kappa: 0.001}}

@@ -20,7 +20,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _config(fit: Path, observer: dict) -> str:
-    data = yaml.safe_load((ROOT / "configs" / "seed004" / "study.yaml").read_text())
+    data = yaml.safe_load((ROOT / "configs" / "em-magnetic-pratt2022" / "study.yaml").read_text())
     data.pop("fit")
     data["runs"]["count"] = 4
     data["stop"]["time"] = 3.0

@@ -1,4 +1,4 @@
-"""Seed 000's high-gain observer: the transformed system against the unicycle, the error dynamics against
+"""The high-gain observer (`highgain-us2d`): the transformed system against the unicycle, the error dynamics against
 the matrix exponential of theta (A + L C), the sampled loop, zeta, and the CLI end to end."""
 
 from __future__ import annotations
@@ -159,7 +159,7 @@ observers:
      init: {values: {x: 0.0, beta: 0.0}}}
 runs: {count: 3, seed: 0}
 stop: {depth: 40.0}
-output: {tables: [seed000_table1, status]}
+output: {tables: [x_pitch_roll_error, status]}
 """
 
 
@@ -179,7 +179,7 @@ def test_converges_with_curvature_mismatch_and_tracks_zeta():
 
 
 def test_large_theta_is_numerically_stable_with_zoh_and_reported_with_predictor():
-    """theta = 67e4 (seed 000's simulation, as legible): with the held sample the exact flow stays finite;
+    """theta = 67e4 (the high-gain observer paper's simulation, as legible): with the held sample the exact flow stays finite;
     with the predictor the sampled loop is unstable and every run says why."""
     res = run(SIM, "observers.0.theta=670000", "observers.0.hold=zoh", "stop.depth=10")
     post = res.estimates["high_gain"]
@@ -224,7 +224,7 @@ def test_cli_simulate_and_evaluate_table1(tmp_path: Path):
     assert r.exit_code == 0, r.output + repr(r.exception)
     r = CliRunner().invoke(app, ["evaluate", str(out), "--out", str(tmp_path / "t"), "--no-plots", "--quiet"])
     assert r.exit_code == 0, r.output + repr(r.exception)
-    df = pd.read_csv(tmp_path / "t" / "hg_small_seed000_table1.csv")
+    df = pd.read_csv(tmp_path / "t" / "hg_small_x_pitch_roll_error.csv")
     assert list(df["Error"]) == ["e_x [mm]", "e_beta [rad]", "e_gamma [rad]"]
     row = df.set_index("Error").loc["e_beta [rad]"]
     assert row["Final"] < 0.01 and row["Average Absolute Estimation Error"] < 0.01

@@ -324,7 +324,7 @@ def test_a_free_unit_vector_block_says_how_much_of_its_trace_is_unseen():
 
 
 def test_seed004_study_flags_q_h_and_not_c(seed004_fit):
-    """On seed 004's design the data identify c and not Q_h (issue: refits from three starting guesses of
+    """On the magnetic needle EM paper's design the data identify c and not Q_h (issue: refits from three starting guesses of
     Q_h end 0.06x to 5.6x the truth within 0.7 nats), in every field strength the trials have."""
     from needlecli.io.fit import read_fit
     from needlecli.reports.identify import identifiability_table
@@ -427,7 +427,7 @@ def test_identifiability_table_from_the_command_line(seed004_fit, tmp_path):
                                  "--out", str(tmp_path)])
     assert r.exit_code == 0, r.output
     assert "tr(Q_h)" in r.output and "10 mT" in r.output
-    assert (tmp_path / "seed004_study_identifiability.tex").exists()
+    assert (tmp_path / "em-magnetic-pratt2022_study_identifiability.tex").exists()
 
 
 def test_a_fit_file_with_malformed_group_verdicts_is_refused(seed004_fit, tmp_path):

@@ -184,7 +184,7 @@ def test_ieks_on_a_linear_model_settles_in_one_iteration():
     assert e.settled.all()
     assert (e.iterations == 1).all()  # the re-linearised pass only confirms the first
     np.testing.assert_allclose(e.result.sm.m, eks(dm, meas, m0, P0, Q, R).sm.m, atol=1e-9)
-    # with x0 <- x_0|N (seed 004) the prior mean moves to the smoothed initial state until it settles
+    # with x0 <- x_0|N (the magnetic needle EM paper) the prior mean moves to the smoothed initial state until it settles
     e2 = ieks(dm, meas, m0, P0, Q, R, update_x0=True, max_iter=100, tol=1e-6)
     assert e2.settled.all()
     np.testing.assert_allclose(e2.m0, e2.result.sm.m[:, 0], atol=1e-5)

@@ -5,7 +5,7 @@ pass and its internals, the on-disk cache and the warm-up.
 
 Tolerance 1e-10 (absolute, in the models' units) wherever the two compute the same thing in one go: a
 model step, the truth simulation, a few filter ticks. A filter run of hundreds of ticks carries the
-rounding of its first ticks along (seed 003's alpha = 1e-3 weights residuals by 7e4, and the position
+rounding of its first ticks along (the multi-rate UKF paper's alpha = 1e-3 weights residuals by 7e4, and the position
 integrates the angles): there the kernel must agree with the numpy path as well as the numpy path agrees
 with itself when only its sin and cos change by an ulp.
 """
@@ -79,14 +79,14 @@ def test_ukf_cholesky_repairs_as_numpy():
 
 
 def test_ukf_whole_insertion_within_the_references_own_rounding(monkeypatch):
-    """Seed 003's Table 1 set-up over 30 mm (2,000 ticks): the kernel differs from the numpy path by no
+    """The multi-rate UKF paper's Table 1 set-up over 30 mm (2,000 ticks): the kernel differs from the numpy path by no
     more than the numpy path differs from itself with numpy's sin and cos (within 2 ulp of its own)."""
     import needlecli.models.unicycle as unicycle
 
     monkeypatch.delenv(kernels.ENV, raising=False)
 
     def run(setting):
-        cfg, text = load_config(ROOT / "configs/seed003/table1.yaml", runs=4,
+        cfg, text = load_config(ROOT / "configs/multirate-ukf-us3d/table1.yaml", runs=4,
                                 overrides=["stop.depth=30", f"simulation.kernels={setting}"])
         return run_experiment(cfg, text, write=False).estimates["ukf"].state
 
@@ -168,7 +168,7 @@ def test_first_run_compiles_the_observers_in_a_second_process(tmp_path):
     """)
     env = {**os.environ, "PYTHONPATH": str(ROOT), "NEEDLECLI_KERNEL_CACHE": str(tmp_path / "cache")}
     env.pop("NEEDLECLI_KERNELS", None)
-    out = [subprocess.run([sys.executable, "-c", code, str(ROOT / "configs/seed003/table1.yaml"),
+    out = [subprocess.run([sys.executable, "-c", code, str(ROOT / "configs/multirate-ukf-us3d/table1.yaml"),
                            str(tmp_path / f"x{i}.npy")], capture_output=True, text=True, cwd=tmp_path, env=env,
                           check=True).stdout.split() for i in range(3)]
     assert out[0] == ["1", "0", "1"]  # the UKF from the cache the second process wrote; the truth compiled here
@@ -299,7 +299,7 @@ def test_fit_em_iterations_equal_numpy():
     config (simulation.kernels, passed down to the systems): the same fit."""
     from needlecli.experiments.studies.fit import fit_trials, load_trials
 
-    trials = load_trials(ROOT / "configs/seed004/study.yaml",
+    trials = load_trials(ROOT / "configs/em-magnetic-pratt2022/study.yaml",
                          overrides=["runs.count=6", "stop.time=4", "fit.em.max_iter=3"])
 
     def run(setting):
@@ -326,7 +326,7 @@ def test_results_compression_where_it_pays(mode, tmp_path):
     all large arrays; ``none`` nothing. The arrays read back are the same either way."""
     import h5py
 
-    cfg, text = load_config(ROOT / "configs/seed003/table1.yaml", runs=6,
+    cfg, text = load_config(ROOT / "configs/multirate-ukf-us3d/table1.yaml", runs=6,
                             overrides=["stop.depth=20", f"output.compression={mode}"])
     res = run_experiment(cfg, text, out=tmp_path / "r.h5")
     with h5py.File(res.path) as f:
@@ -347,7 +347,7 @@ def test_results_file_the_same_however_written(tmp_path, monkeypatch):
     from needlecli.io import results
     from needlecli.io.tree import Group
 
-    cfg, text = load_config(ROOT / "configs/seed003/table1.yaml", runs=5, overrides=["stop.depth=10"])
+    cfg, text = load_config(ROOT / "configs/multirate-ukf-us3d/table1.yaml", runs=5, overrides=["stop.depth=10"])
     res = run_experiment(cfg, text, write=False)
     from needlecli.experiments.simulation.runner import build_sensors, results_tree
 

@@ -81,7 +81,7 @@ def test_good_log_replays_and_evaluates(tmp_path):
 @pytest.fixture(scope="module")
 def simulated(tmp_path_factory):
     d = tmp_path_factory.mktemp("sim")
-    cfg, text = load_config(ROOT / "configs/seed003/table1.yaml", overrides=["stop.depth=8", "runs.count=3"])
+    cfg, text = load_config(ROOT / "configs/multirate-ukf-us3d/table1.yaml", overrides=["stop.depth=8", "runs.count=3"])
     r = run_experiment(cfg, text, out=d / "sim.h5")
     return cfg, text, r, d
 
@@ -102,7 +102,7 @@ def test_log_round_trip_identical_arrays(simulated, tmp_path):
             np.testing.assert_array_equal(a.inputs[name].value, b.inputs[name].value)
         np.testing.assert_array_equal(a.truth.state, b.truth.state)
     assert back.attrs["synthetic"]
-    assert "seed003_table1" in back.attrs["config"]
+    assert "pose_curvature_error" in back.attrs["config"]
 
 
 def test_replay_of_own_streams_gives_the_same_estimates(simulated, tmp_path):
@@ -167,9 +167,9 @@ def test_csv_import_converts_units_and_counts_missing_samples(tmp_path):
 
 def test_regression_baseline_holds_and_a_tightened_one_fails(tmp_path):
     out = tmp_path / "r.h5"
-    res = run("simulate", ROOT / "configs/replay/seed004_like.yaml", "--out", out, "--quiet")
+    res = run("simulate", ROOT / "configs/replay/em-magnetic-pratt2022_like.yaml", "--out", out, "--quiet")
     assert res.exit_code == 0, res.output
-    base = ROOT / "datasets/baselines/seed004_like.yaml"
+    base = ROOT / "datasets/baselines/em-magnetic-pratt2022_like.yaml"
     res = run("evaluate", out, "--out", tmp_path / "t", "--no-plots", "--quiet", "--baseline", base)
     assert res.exit_code == 0, res.output
     data = yaml.safe_load(base.read_text())
@@ -184,11 +184,11 @@ def test_regression_baseline_holds_and_a_tightened_one_fails(tmp_path):
 
 
 def test_polynomial_reference_agrees_with_the_logged_truth():
-    """Seed 000's reference (polynomials fitted to the 2D ultrasound) against the synthetic set's own
+    """The high-gain observer paper's reference (polynomials fitted to the 2D ultrasound) against the synthetic set's own
     ground truth: the fit recovers x within 0.03 mm and beta within 0.005 rad on average."""
-    cfg, text = load_config(ROOT / "configs/replay/seed000_like_polynomial.yaml")
+    cfg, text = load_config(ROOT / "configs/replay/highgain-us2d_like_polynomial.yaml")
     poly = run_experiment(cfg, text, write=False, base_dir=ROOT / "configs/replay").truth
-    cfg2, text2 = load_config(ROOT / "configs/replay/seed000_like.yaml", overrides=["observers=[]"])
+    cfg2, text2 = load_config(ROOT / "configs/replay/highgain-us2d_like.yaml", overrides=["observers=[]"])
     true = run_experiment(cfg2, text2, write=False, base_dir=ROOT / "configs/replay").truth
     assert poly.truth_kind.startswith("polynomial fit of us2d")
     for name, tol in (("x", 0.03), ("beta", 0.005)):

@@ -518,7 +518,7 @@ def test_unicycle_jacobian_spot_checks():
     u = np.array([v, w])
     j = model.jacobian(x, u, p)
     ju = model.input_jacobian(x, u, p)
-    # differentiated by hand from MODELS.md, eq. 1 of seed 000
+    # differentiated by hand from MODELS.md, eq. 1 of the high-gain observer paper
     assert j[0, 4] == pytest.approx(v * np.cos(b))  # d x' / d beta
     assert j[1, 3] == pytest.approx(-v * np.cos(b) * np.cos(a))  # d y' / d alpha
     assert j[2, 4] == pytest.approx(-v * np.cos(a) * np.sin(b))  # d z' / d beta

@@ -74,7 +74,7 @@ def test_position_errors_per_axis_and_across_and_along_the_needle(probe2d):
 
 
 def test_the_linearised_insertion_finds_what_the_sensors_cannot_see():
-    # x alone (seed 000's simulation) with the roll at 0: the needle bends in the y-z plane, which x does not see
+    # x alone (the high-gain observer paper's simulation) with the roll at 0: the needle bends in the y-z plane, which x does not see
     for axes, unseen in ((["x", "y"], ["z"]), (["x", "y", "z"], []), (["x"], ["y", "z", "alpha", "kappa"])):
         data = _config(axes)
         cfg, _ = load_config(text=yaml.safe_dump(data, sort_keys=False))
@@ -83,7 +83,7 @@ def test_the_linearised_insertion_finds_what_the_sensors_cannot_see():
     # constraints are not unknowns: a unit heading's norm, a rotation's orthogonality
     cfg, _ = load_config(ROOT / "configs" / "examples" / "mnm_s_turn.yaml", memory=False)
     assert [u.state for u in unobservable_states(cfg)] == ["pz"]  # a camera's x, y and the field coils
-    cfg, _ = load_config(ROOT / "configs" / "seed001" / "helix.yaml", memory=False)
+    cfg, _ = load_config(ROOT / "configs" / "so3-invariant" / "helix.yaml", memory=False)
     assert unobservable_states(cfg) == []
 
 

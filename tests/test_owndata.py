@@ -463,7 +463,7 @@ def test_fit_recovers_the_curvature_law_and_the_slip(study, monkeypatch):
     """EM with the speed scale: the regression of the fitted kappa on the duty cycle has the true slope and
     intercept within two standard errors (from the spread across trials), the same numbers as numpy's
     least squares; every trial's slip within 0.01 of the truth; needle evaluate writes the tables and
-    plots (seed 004's Fig. 5 on a unicycle fit, the regression with its data)."""
+    plots (the magnetic needle EM paper's Fig. 5 on a unicycle fit, the regression with its data)."""
     from needlecli.io.fit import read_fit
     from needlecli.io.results import read_results
     from needlecli.reports import design
@@ -496,7 +496,7 @@ def test_fit_recovers_the_curvature_law_and_the_slip(study, monkeypatch):
     res = run("evaluate", study / "fit.h5", "--out", study / "tables", "--regress", "kappa:duty_cycle",
               "--group-by", "duty_cycle")
     assert res.exit_code == 0, res.output
-    assert (study / "tables" / "owndata_fit_seed004_fig5.png").stat().st_size > 1000
+    assert (study / "tables" / "owndata_fit_fit_paths.png").stat().st_size > 1000
     pts = drawn["owndata_fit_fit_regression.png"]
     assert any(np.allclose(np.sort(p[:, 0]), np.sort(dc[keep & (np.asarray(g.data["status"]) == "ok")])) for p in pts)
     for t in ("fit_by_design", "fit_regression", "fit_warnings", "fit_status"):

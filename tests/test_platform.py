@@ -101,7 +101,7 @@ def test_simulate_evaluate_fit_em_without_the_linux_only_capabilities(tmp_path):
     """simulate (on an empty kernel cache: the warm-up process without prctl, numba's saves locked without
     flock), evaluate and fit-em (without fork too: no warm-up, the models one after another) end with exit
     0 and the arrays and tables of a run with every capability."""
-    config, study = ROOT / "configs/default.yaml", ROOT / "configs/seed004/study.yaml"
+    config, study = ROOT / "configs/default.yaml", ROOT / "configs/em-magnetic-pratt2022/study.yaml"
     fit_args = ["--model", "both", "--set", "runs.count=4", "--set", "stop.time=3"]
     full = _env(tmp_path)
     _needle(["simulate", config, "--runs", 2, "--out", "full.h5"], full, tmp_path)

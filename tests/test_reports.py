@@ -286,9 +286,9 @@ def test_every_latex_table_of_a_run_compiles(sim, replayed, tmp_path):
 
 
 def test_markdown_and_latex_say_the_same(sim, tmp_path):
-    evaluate_results(sim, tables=["seed003_table1"], out_dir=tmp_path, formats=["md", "tex"])
-    md = (tmp_path / "reports_sim_seed003_table1.md").read_text()
-    tex = (tmp_path / "reports_sim_seed003_table1.tex").read_text()
+    evaluate_results(sim, tables=["pose_curvature_error"], out_dir=tmp_path, formats=["md", "tex"])
+    md = (tmp_path / "reports_sim_pose_curvature_error.md").read_text()
+    tex = (tmp_path / "reports_sim_pose_curvature_error.tex").read_text()
     caption = md.split("\n\n")[0]
     assert "after initialisation" in caption
     assert latex_escape(caption) in tex
@@ -309,8 +309,8 @@ def test_run_counts_have_one_form(sim, replayed):
 
 def test_accuracy_is_named_for_what_it_is(sim):
     doc = TABLES.get("accuracy").__doc__
-    assert "seed000_table1" in doc and "form of seed 000" not in doc
-    assert "Seed 000 Table I" in TABLES.get("seed000_table1").__doc__
+    assert "x_pitch_roll_error" in doc and "form of the high-gain observer paper" not in doc
+    assert "The high-gain observer paper's Table I" in TABLES.get("x_pitch_roll_error").__doc__
 
 
 def test_measurement_use_has_one_row_per_distinct_run(replayed, tmp_path):
@@ -346,12 +346,12 @@ def unicycle_fit(tmp_path_factory) -> Path:
 
 
 def test_a_fit_of_another_model_gets_tables_named_for_what_they_hold(unicycle_fit, tmp_path):
-    """A unicycle's fit writes fit_parameters and fit_recovery, not seed 004's tables of the MNM and BiNM
+    """A unicycle's fit writes fit_parameters and fit_recovery, not the magnetic needle EM paper's tables of the MNM and BiNM
     (empty, captioned with the paper's numbers, as it used to); those are still there by name."""
     r = invoke("evaluate", unicycle_fit, "--out", tmp_path / "t", "--no-plots")
     assert r.exit_code == 0, r.output
     written = sorted(p.name for p in (tmp_path / "t").glob("*.csv"))
-    assert not [n for n in written if "seed004" in n], written
+    assert not [n for n in written if "seed" in n or "mnm" in n], written
     for t in ("fit_parameters", "fit_recovery", "fit_status"):
         assert f"fit_em_{t}.csv" in written and f"## {t}" in r.output
     df = pd.read_csv(tmp_path / "t" / "fit_em_fit_parameters.csv")
@@ -360,7 +360,7 @@ def test_a_fit_of_another_model_gets_tables_named_for_what_they_hold(unicycle_fi
         kappa = f["fit/unicycle/constant/kappa"][()]
     assert float(df.loc[df["Quantity"] == "kappa", "Mean"].iloc[0]) == pytest.approx(kappa.mean(), rel=1e-6)
     r = invoke("evaluate", unicycle_fit, "--tables", "seed004_recovery", "--no-plots", "--out", tmp_path / "old")
-    assert r.exit_code == 0 and (tmp_path / "old" / "fit_em_seed004_recovery.csv").exists()  # the former name
+    assert r.exit_code == 0 and (tmp_path / "old" / "fit_em_fit_recovery.csv").exists()  # a former name: the table's own
 
 
 def test_the_log_likelihood_decrease_line_says_whether_it_matters():

@@ -10,7 +10,7 @@ from needlecli.experiments.config.load import load_config
 from needlecli.experiments.simulation.runner import run_experiment
 from needlecli.io.results import read_results
 
-# seed 003's set-up, tiny: 2 insertions of 6 mm, two UKFs alike but for their names, and the open loop
+# the multi-rate UKF paper's set-up, tiny: 2 insertions of 6 mm, two UKFs alike but for their names, and the open loop
 TWINS = """\
 name: twins
 model: {type: modified_unicycle, params: {kappa: 0.005, beta_cut: 0.035}, param_std: {kappa: 0.001}}

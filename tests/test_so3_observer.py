@@ -1,4 +1,4 @@
-"""Seed 001's invariant observer on SO(3): against an independent integration of the error dynamics,
+"""The invariant observer on SO(3) (`so3-invariant`): against an independent integration of the error dynamics,
 its Lyapunov function, orthonormality, latency, the unobservable case, other models, and the CLI."""
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ observers:
   - {name: random, type: so3_invariant, gain: 0.65, init: {error_deg: [20.0, 170.0], axis: random}}
 runs: {count: 4, seed: 3}
 stop: {depth: 100.0}
-output: {tables: [seed001_convergence, seed001_half_turns, status]}
+output: {tables: [rotation_convergence, rotation_half_turns, status]}
 """
 
 
@@ -74,7 +74,7 @@ def test_matches_an_independent_integration_of_the_error_dynamics(helix):
 
 
 def test_lyapunov_function_is_non_increasing(helix):
-    """The rotation error angle (seed 001's V = |log E|^2 / 2) never grows on a noise-free run."""
+    """The rotation error angle (the SO(3) observer paper's V = |log E|^2 / 2) never grows on a noise-free run."""
     for name in ("from90", "random"):
         err = rotation_error_deg(helix, name)
         assert np.diff(err, axis=1).max() < 1e-7, name
@@ -202,11 +202,11 @@ def test_cli_simulate_and_evaluate(tmp_path: Path):
     assert r.exit_code == 0, r.output + repr(r.exception)
     r = CliRunner().invoke(app, ["evaluate", str(out), "--out", str(tmp_path / "t"), "--quiet"])
     assert r.exit_code == 0, r.output + repr(r.exception)
-    conv = pd.read_csv(tmp_path / "t" / "helix_small_seed001_convergence.csv")
+    conv = pd.read_csv(tmp_path / "t" / "helix_small_rotation_convergence.csv")
     assert set(conv["Case"]) == {"pi/4", "pi/32"}
     row = conv[(conv["Observer"] == "from90") & (conv["Case"] == "pi/32")].iloc[0]
     assert row["E_R at 0 [deg]"] == pytest.approx(90.0) and row["final [deg]"] < 35.0
-    half = pd.read_csv(tmp_path / "t" / "helix_small_seed001_half_turns.csv")
+    half = pd.read_csv(tmp_path / "t" / "helix_small_rotation_half_turns.csv")
     sel = half[(half["Observer"] == "from90") & (half["Case"] == "pi/32")]
     assert list(sel["Half turns"]) == [0, 1]
     assert sel["Distance [mm]"].iloc[1] == pytest.approx(np.pi * 35.0, abs=0.2)

@@ -246,7 +246,7 @@ def test_library_result_and_completeness(files, tmp_path):
 
 def test_shipped_grid_makes_valid_cells(tmp_path):
     root = Path(__file__).resolve().parents[1]
-    cells = plan_sweep(root / "configs/seed003/table1.yaml", load_grid(root / "configs/sweeps/seed003_q_kappa.yaml"),
+    cells = plan_sweep(root / "configs/multirate-ukf-us3d/table1.yaml", load_grid(root / "configs/sweeps/multirate-ukf-us3d_q_kappa.yaml"),
                        out_dir=tmp_path)
     assert len(cells) == 50 and {c.seed for c in cells} == set(range(10))
     assert sorted({c.overrides["observers.0.q.kappa"] for c in cells}) == pytest.approx(
@@ -381,7 +381,7 @@ def test_swept_keys_are_named_with_their_units(files, tmp_path):
     assert PARAM_UNITS["inputs.v"][1] == model.input_units["v"]
 
     root = Path(__file__).resolve().parents[1]
-    cfg, _ = load_config(root / "configs/seed004/t2prelim.yaml")  # a model in metres
+    cfg, _ = load_config(root / "configs/em-magnetic-pratt2022/t2prelim.yaml")  # a model in metres
     mnm = MODELS.get(cfg.model.type)
     assert mnm.length_unit == "m"
     assert describe_key(cfg, "stop.depth")["unit"] == "m" and describe_key(cfg, "sensors.0.sigma")["unit"] == "m"

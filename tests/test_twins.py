@@ -131,7 +131,7 @@ def test_resolution(monkeypatch):
 
 def test_a_wrong_environment_value_is_one_line(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(ROOT), kernels.ENV: "fast"}
-    p = subprocess.run([sys.executable, "-m", "needlecli", "simulate", str(ROOT / "configs/seed003/table1.yaml"),
+    p = subprocess.run([sys.executable, "-m", "needlecli", "simulate", str(ROOT / "configs/multirate-ukf-us3d/table1.yaml"),
                         "--runs", "1", "--set", "stop.depth=1", "--out", str(tmp_path / "r.h5"), "-q"],
                        capture_output=True, text=True, env=env)
     assert p.returncode == 2, p.stderr
@@ -166,13 +166,13 @@ def test_kernels_numpy_imports_no_numba(tmp_path):
     results file's recorded config) and needle fit-em without importing numba at all; the environment
     variable does the same for a config that says auto."""
     out = tmp_path / "r.h5"
-    assert not _needle_imports_numba(["simulate", ROOT / "configs/seed003/table1.yaml", "--runs", "2", "--set",
+    assert not _needle_imports_numba(["simulate", ROOT / "configs/multirate-ukf-us3d/table1.yaml", "--runs", "2", "--set",
                                       "stop.depth=5", "--set", "simulation.kernels=numpy", "--out", out, "-q"])
     assert not _needle_imports_numba(["evaluate", out, "--out", tmp_path / "t", "--no-plots", "-q"])
-    assert not _needle_imports_numba(["fit-em", ROOT / "configs/seed004/study.yaml", "--set", "runs.count=2", "--set",
+    assert not _needle_imports_numba(["fit-em", ROOT / "configs/em-magnetic-pratt2022/study.yaml", "--set", "runs.count=2", "--set",
                                       "stop.time=2", "--set", "fit.em.max_iter=2", "--set", "simulation.kernels=numpy",
                                       "--out", tmp_path / "f.h5", "-q"])
-    assert not _needle_imports_numba(["simulate", ROOT / "configs/seed003/table1.yaml", "--runs", "2", "--set",
+    assert not _needle_imports_numba(["simulate", ROOT / "configs/multirate-ukf-us3d/table1.yaml", "--runs", "2", "--set",
                                       "stop.depth=5", "--out", tmp_path / "e.h5", "-q"], {kernels.ENV: "numpy"})
     # the same commands with the default setting do use the kernels (the test above can fail)
     assert _needle_imports_numba(["evaluate", tmp_path / "e.h5", "--out", tmp_path / "t2", "--no-plots", "-q"])

@@ -1,4 +1,4 @@
-"""Tests of the batched multi-rate unscented Kalman filter (``needlecli.observers.ukf``, seed 003).
+"""Tests of the batched multi-rate unscented Kalman filter (``needlecli.observers.ukf``, the multi-rate UKF paper).
 
 References are independent of the code under test:
 
@@ -212,7 +212,7 @@ def test_linear_model_ukf_equals_kalman_filter(rate, growth, selection):
     assert (post.status == "ok").all()
     np.testing.assert_allclose(post.state, ref_x, rtol=0, atol=1e-9)
     np.testing.assert_allclose(post.cov, ref_p, rtol=0, atol=1e-12)
-    # alpha = 1e-3 (seed 003): weights ~ -1e6 and 8e4 amplify rounding; measured ~2e-9 on the state
+    # alpha = 1e-3 (the multi-rate UKF paper): weights ~ -1e6 and 8e4 amplify rounding; measured ~2e-9 on the state
     # (values ~1 to 10) and ~6e-13 on the covariance
     post = ukf(problem, alpha=1e-3, rate=rate, growth=growth)
     np.testing.assert_allclose(post.state, ref_x, rtol=0, atol=1e-8)
@@ -306,7 +306,7 @@ def _many_runs_problem(runs=6):
 def test_closed_form_update_equals_sigma_point_update(monkeypatch):
     """Sensors that declare their h a state selection get the closed-form update (and the scalar one for
     the roll alone); with the declarations removed the filter goes through sigma points. Same estimates
-    up to the rounding that seed 003's alpha = 1e-3 weights (-1e6) amplify in the sigma-point path."""
+    up to the rounding that the multi-rate UKF paper's alpha = 1e-3 weights (-1e6) amplify in the sigma-point path."""
     from needlecli.sensors.base import Sensor
     from needlecli.sensors.statistical import ElastographySensor, EncoderSensor, PositionSensor
 
@@ -729,9 +729,9 @@ def test_gate_rejects_gross_outliers():
     np.testing.assert_allclose(out["gated"].state, ref.state, rtol=0, atol=1e-6)  # alpha 1e-3 rounding
 
 
-# ================================================================ 10. end to end, reduced seed 003
+# ================================================================ 10. end to end, reduced the multi-rate UKF paper
 def test_seed003_reduced_end_to_end():
-    cfg, text = load_config(Path(__file__).resolve().parents[1] / "configs/seed003/table1.yaml", runs=10,
+    cfg, text = load_config(Path(__file__).resolve().parents[1] / "configs/multirate-ukf-us3d/table1.yaml", runs=10,
                             overrides=["stop.depth=30", "output.covariance=none"])
     res = run_experiment(cfg, text, write=False)
     post = res.estimates["ukf"]
@@ -748,7 +748,7 @@ def test_seed003_reduced_end_to_end():
 
 
 def test_estimate_insensitive_to_the_rounding_of_sin_and_cos(monkeypatch):
-    """Seed 003's alpha = 1e-3 weights the sigma points' residuals by 7e4: rounding in the propagated
+    """The multi-rate UKF paper's alpha = 1e-3 weights the sigma points' residuals by 7e4: rounding in the propagated
     points reaches the mean amplified. Translation states are propagated relative to the central point
     (increments of a few micrometres instead of positions of 80 mm), so computing sin and cos another
     way (numpy's own, within 2 ulp of the half-angle formula) moves the estimate by under 1e-8 mm here
@@ -756,7 +756,7 @@ def test_estimate_insensitive_to_the_rounding_of_sin_and_cos(monkeypatch):
     implementation (the compiled kernels) can be checked against."""
     import needlecli.models.unicycle as unicycle
 
-    cfg, text = load_config(Path(__file__).resolve().parents[1] / "configs/seed003/table1.yaml", runs=4,
+    cfg, text = load_config(Path(__file__).resolve().parents[1] / "configs/multirate-ukf-us3d/table1.yaml", runs=4,
                             overrides=["stop.depth=30"])
     base = run_experiment(cfg, text, write=False).estimates["ukf"].state
     monkeypatch.setattr(unicycle, "sincos", lambda a: (np.sin(a), np.cos(a)))

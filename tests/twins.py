@@ -221,14 +221,14 @@ def _truth_check(ref, got):
 
 
 for _path, _over in [
-    ("configs/seed003/table1.yaml", ["stop.depth=20"]),  # process noise, per-run curvature
+    ("configs/multirate-ukf-us3d/table1.yaml", ["stop.depth=20"]),  # process noise, per-run curvature
     ("configs/default.yaml", ["stop.depth=30"]),  # flips: the roll angle runs past pi
     ("configs/examples/two_layer_flips.yaml", []),  # tissue layers: the curvature along time
-    ("configs/seed004/study.yaml", ["stop.time=5"]),  # input and parameter cases, MNM
+    ("configs/em-magnetic-pratt2022/study.yaml", ["stop.time=5"]),  # input and parameter cases, MNM
     ("configs/examples/binm_singular.yaml", []),  # runs that stop at the singularity
-    ("configs/seed001/helix_batch.yaml", []),  # SO(3)
-    ("configs/seed000/simulation.yaml", []),  # unicycle
-    ("configs/seed003/table1.yaml", ["stop.depth=3", "process_noise.std.beta=80.0"]),  # diverged runs
+    ("configs/so3-invariant/helix_batch.yaml", []),  # SO(3)
+    ("configs/highgain-us2d/simulation.yaml", []),  # unicycle
+    ("configs/multirate-ukf-us3d/table1.yaml", ["stop.depth=3", "process_noise.std.beta=80.0"]),  # diverged runs
 ]:
     case("truth", " ".join([_path, *_over]), check=_truth_check)(_truth(_path, _over))
 
@@ -354,16 +354,16 @@ for _seed in range(8):  # each of the four models twice, every kind of update (6
     case("ukf", f"seed{_seed}", check=assert_posteriors_agree)(functools.partial(run_observer, _text))
 
 
-# ---- the Kalman passes of EM (seed 004's study, 6 trials over 4 s, both models)
+# ---- the Kalman passes of EM (the magnetic needle EM paper's study, 6 trials over 4 s, both models)
 @functools.cache
 def seed004_systems():
-    """The systems fit-em builds for seed 004's study (6 trials, 4 s), by model."""
+    """The systems fit-em builds for the magnetic needle EM paper's study (6 trials, 4 s), by model."""
     from needlecli.experiments.simulation.runner import build_problem
     from needlecli.experiments.studies.fit import load_trials
     from needlecli.fitting.problem import build_system, fit_augment, own_model
 
     with _no_override():
-        trials = load_trials(ROOT / "configs/seed004/study.yaml",
+        trials = load_trials(ROOT / "configs/em-magnetic-pratt2022/study.yaml",
                              overrides=["runs.count=6", "stop.time=4", "simulation.kernels=numpy"])
     problem = build_problem(trials.cfg, trials.truth, trials.sensors, trials.streams)
     return {name: build_system(problem, trials.cfg.fit, own_model(trials.cfg.fit, trials.truth.model, name),
@@ -373,7 +373,7 @@ def seed004_systems():
 
 @functools.cache
 def em_inputs(name: str):
-    """Seed 004's system of model ``name`` with a third of the samples missing, a random trajectory about
+    """The magnetic needle EM paper's system of model ``name`` with a third of the samples missing, a random trajectory about
     the initial state, the noise per trial, and the affine model (a linearisation on the numpy path) and
     its filter and smoother on the numpy path: fixed inputs of the passes."""
     from needlecli.fitting.smoother import linearise
@@ -547,7 +547,7 @@ def _errors_check(ref, got):
             assert_agree(r["quantities"]["E_R"], got[o]["quantities"]["E_R"], ATOL * 180 / np.pi)
 
 
-for _path, _over in [("configs/seed003/table1.yaml", ("stop.depth=10",)), ("configs/default.yaml", ("stop.depth=30",)),
+for _path, _over in [("configs/multirate-ukf-us3d/table1.yaml", ("stop.depth=10",)), ("configs/default.yaml", ("stop.depth=30",)),
                      ("configs/examples/mnm_s_turn.yaml", ("stop.time=3",))]:  # metres, h and B
     case("state_errors", _path, check=_errors_check)(functools.partial(_errors, _path, _over))
 

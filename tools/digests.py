@@ -90,6 +90,21 @@ def collect() -> dict:
         return dict(pool.map(lambda c: digest_config(c, Path(d)), configs()))
 
 
+def _current(key: str) -> str:
+    """A digest's key under a paper's current name: ``configs/seed003/table1.yaml`` and
+    ``configs/replay/seed003_like.yaml`` (its former name, :mod:`needlecli.papers`) are
+    ``configs/multirate-ukf-us3d/table1.yaml`` and ``configs/replay/multirate-ukf-us3d_like.yaml``, so that
+    digests written before the renaming compare with the same configs (whose ``name`` and ``config``
+    attributes, and a replay's log path, moved)."""
+    sys.path.insert(0, str(ROOT))
+    from needlecli.papers import PAPERS  # noqa: PLC0415
+
+    parts = key.split("/")
+    for p in PAPERS:
+        parts = [p.slug + part.removeprefix(p.alias) if part.startswith(p.alias) else part for part in parts]
+    return "/".join(parts)
+
+
 def main(argv: list[str]) -> int:
     if len(argv) != 2 or argv[0] not in ("write", "check"):
         print(__doc__)
@@ -104,7 +119,7 @@ def main(argv: list[str]) -> int:
             if not isinstance(v, dict):
                 print(f"  {k}: {v}")
         return 0
-    before = json.loads(path.read_text())
+    before = {_current(k): v for k, v in json.loads(path.read_text()).items()}
     bad = 0
     for key in sorted(set(before) | set(now)):
         a, b = before.get(key), now.get(key)

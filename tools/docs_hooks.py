@@ -270,11 +270,15 @@ def tables_page() -> str:
            "(entry points `needlecli.tables`, `needlecli.plots`). A table is written as Markdown, CSV and "
            "LaTeX with its caption (see [Error tables](../guide/error-tables.md)).", "",
            "## Tables", "", "| table | what it is |", "| --- | --- |"]
+    def former(reg, n):  # the names a table or plot had when it was named by its paper's seed text
+        old = [f"`{a}`" for a, b in reg.aliases.items() if b == n]
+        return f" (formerly {', '.join(old)}, which still names it)" if old else ""
+
     for n in TABLES.names():
-        out.append(f"| `{n}` | {_md(_first_paragraph(TABLES.get(n)))} |")
+        out.append(f"| `{n}`{former(TABLES, n)} | {_md(_first_paragraph(TABLES.get(n)))} |")
     out += ["", "## Plots", "", "| plot | what it is |", "| --- | --- |"]
     for n in PLOTS.names():
-        out.append(f"| `{n}` | {_md(_first_paragraph(PLOTS.get(n)))} |")
+        out.append(f"| `{n}`{former(PLOTS, n)} | {_md(_first_paragraph(PLOTS.get(n)))} |")
     out.append("")
     return "\n".join(out)
 

@@ -76,7 +76,7 @@ stop: {time: 4.0}
 simulation: {dt: 0.01}
 """
 SWEEP_GRID = "grid:\n  runs.seed: range(SEEDS)\n  sensors.0.rate: [5.0, 10.0]\n"
-#: seed 004's EM on short simulated trials (every trial's fit converges), an observer to tune (crossval)
+#: the magnetic needle EM paper's EM on short simulated trials (every trial's fit converges), an observer to tune (crossval)
 FIT_CONFIG = """\
 name: faults_fit
 model: {type: mnm, params: {c: 9.5}, initial_state: {hy: -1.0, By: -1.0}}

@@ -1,10 +1,12 @@
 """Every number a paper states, beside needlecli's over several seeds: run a paper's studies once per seed,
 collect the numbers into its values file, and write the table into its page (``make papers``,
-``make seed000-numbers``, ...).
+``make highgain-us2d-numbers``, ...).
 
-    python tools/paper_numbers.py seed000             # run, collect, write the page
-    python tools/paper_numbers.py seed000 --reuse     # keep results files already there (same seed, config)
-    python tools/paper_numbers.py seed000 --render    # only write the page from the committed values file
+    python tools/paper_numbers.py highgain-us2d             # run, collect, write the page
+    python tools/paper_numbers.py highgain-us2d --reuse     # keep results files already there (same seed, config)
+    python tools/paper_numbers.py highgain-us2d --render    # only write the page from the committed values file
+
+A paper is named by its slug or its former name (``seed000``: :mod:`needlecli.papers`).
 
 The numbers are data (``docs/papers/numbers/PAPER.yaml``, :mod:`needlecli.reports.papers`); the results
 files go to ``results/papers/PAPER/`` (not committed); the values file
@@ -24,6 +26,7 @@ import yaml
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from needlecli.papers import PAPERS, paper  # noqa: E402
 from needlecli.reports import papers  # noqa: E402
 
 
@@ -55,11 +58,16 @@ def run_studies(numbers: dict, out_dir: Path, reuse: bool) -> tuple[dict, dict]:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("paper", help="seed000, seed001, seed003 or seed004")
+    ap.add_argument("paper", help=", ".join(p.slug for p in PAPERS) + " (or a former name: "
+                    + ", ".join(p.alias for p in PAPERS) + ")")
     ap.add_argument("--reuse", action="store_true", help="keep results files that exist")
     ap.add_argument("--render", action="store_true", help="only write the page from the committed values file")
     ap.add_argument("--out", default=None, help="folder of the results files (default results/papers/PAPER)")
     a = ap.parse_args(argv)
+    try:
+        a.paper = paper(a.paper).slug
+    except KeyError as e:
+        ap.error(str(e.args[0]))
     num_path, val_path = paths(a.paper)
     numbers = papers.load_numbers(num_path)
     if not a.render:

@@ -128,7 +128,7 @@ def memory_policy() -> None:
       (measured alternately in fresh processes); user time is the same.
     * glibc keeps the memory freed (unless a ``MALLOC_*_`` variable says otherwise): blocks under 32 MB
       from the heap, which is not trimmed, so that the arrays of one EM pass reuse the pages of the last
-      one instead of faulting fresh ones in (fit-em of seed 004: 1.6 million page faults -> 0.7 million,
+      one instead of faulting fresh ones in (fit-em of the magnetic needle EM paper: 1.6 million page faults -> 0.7 million,
       2.9 -> 1.25 s of system time; its peak resident memory 640 -> 720 MB)."""
     from needlecli import platform
 

@@ -1,5 +1,5 @@
 """``needle characterize-sensor CONFIG``: the error of a config's image pipelines on repeated frames of
-chosen poses (seed 003's characterisation), as tables, and the Gaussian ``sigma`` that matches it."""
+chosen poses (the multi-rate UKF paper's characterisation), as tables, and the Gaussian ``sigma`` that matches it."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from needlecli.cli.common import fail, progress_bar, setup_logging, user_errors
 def characterize_sensor(
     config: Path = typer.Argument(..., help="Experiment config with sensors that use pipeline: image."),
     sensor: str = typer.Option(None, "--sensor", help="Only this sensor (default: every image sensor)."),
-    repeats: int = typer.Option(20, "--repeats", "-r", min=2, help="Frames per pose (seed 003: 20)."),
+    repeats: int = typer.Option(20, "--repeats", "-r", min=2, help="Frames per pose (the multi-rate UKF paper: 20)."),
     seed: int = typer.Option(0, "--seed", "-s", min=0, help="Seed of the frames' noise."),
     outlier: float = typer.Option(None, "--outlier", min=0.0, help="Error (mm) counted as an outlier (default: 5 pixels)."),
     mode: str = typer.Option("tracking", "--mode", help="3D ultrasound region: tracking (around a prediction) or search."),

@@ -21,12 +21,12 @@ def compare(
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar or log lines."),
 ) -> None:
     """Simulate (or replay) once and run every registered observer that can run on the experiment's
-    sensors on the same insertions and measurements; print the table in the form of seed 003's
+    sensors on the same insertions and measurements; print the table in the form of the multi-rate UKF paper's
     appendix A and write it (compare.md, compare.csv) with the results file and the plots (each error
     against the inserted depth, compare_error_vs_depth.png). Warns when a filter does worse than the
     model alone from the same start.
 
-    Example: needle compare configs/seed003/table1.yaml --runs 20 --observers ukf,ekf,open_loop
+    Example: needle compare configs/multirate-ukf-us3d/table1.yaml --runs 20 --observers ukf,ekf,open_loop
     """
     import logging
     import textwrap

@@ -25,7 +25,7 @@ def evaluate(
     quiet: bool = typer.Option(False, "--quiet", "-q", help="Print nothing but errors."),
 ) -> None:
     """Compute error statistics per observer and write them as Markdown, CSV and LaTeX tables, and the
-    plots (PNG); a fit file of needle fit-em gives seed 004's tables and figures.
+    plots (PNG); a fit file of needle fit-em gives the magnetic needle EM paper's tables and figures.
 
     Example: needle evaluate results/default.h5 --tables summary,accuracy,consistency
     """
@@ -43,6 +43,7 @@ def evaluate(
             from needlecli.errors import did_you_mean
 
             fail(f"--tables: unknown table {t!r}; known: {', '.join(TABLES.names())}" + did_you_mean(t, TABLES.names()))
+    names = [TABLES.canonical(t) for t in names] if names else None  # a former name: the table's current name
     out_dir = out if out is not None else results.parent / f"{results.stem}_tables"
     from needlecli.errors import ConfigError, shown
     from needlecli.io.atomic import check_output_dir, check_output_file

@@ -1,4 +1,4 @@
-"""``needle fit-em CONFIG...``: EM of seed 004 on every trial of an experiment, for each model to fit."""
+"""``needle fit-em CONFIG...``: EM as in the magnetic needle EM paper on every trial of an experiment, for each model to fit."""
 
 from __future__ import annotations
 

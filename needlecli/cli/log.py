@@ -10,7 +10,7 @@ from needlecli.cli.common import setup_logging, user_errors
 from needlecli.errors import shown
 
 log_app = typer.Typer(help="Log files of recorded insertions: import, convert, inspect.\n\n"
-                           "Example: needle log info datasets/seed003_like.h5", no_args_is_help=True)
+                           "Example: needle log info datasets/multirate-ukf-us3d_like.h5", no_args_is_help=True)
 
 
 @log_app.command("import-csv")
@@ -98,7 +98,7 @@ def info_cmd(
     """Check a log and describe its trials, streams and truth; for imported trials what was read, dropped
     and why, where each trial starts and its frame.
 
-    Example: needle log info datasets/seed003_like.h5 --meta
+    Example: needle log info datasets/multirate-ukf-us3d_like.h5 --meta
     """
     import logging
 

@@ -39,7 +39,7 @@ def sweep(
     cell failed or (--collect) is missing (the others still ran), 2 for a bad config or grid. On a
     cluster's batch scheduler: --cell I in each task of a job array, then --collect (docs: sweeps).
 
-    Example: needle sweep configs/seed003/table1.yaml --grid configs/sweeps/seed003_q_kappa.yaml --workers 2
+    Example: needle sweep configs/multirate-ukf-us3d/table1.yaml --grid configs/sweeps/multirate-ukf-us3d_q_kappa.yaml --workers 2
     """
     from needlecli.experiments.studies.sweep import (
         collect_sweep,

@@ -17,7 +17,7 @@ def validate(
     A valid config's warnings follow on stderr: a state its sensors cannot observe along the nominal
     insertion (z with a 2D probe: every estimate of it keeps the start's error).
 
-    Example: needle validate configs/default.yaml configs/seed003/*.yaml
+    Example: needle validate configs/default.yaml configs/multirate-ukf-us3d/*.yaml
     """
     import logging
 

@@ -1,4 +1,4 @@
-"""Seed 004's planar control (sec. 2.3.6, eq. 7): the out-of-plane field from the camera's opacity.
+"""The magnetic needle EM paper's planar control (sec. 2.3.6, eq. 7): the out-of-plane field from the camera's opacity.
 
 ``B_z = clip(gain (opacity - opacity_0), -limit, limit)`` mT, ``opacity`` the grey level at the tip in
 the overhead camera's frame (:mod:`needlecli.sensors.imaging.camera`), ``opacity_0`` the opacity at the
@@ -14,7 +14,7 @@ in-plane direction of ``B``, ``F`` the in-plane field strength (``field``, mT). 
 grid time is the one after the change. ``B_z`` then holds until the next command (``omega_B`` about z
 rotates ``B`` without changing its z component; other components of ``omega_B`` would move it between
 commands). A frame without a detection (NaN opacity) keeps the previous command; before the first
-detection the command is 0 (set at ``t = 0``: the seed's open-loop experiments had ``B_z = 0``).
+detection the command is 0 (set at ``t = 0``: the paper's open-loop experiments had ``B_z = 0``).
 """
 
 from __future__ import annotations
@@ -33,12 +33,12 @@ _FIELD = ("Bx", "By", "Bz")
 
 
 class OpacityBzSettings(ControllerSettings):
-    """Seed 004 eq. (7) on a camera sensor; field strengths in mT."""
+    """The magnetic needle EM paper's eq. (7) on a camera sensor; field strengths in mT."""
 
     type: Literal["opacity_bz"]
-    gain: NonNeg = Field(2.0, description="mT of B_z per grey level of opacity (seed 004: 2.0)")
+    gain: NonNeg = Field(2.0, description="mT of B_z per grey level of opacity (the magnetic needle EM paper: 2.0)")
     limit: Positive = Field(28.0, description="saturation of B_z, mT (the coils' 28 mT)")
-    field: Positive = Field(description="in-plane field strength, mT (seed 004: 10, 19 or 28)")
+    field: Positive = Field(description="in-plane field strength, mT (the magnetic needle EM paper: 10, 19 or 28)")
 
 
 @CONTROLLERS.register("opacity_bz")

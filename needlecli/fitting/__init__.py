@@ -1,4 +1,4 @@
-"""Parameter identification: the EKF, extended Kalman smoother, iterated EKS and EM of seed 004.
+"""Parameter identification: the EKF, extended Kalman smoother, iterated EKS and EM as in the magnetic needle EM paper.
 
 ``statespace``  a model as a discrete system on ticks, unknown constants as states; measurement channels
 ``smoother``    EKF, EKS and the iterated EKS (E-step)

@@ -1,11 +1,11 @@
-r"""Expectation-maximisation of the process and measurement noise and the augmented constants (seed 004,
+r"""Expectation-maximisation of the process and measurement noise and the augmented constants (the magnetic needle EM paper,
 sec. 2.2, Algorithm 1), batched over trials.
 
 E-step: the iterated EKS (:func:`~needlecli.fitting.smoother.ieks`) with ``x0 <- x_0|N`` until the
 initial state and the trajectory settle. M-step: closed-form maximisation of the expected complete-data
 log-likelihood of the linearised model, for ``Q`` and for each ``R_j`` separately
 (:func:`~needlecli.numerics.kalman.em_process_noise`, :func:`~needlecli.numerics.kalman.em_measurement_noise`),
-with an eigenvalue floor on the ``R_j`` that have one (seed 004: 2.5e-9 m^2 on the camera position). The
+with an eigenvalue floor on the ``R_j`` that have one (the magnetic needle EM paper: 2.5e-9 m^2 on the camera position). The
 unknown constants (``c``, ``l_inv``) are augmented states: their estimate is the smoothed initial state.
 
 Stopping: when neither Q (its fitted block) nor any R_j changed by more than ``tol`` in relative terms
@@ -144,7 +144,7 @@ def fit_em(
     options: EMOptions = EMOptions(),
     progress: Callable[[int, int], None] | None = None,
 ) -> EMResult:
-    """EM over every trial at once (seed 004 Algorithm 1).
+    """EM over every trial at once (the magnetic needle EM paper's Algorithm 1).
 
     Parameters
     ----------

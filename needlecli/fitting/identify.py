@@ -22,8 +22,8 @@ error of each parameter is ``sqrt(diag((-H)^{-1}))`` (correlations included), of
 (delta method). Pooled over trials, the information is summed: the standard error of a quantity the
 trials share.
 
-Verdicts, per quantity and trial, and per design group (the trials of one level of the design: seed
-004's field strength, a real export's speed; pooled figures sum the information of a group's trials only,
+Verdicts, per quantity and trial, and per design group (the trials of one level of the design:
+the magnetic needle EM paper's field strength, a real export's speed; pooled figures sum the information of a group's trials only,
 never across levels whose quantities differ):
 
 ``identified``          the relative standard error is at most ``rse_max`` and, for a noise level,

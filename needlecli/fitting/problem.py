@@ -256,7 +256,7 @@ def check_channels(setup: KalmanSetup, model_cls: type[Model], sensors: dict) ->
 def fit_augment(model_cls: type[Model], constants: Sequence[str] | None = None) -> tuple[str, ...]:
     """The constants EM estimates as augmented states: ``constants`` (the fit's ``constants:``, e.g.
     ``[kappa, speed_scale]``: those that are parameters of this model), by default the model's curvature
-    parameter (seed 004: ``c`` of the MNM, ``l_inv`` of the BiNM); never one the model carries as a state."""
+    parameter (the magnetic needle EM paper: ``c`` of the MNM, ``l_inv`` of the BiNM); never one the model carries as a state."""
     if constants is None:
         c = model_cls.curvature_param
         return (c,) if c is not None and c not in model_cls.state_names else ()

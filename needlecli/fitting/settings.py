@@ -83,15 +83,15 @@ class KalmanSetup(Strict):
 
 
 class EMSettings(Strict):
-    """Expectation-maximisation (seed 004, Algorithm 1)."""
+    """Expectation-maximisation (the magnetic needle EM paper, Algorithm 1)."""
 
-    max_iter: int = Field(100, ge=1, le=10_000, description="EM iterations at most (seed 004: 100)")
+    max_iter: int = Field(100, ge=1, le=10_000, description="EM iterations at most (the magnetic needle EM paper: 100)")
     tol: Positive = Field(1e-3, description="stop when no variance of Q or any R_j changed by more than this "
                           "relative amount (largest |log| eigenvalue of old^-1 new)")
     estep_max: int = Field(10, ge=1, le=1000, description="IEKS passes per E-step at most")
     estep_tol: Positive = Field(0.05, description="the IEKS has settled when x0 and the trajectory move less "
                                 "than this many standard deviations")
-    update_x0: bool = Field(True, description="x0 <- x_0|N in the E-step (seed 004)")
+    update_x0: bool = Field(True, description="x0 <- x_0|N in the E-step (the magnetic needle EM paper)")
     relin_tol: NonNeg = Field(0.5, description="re-linearise when the trajectory moved more than this many "
                               "standard deviations from the last linearisation point (0: every iteration); "
                               "the last E-step is always exact")

@@ -1,10 +1,10 @@
-r"""EKF, extended Kalman (RTS) smoother and the iterated EKS of seed 004 (sec. 2.2, Algorithm 1).
+r"""EKF, extended Kalman (RTS) smoother and the iterated EKS of the magnetic needle EM paper (sec. 2.2, Algorithm 1).
 
 * :func:`ekf` linearises at its own estimate as it goes (the transition's exact RK4 Jacobian, the
   measurement Jacobian by central differences at the predicted state).
 * :func:`eks` is the EKF followed by the RTS smoother on the EKF's linearisation.
 * :func:`ieks` re-linearises the dynamics and every measurement model around the previous smoothed
-  trajectory (Bell 1994: a Gauss-Newton step on the MAP trajectory) and, as in seed 004's Algorithm 1,
+  trajectory (Bell 1994: a Gauss-Newton step on the MAP trajectory) and, as in the magnetic needle EM paper's Algorithm 1,
   moves the prior mean to the smoothed initial state, ``x0 <- x_0|N``, until both settle.
 
 All work on every run at once; the re-linearisation is computed for all ticks in one batched call.
@@ -204,7 +204,7 @@ def ieks(
     update_x0: bool = True,
     joseph: bool = True,
 ) -> IEKSResult:
-    r"""Iterated extended Kalman smoother (seed 004, Algorithm 1, lines 3-7).
+    r"""Iterated extended Kalman smoother (the magnetic needle EM paper, Algorithm 1, lines 3-7).
 
     Each pass linearises around the previous smoothed trajectory ``zbar`` (the EKS for the first pass if
     ``zbar`` is None), filters and smooths; with ``update_x0`` the prior mean becomes the smoothed initial

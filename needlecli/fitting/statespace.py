@@ -3,7 +3,7 @@
 :class:`DiscreteModel` turns a continuous :class:`~needlecli.models.Model` into the transition between
 consecutive *ticks* (a subset of the experiment's time grid: every grid step, the measurement times, or a
 rate), integrated with RK4 and differentiated exactly (:func:`~needlecli.numerics.kalman.rk4_with_jacobian`
-on the model's Jacobian). Model parameters named in ``augment`` (seed 004: ``c`` of the MNM, ``l_inv`` of
+on the model's Jacobian). Model parameters named in ``augment`` (the magnetic needle EM paper: ``c`` of the MNM, ``l_inv`` of
 the BiNM) become extra states with no dynamics, ``z = (x, theta)``, so that the smoother estimates them.
 
 :class:`MeasurementModel` is one measurement channel on the same ticks: its ``h`` for the model's state,

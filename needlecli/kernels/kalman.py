@@ -1228,7 +1228,7 @@ def kalman_filter_smoother(m0, P0, Qc, dt, A, b, channels, H, d, *, state_angles
     """:func:`kalman_forward_affine` then :func:`rts_smoother` in one compiled pass over each block of trials:
     the fields of the ``ForwardResult`` and of the ``SmoothResult``, without the filter's covariances and
     the smoother's gains (those three arrays empty, ``(N, 0, n, n)``: what EM does not read is not written,
-    2 x 19 MB a pass for seed 004's 48 trials). ``q_sums``: also the M-step's sums, ``(Q, R, count)`` (else
+    2 x 19 MB a pass for the magnetic needle EM paper's 48 trials). ``q_sums``: also the M-step's sums, ``(Q, R, count)`` (else
     None): those of :func:`em_process_noise` (all states kept, ``(N, n, n)``) and of
     :func:`em_measurement_noise` for every channel (``(N, J, mm, mm)``, ``(N, J)``), and not the
     cross-covariances (empty), which only those sums read. Then the smoothed standard deviations ``(N, K+1, n)`` and whether each trial's covariances are all

@@ -64,7 +64,7 @@ def sincos_rows(X, r0, r1, SC, nl):
 
 @inline
 def _fu(sa, ca, sb, cb, sg, cg, kap, v, w):
-    """The unicycle's vector field from the sines and cosines of its angles (seed 000, eq. 1); the
+    """The unicycle's vector field from the sines and cosines of its angles (the high-gain observer paper, eq. 1); the
     position rates first, then alpha, beta, gamma."""
     kv = kap * v
     kvc = kv * cg / cb
@@ -74,7 +74,7 @@ def _fu(sa, ca, sb, cb, sg, cg, kap, v, w):
 
 @inline
 def _fmu(sa, ca, sb, cb, sg, cg, kap, bc, v, w):
-    """The modified unicycle's (seed 003, eq. 1; ``kappa' = 0``)."""
+    """The modified unicycle's (the multi-rate UKF paper, eq. 1; ``kappa' = 0``)."""
     kv = kap * v
     inv_cb = 1.0 / cb
     kvc = kv * cg
@@ -124,7 +124,7 @@ def f_so3(X, U, Pm, out, nl):
 
 @inline
 def magnetic_field(h0, h1, h2, b0, b1, b2, p, v, w0, w1, w2, bicycle):
-    """MNM / BiNM vector field (seed 004, eqs. 1, 4) at one state: ``p = h v``,
+    """MNM / BiNM vector field (the magnetic needle EM paper, eqs. 1, 4) at one state: ``p = h v``,
     ``h' = g (h x B) x h + h (1 - |h|^2)`` with ``g = c v`` or ``l_inv v / (B . h)``,
     ``B' = w x B + B (1 - |B|^2)``."""
     a0 = h1 * b2 - h2 * b1

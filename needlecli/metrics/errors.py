@@ -203,7 +203,7 @@ def compute_errors(res: Group, *, kernels: str | None = None) -> dict[str, Error
                 es.quantities["E_lat"] = QuantityError("E_lat", "mm", scale * across, keep)
                 es.quantities["E_ax"] = QuantityError("E_ax", "mm", scale * np.abs(along), keep)
             used.update(pos_t)
-        for a in pos_t or ():  # per axis, also where the estimate has some of the axes only (seed 000's x)
+        for a in pos_t or ():  # per axis, also where the estimate has some of the axes only (the high-gain observer paper's x)
             if a in e_names:
                 es.quantities[f"E_{a[-1]}"] = QuantityError(
                     f"E_{a[-1]}", "mm", scale * np.abs(col(e_names, xs, a) - col(t_names, ts, a)), keep)

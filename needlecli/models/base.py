@@ -70,7 +70,7 @@ class Model:
         A roll angle such that ``(-curvature, roll + pi)`` gives the same path as ``(curvature, roll)``
         (the unicycle's ``gamma``): fits report a negative fitted curvature as that (None: no symmetry).
     length_unit : str
-        Unit of positions (``mm``; ``m`` for the magnetic models of seed 004).
+        Unit of positions (``mm``; ``m`` for the magnetic models of the magnetic needle EM paper).
     Params : pydantic schema of ``model.params`` in a config.
     """
 
@@ -273,7 +273,7 @@ def _expand(p: Params) -> dict[str, np.ndarray]:
 def state_blocks(names, skip=()) -> dict[str, list[int]]:
     """State indices grouped by their stem (``px, py, pz -> p``; ``hx, hy, hz -> h``; a name of one
     letter is its own block), the names in ``skip`` (e.g. augmented constants) left out: the blocks whose
-    process noise seed 004's tables report (``tr(Q_p)``, ...)."""
+    process noise the magnetic needle EM paper's tables report (``tr(Q_p)``, ...)."""
     out: dict[str, list[int]] = {}
     for i, s in enumerate(names):
         if s in skip:

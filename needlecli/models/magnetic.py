@@ -1,4 +1,4 @@
-"""Magnetic needle models of seed 004, in metres: MNM (eq. 1) and the bicycle model BiNM (eq. 4)."""
+"""Magnetic needle models of the magnetic needle EM paper, in metres: MNM (eq. 1) and the bicycle model BiNM (eq. 4)."""
 
 from __future__ import annotations
 
@@ -116,7 +116,7 @@ class _MagneticBase(Model):
 
 @MODELS.register("mnm")
 class MagneticNeedleModel(_MagneticBase):
-    r"""Magnetic needle model (seed 004, eq. 1), metres.
+    r"""Magnetic needle model (the magnetic needle EM paper, eq. 1), metres.
 
     .. math::
         p' = h v,\quad h' = c v (h \times B) \times h + h (1 - |h|^2),\quad
@@ -144,7 +144,7 @@ class BiNMParams(ModelParams):
 
 @MODELS.register("binm")
 class BicycleNeedleModel(_MagneticBase):
-    r"""Bicycle needle model (seed 004, eq. 4), metres.
+    r"""Bicycle needle model (the magnetic needle EM paper, eq. 4), metres.
 
     .. math:: h' = l^{-1} v \frac{(h \times B) \times h}{B \cdot h} + h (1 - |h|^2)
 

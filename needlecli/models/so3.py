@@ -1,4 +1,4 @@
-"""Rotation-only needle kinematics on SO(3) (seed 001)."""
+"""Rotation-only needle kinematics on SO(3) (the SO(3) observer paper)."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ class RotationSO3(Model):
     r"""Orientation of the needle tip on SO(3): :math:`R' = R\,\hat w`, :math:`w = (\kappa v, 0, u)`.
 
     State: the 9 entries of ``R`` row by row (``R11, R12, ..., R33``); ``R e3`` is the tangent. Inputs
-    ``v`` (mm/s) and ``u`` (rad/s) as for the unicycle, so both are driven by the same schedule; seed 001
+    ``v`` (mm/s) and ``u`` (rad/s) as for the unicycle, so both are driven by the same schedule; the SO(3) observer paper
     writes the same physics with the tangent on its x axis. Each RK4 step is followed by one Newton
     step toward the polar factor, which keeps ``R`` orthonormal to rounding.
     """

@@ -1,4 +1,4 @@
-"""Bevel-tip needle models in generalized coordinates (seeds 000 and 003), in mm, rad, s.
+"""Bevel-tip needle models in generalized coordinates (the high-gain observer and multi-rate UKF papers), in mm, rad, s.
 
 Frame (``MODELS.md``): ``R = Rx(alpha) Ry(beta) Rz(gamma)``, tangent ``R e3``, body twist linear
 ``(0, 0, v)`` and angular ``(kappa v, 0, u)``.
@@ -29,7 +29,7 @@ def _advance(v, p: Params):
 
 @MODELS.register("unicycle")
 class Unicycle(Model):
-    r"""3D unicycle in generalized coordinates (seed 000, eq. 1).
+    r"""3D unicycle in generalized coordinates (the high-gain observer paper, eq. 1).
 
     .. math::
         x' = v \sin b,\; y' = -v \cos b \sin a,\; z' = v \cos a \cos b,\\
@@ -110,7 +110,7 @@ class ModifiedUnicycleParams(ModelParams):
 
 @MODELS.register("modified_unicycle")
 class ModifiedUnicycle(Unicycle):
-    r"""Modified unicycle with cutting angle and curvature as a state (seed 003, eq. 1).
+    r"""Modified unicycle with cutting angle and curvature as a state (the multi-rate UKF paper, eq. 1).
 
     Rotating the shaft adds a body-y angular velocity ``(beta_cut / 2) g_r`` with
     ``g_r = u2 - kappa cos g tan b u1`` the roll rate of the plain unicycle (``MODELS.md``):

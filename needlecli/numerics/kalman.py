@@ -9,8 +9,8 @@ The state-space model is discrete on a grid of *ticks* ``0..K``:
     x_{k+1} = f_k(x_k) + w_k,\quad w_k \sim N(0, Q_c\,\Delta t_k),\qquad
     y_{j,i} = h_j(x_{k(j,i)}) + v_{j,i},\quad v_j \sim N(0, R_j)
 
-with several measurement channels ``j``, each with its own samples ``i`` at its own ticks ``k(j, i)`` (seed
-004 eq. 6). :func:`kalman_forward` is the filter for any linearisation: the caller's ``transition`` and
+with several measurement channels ``j``, each with its own samples ``i`` at its own ticks ``k(j, i)``
+(the magnetic needle EM paper's eq. 6). :func:`kalman_forward` is the filter for any linearisation: the caller's ``transition`` and
 ``measure`` return the predicted mean and the Jacobian, at the filter's own estimate (the EKF) or from an
 affine model fixed in advance (one pass of the iterated smoother). :func:`rts_smoother` is the
 Rauch-Tung-Striebel smoother with the lag-one cross-covariances that EM needs; :func:`em_process_noise`

@@ -48,7 +48,7 @@ if TYPE_CHECKING:
 STATUS_OK = "ok"
 STATUS_DIVERGED = "diverged"
 STATUS_SINGULAR = "singular"
-STATUS_UNOBSERVABLE = "unobservable"  # the inputs cannot make the estimate converge (seed 001)
+STATUS_UNOBSERVABLE = "unobservable"  # the inputs cannot make the estimate converge (the SO(3) observer paper)
 
 
 class ObserverSettings(Strict):
@@ -196,7 +196,7 @@ class Observer:
 
     @classmethod
     def prescribed_start(cls, settings: ObserverSettings) -> str | None:
-        """A start that ``settings`` prescribe on top of a common start (seed 000's x_hat0 = beta_hat0 = 0),
+        """A start that ``settings`` prescribe on top of a common start (the high-gain observer paper's x_hat0 = beta_hat0 = 0),
         as the note for a comparison's table (``"x, beta = 0"``); None: the common start as it is."""
         return None
 

@@ -28,7 +28,7 @@ if TYPE_CHECKING:
 
 #: observers that predict the final tip position do so from this fraction of the insertion length too
 PREDICTION_FRACTION = 0.25
-#: std of the initial error of an angle no sensor measures directly: 5 deg, seed 003's
+#: std of the initial error of an angle no sensor measures directly: 5 deg, the multi-rate UKF paper's
 INIT_ANGLE_STD = 0.0873
 
 

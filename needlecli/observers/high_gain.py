@@ -1,4 +1,4 @@
-r"""Nonlinear high-gain observer of seed 000 (sec. III) for pitch and roll from the lateral deflection x.
+r"""Nonlinear high-gain observer of the high-gain observer paper (sec. III) for pitch and roll from the lateral deflection x.
 
 On the transformed state :math:`s = (x, \sin\beta, -\cos\beta\sin\gamma)` the unicycle reads
 
@@ -19,12 +19,12 @@ whose error :math:`\varepsilon = \Lambda_\theta^{-1}(\hat s - s)` obeys
 are not observable from it.
 
 Numerics. A large theta makes the correction stiff (eigenvalues ``theta * (-100, ~-0.01, ~-0.01)`` for
-seed 000's v and kappa), so the linear part is integrated exactly: an integrating-factor (Lawson) RK4 step
+the high-gain observer paper's v and kappa), so the linear part is integrated exactly: an integrating-factor (Lawson) RK4 step
 whose linear flow is the matrix exponential over the grid step (computed in theta-scaled coordinates,
 cached per insertion speed), with only the bounded square-root term left to RK4. The square root's
 argument is clamped at 0. ``zeta`` starts as the sign of ``cos`` of the initial roll estimate and flips
 when ``sqrt(1 - s2^2 - s3^2)`` falls below ``zeta_eps`` (re-armed once it is back above ``2 zeta_eps``),
-i.e. when the estimate passes ``gamma = pi/2 + n pi``, which seed 000 assumes are transient via points.
+i.e. when the estimate passes ``gamma = pi/2 + n pi``, which the high-gain observer paper assumes are transient via points.
 
 Sampled measurements. The output y arrives at the sensor's rate (e.g. 25 Hz) while the observer runs
 on the simulation grid. ``hold: predictor`` (default) replaces y between samples by the output predicted
@@ -32,8 +32,8 @@ from the last sample, :math:`w' = C(A\hat s + \phi) = v \hat s_2`, :math:`w(t_j)
 Kravaris' inter-sample predictor; a latency is bridged the same way), so the innovation ``x_hat - w`` is
 continuous and nothing is learnt from the staircase. ``hold: zoh`` holds the last sample (the literal
 reading); it biases the derivative estimates between samples and is kept for comparison. Either way
-the sampled-data design needs ``theta * T_s`` small: the ``theta = 67e4`` of seed 000's simulation (as
-legible) assumes a continuous measurement; at 25-100 Hz, theta of order 10-1000 is usable (docs/papers/seed000.md).
+the sampled-data design needs ``theta * T_s`` small: the ``theta = 67e4`` of the high-gain observer paper's simulation (as
+legible) assumes a continuous measurement; at 25-100 Hz, theta of order 10-1000 is usable (docs/papers/highgain-us2d.md).
 """
 
 from __future__ import annotations
@@ -67,7 +67,7 @@ def to_transformed(x: np.ndarray, beta: np.ndarray, gamma: np.ndarray) -> np.nda
 
 
 def from_transformed(s: np.ndarray, zeta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(x, beta, gamma)`` of ``s (..., 3)`` with ``zeta = sign(cos gamma)`` (seed 000 eq. 4):
+    """``(x, beta, gamma)`` of ``s (..., 3)`` with ``zeta = sign(cos gamma)`` (the high-gain observer paper's eq. 4):
     ``beta = asin(s2)``, ``gamma = atan2(-s3 / cos b, zeta sqrt(1 - s2^2 - s3^2) / cos b)``."""
     s2 = np.clip(s[..., 1], -1.0, 1.0)
     root = np.sqrt(np.maximum(1.0 - s2**2 - s[..., 2] ** 2, 0.0))
@@ -197,14 +197,14 @@ def largest_stable_theta(v: float, kappa: float, gain, period: float) -> float:
 
 # ---------------------------------------------------------------------------------------------- settings
 class HighGainInit(Strict):
-    """Initial estimate of ``(x, beta, gamma)``: the truth's initial values (``from: truth``; seed 000
-    starts the roll from the known 3 deg) or zeros (``from: nominal``), then fixed ``values`` (seed 000:
+    """Initial estimate of ``(x, beta, gamma)``: the truth's initial values (``from: truth``; the high-gain observer paper
+    starts the roll from the known 3 deg) or zeros (``from: nominal``), then fixed ``values`` (the high-gain observer paper:
     ``{x: 0, beta: 0}``), then Gaussian noise of ``std``. zeta starts as ``sign(cos gamma_hat0)``."""
 
     from_: Literal["truth", "nominal"] = Field("truth", alias="from", description="start from the truth's initial "
                                               "x, beta, gamma (truth) or from zeros (nominal)")
     values: dict[Literal["x", "beta", "gamma"], float] = Field(default_factory=dict, description="fixed starting "
-                                                                 "values, x in mm, beta and gamma in rad (seed 000: "
+                                                                 "values, x in mm, beta and gamma in rad (the high-gain observer paper: "
                                                                  "{x: 0, beta: 0})")
     std: dict[Literal["x", "beta", "gamma"], NonNeg] = Field(default_factory=dict, description="std of Gaussian noise "
                                                              "added to the start per run, x in mm, beta and gamma in rad")
@@ -215,7 +215,7 @@ class HighGainSettings(ObserverSettings):
     measurement: str | None = Field(
         None, description="position channel whose 'x' component is the output (default: the only one)"
     )
-    theta: Positive = Field(100.0, description="high-gain parameter (> 1 in seed 000)")
+    theta: Positive = Field(100.0, description="high-gain parameter (> 1 in the high-gain observer paper)")
     gain: tuple[float, float, float] = Field((-100.0, -1.05, 1.37), description="L, with A + L C Hurwitz")
     kappa: NonNeg | None = Field(None, description="the observer's curvature, 1/mm (default: the model's)")
     hold: Literal["predictor", "zoh"] = Field("predictor", description="the output between samples")
@@ -235,19 +235,19 @@ class HighGainSettings(ObserverSettings):
 # ---------------------------------------------------------------------------------------------- observer
 @OBSERVERS.register("high_gain")
 class HighGainObserver(Observer):
-    """Seed 000's observer, batched over runs (module docstring for the equations and numerics)."""
+    """The high-gain observer paper's observer, batched over runs (module docstring for the equations and numerics)."""
 
     Settings = HighGainSettings
-    takes_common_start = True  # with a common start, seed 000's prescribed init.values apply on top of it
+    takes_common_start = True  # with a common start, the high-gain observer paper's prescribed init.values apply on top of it
 
     @classmethod
     def derived_settings(cls, ctx):
-        """Seed 000's start, x_hat0 = beta_hat0 = 0 (the roll from the common start)."""
+        """The high-gain observer paper's start, x_hat0 = beta_hat0 = 0 (the roll from the common start)."""
         return {"init": {"from": "nominal", "values": {"x": 0.0, "beta": 0.0}}}
 
     @classmethod
     def prescribed_start(cls, settings):
-        """``init.values`` (seed 000: x_hat0 = beta_hat0 = 0) apply on top of a common start."""
+        """``init.values`` (the high-gain observer paper: x_hat0 = beta_hat0 = 0) apply on top of a common start."""
         vals = settings.init.values
         if not vals:
             return None
@@ -313,7 +313,7 @@ class HighGainObserver(Observer):
 
         # --- initial estimate
         x0 = np.zeros((N, 3))
-        if problem.start is not None:  # a comparison's common start; seed 000's prescribed values on top
+        if problem.start is not None:  # a comparison's common start; the high-gain observer paper's prescribed values on top
             xs = start_state(problem, model, problem.params)
             for i, k in enumerate(ESTIMATED):
                 if k in model.state_names:

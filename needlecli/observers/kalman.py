@@ -1,5 +1,5 @@
 r"""Extended Kalman filter (``ekf``) and extended Kalman smoother (``eks``, iterated on request), batched
-over runs, with several measurement channels at their own rates (seed 004, eq. 6).
+over runs, with several measurement channels at their own rates (the magnetic needle EM paper, eq. 6).
 
 The filter has a state at every *tick* (``ticks``: every grid step, the measurement times, or a rate
 plus the measurement times); between ticks the model's RK4 steps carry the mean (and the exact Jacobian
@@ -10,7 +10,7 @@ become constant states, estimated with the rest (e.g. ``c`` of the MNM).
 
 The ``eks`` runs the EKF and the Rauch-Tung-Striebel smoother on its linearisation; ``iterations > 1``
 re-linearises around the smoothed trajectory (the iterated EKS), with ``update_x0`` also moving the prior
-mean to the smoothed initial state (seed 004, Algorithm 1). Estimates are reported on the results
+mean to the smoothed initial state (the magnetic needle EM paper, Algorithm 1). Estimates are reported on the results
 file's time grid: at ticks as estimated, between ticks carried by the model from the previous tick.
 """
 
@@ -53,7 +53,7 @@ class EKFSettings(ObserverSettings, KalmanSetup):
 class EKSSettings(EKFSettings):
     type: Literal["eks"]  # type: ignore[assignment]
     iterations: int = Field(1, ge=1, le=1000, description="smoother passes: 1 the EKS, more the iterated EKS")
-    update_x0: bool = Field(False, description="x0 <- x_0|N between passes (seed 004)")
+    update_x0: bool = Field(False, description="x0 <- x_0|N between passes (the magnetic needle EM paper)")
     tol: Positive = Field(1e-3, description="the iterated EKS stops when nothing moves by more than this many std")
 
 

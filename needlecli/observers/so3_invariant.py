@@ -1,14 +1,14 @@
-r"""Invariant observer on SO(3) of seed 001 (sec. IV): the full tip orientation from the measured tangent.
+r"""Invariant observer on SO(3) of the SO(3) observer paper (sec. IV): the full tip orientation from the measured tangent.
 
 .. math::
     \hat R' = \hat R\,(\hat w + g),\quad g = k\,\hat R^T \widehat{(y \times \hat y)}\,\hat R,\quad
     \hat y = \hat R e_3,
 
 with the known body angular velocity :math:`w = (\kappa v, 0, u)` (inputs ``v``, ``u`` and the observer's
-curvature) and ``y`` the measured tangent :math:`R e_3` (our frame; seed 001 puts it on its x axis). On
+curvature) and ``y`` the measured tangent :math:`R e_3` (our frame; the SO(3) observer paper puts it on its x axis). On
 SO(3) :math:`\hat R g = k \widehat{(y \times \hat y)} \hat R`, so the correction turns :math:`\hat y` by
-:math:`k (y \times \hat y) \times \hat y`: toward ``y`` only for **k < 0** (the seed's proof, eq. 23).
-The config gives the magnitude (``gain: 0.65``, seed 001's number, 1/s, independent of the length
+:math:`k (y \times \hat y) \times \hat y`: toward ``y`` only for **k < 0** (the paper's proof, eq. 23).
+The config gives the magnitude (``gain: 0.65``, the SO(3) observer paper's number, 1/s, independent of the length
 unit); the observer uses ``k = -gain``. Several tangent channels add their cross products (``weight``
 each).
 
@@ -17,7 +17,7 @@ step toward the polar factor, ``R <- 1.5 R - 0.5 R R^T R``, which squares the RK
 SO(3) (about 1e-13), so ``|R^T R - I|`` stays at rounding level. Measurements are held from the step at
 which they become available until the next one (zero-order hold; a latency is not compensated).
 
-Observability (seed 001, Lemma III.1): the rotation about the measured axis is recovered only through
+Observability (the SO(3) observer paper, Lemma III.1): the rotation about the measured axis is recovered only through
 angular velocity perpendicular to it, ``|w x e3| = kappa |v|`` here. A run whose accumulated
 perpendicular rotation ``int |w x e3| dt`` stays below ``min_excitation`` (rad) cannot converge: its
 status is ``unobservable`` (not ``ok``), with the reason, and ``needle evaluate`` leaves it out.
@@ -68,7 +68,7 @@ def invariant_field(r: np.ndarray, w: np.ndarray, y: np.ndarray, b: np.ndarray, 
     """``R_hat' = R hat(w) + k sum_c hat(y_c x R b_c) R``, layout components first: ``R_hat (3, 3, N)``,
     body angular velocity ``w (3, N)``, measured unit vectors ``y (c, 3, N)`` and the body vectors
     ``b (c, 3, N)`` they are images of (``y = R b``; zeros for channels without a sample). On SO(3)
-    ``hat(y x y_hat) R = R (R^T hat(y x y_hat) R)``: seed 001's ``R_hat g``."""
+    ``hat(y x y_hat) R = R (R^T hat(y x y_hat) R)``: the SO(3) observer paper's ``R_hat g``."""
     y_hat = np.einsum("ijn,cjn->cin", r, b)
     c = _cross(y, y_hat).sum(0)
     out = np.empty_like(r)
@@ -121,14 +121,14 @@ class SO3Init(Strict):
     """Initial estimate: the true initial rotation (``from: truth``) or the model's default pose
     (``from: nominal``), times an error rotation of ``error_deg`` (a number, or ``[lo, hi]`` drawn
     uniformly per run) about the measured body axis (``axis: measured``: the estimated and the measured
-    tangent then agree, as in seed 001's Fig. 3) or about a uniformly random body axis per run."""
+    tangent then agree, as in the SO(3) observer paper's Fig. 3) or about a uniformly random body axis per run."""
 
     from_: Literal["truth", "nominal"] = Field("truth", alias="from", description="start from the true initial "
                                               "rotation (truth) or the model's default pose (nominal)")
     error_deg: NonNeg | tuple[NonNeg, NonNeg] = Field(0.0, description="angle of the initial error rotation, deg (at "
                                                       "most 180): a number, or [lo, hi] drawn uniformly per run")
     axis: Literal["measured", "random"] = Field("measured", description="axis of the error rotation: the measured body "
-                                                "axis (the tangent, as seed 001's Fig. 3) or a random axis per run")
+                                                "axis (the tangent, as the SO(3) observer paper's Fig. 3) or a random axis per run")
 
     @field_validator("error_deg")
     @classmethod
@@ -164,7 +164,7 @@ class SO3InvariantSettings(ObserverSettings):
 # ---------------------------------------------------------------------------------------------- observer
 @OBSERVERS.register("so3_invariant")
 class SO3InvariantObserver(Observer):
-    """Seed 001's invariant observer, batched over runs (module docstring for the equations)."""
+    """The invariant observer on SO(3) (`so3-invariant`), batched over runs (module docstring for the equations)."""
 
     Settings = SO3InvariantSettings
     takes_common_start = True  # with a common start, init.error_deg does not apply
@@ -240,7 +240,7 @@ class SO3InvariantObserver(Observer):
 
         # --- initial estimate
         try:
-            if problem.start is not None:  # a comparison's common start, without seed 001's error rotation
+            if problem.start is not None:  # a comparison's common start, without the SO(3) observer paper's error rotation
                 r0 = np.asarray(model.tip_rotation(start_state(problem, model, problem.params)), dtype=float)
             elif s.init.from_ == "truth" and problem.initial_truth is not None:
                 r0 = np.asarray(model.tip_rotation(problem.initial_truth), dtype=float)

@@ -1,4 +1,4 @@
-"""Multi-rate unscented Kalman filter of seed 003 (sec. 2.3, appendix B), batched over runs.
+"""Multi-rate unscented Kalman filter of the multi-rate UKF paper (sec. 2.3, appendix B), batched over runs.
 
 Every Monte-Carlo run advances at once; sigma points are one more array axis. At each filter tick the
 sigma points are propagated with the model (RK4 on the grid steps since the last tick, inputs held per
@@ -6,7 +6,7 @@ step), then updated with every measurement that became available in ``(t_{k-1}, 
 in what arrived: missing entries are masked out of the gain, which is the same as removing their rows
 and columns (the matrices "sized to what arrived" of appendix B).
 
-Seed 003's additions: measurement-noise reset by distance to the transducer
+The multi-rate UKF paper's additions: measurement-noise reset by distance to the transducer
 (``sigma = (1 + a d / d_max) sigma_c``, ``d`` from the measured tip), reset of ``P_kappa_kappa`` when the
 tip crosses a tissue interface, the curvature constraint ``0 <= kappa <= kappa_max`` (else keep the
 previous estimate), and final-position prediction from chosen observation depths. Optional chi-square
@@ -21,10 +21,10 @@ used and those whose prediction broke the bound are counted (``used/<name>``, ``
 
 Exact shortcuts (each tested against the plain computation): a channel whose ``h`` is a state selection
 (:class:`~needlecli.models.StateSelection`) is updated in closed form, which is what the unscented
-transform of a linear ``h`` gives (one scalar state, seed 003's 100 Hz roll, without a solve); the
+transform of a linear ``h`` gives (one scalar state, the multi-rate UKF paper's 100 Hz roll, without a solve); the
 square root of ``P`` is taken with the states the model's vector field depends on first, so that the
 sigma points that move only the positions (``model.translation_states``) are displaced as the central
-point instead of being propagated (9 of 15 points go through the model for seed 003); and the translation
+point instead of being propagated (9 of 15 points go through the model for the multi-rate UKF paper); and the translation
 states of the sigma points are propagated relative to the central point's (increments of micrometres, not
 positions of 80 mm), so that the rounding the alpha = 1e-3 weights (7e4) amplify into the mean stays at
 1e-10 mm per tick instead of 1e-9 to 1e-8 (the model does not depend on them: the same points).
@@ -106,7 +106,7 @@ class KappaReset(Strict):
     """Reset of ``P_kappa_kappa`` to ``factor * P0_kappa_kappa`` when the tip crosses an interface."""
 
     factor: Positive = Field(1.0, description="P_kappa_kappa becomes factor times its initial variance at each "
-                                              "interface (seed 003 Fig. 8: 10)")
+                                              "interface (the multi-rate UKF paper's Fig. 8: 10)")
     interfaces: str = Field("experiment", description="'experiment' or the name of an elastography channel")
 
 
@@ -116,10 +116,10 @@ class UKFSettings(ObserverSettings):
     params: dict[str, float] = Field(default_factory=dict, description="the filter's model parameters")
     rate: Positive | None = Field(None, description="filter rate, Hz (default: the simulation grid's)")
     alpha: Positive = Field(1e-3, description="spread of the Merwe scaled sigma points around the mean "
-                                              "(seed 003: 1e-3)")
+                                              "(the multi-rate UKF paper: 1e-3)")
     beta: NonNeg = Field(2.0, description="prior-distribution weight of the sigma points (2 is optimal for a "
-                                          "Gaussian; seed 003: 2)")
-    kappa: float = Field(0.0, description="secondary scaling of the sigma points (seed 003: 0); not the curvature")
+                                          "Gaussian; the multi-rate UKF paper: 2)")
+    kappa: float = Field(0.0, description="secondary scaling of the sigma points (the multi-rate UKF paper: 0); not the curvature")
     q: dict[str, NonNeg] = Field(default_factory=dict, description="process noise std per state, unit/sqrt(s)")
     p0: dict[str, NonNeg] = Field(default_factory=dict, description="initial variance per state (unit^2, not a std)")
     measurements: dict[str, MeasurementSpec] = Field(default_factory=dict, description="channels used, by sensor "
@@ -219,7 +219,7 @@ class _Counts:
 
 @OBSERVERS.register("ukf")
 class UnscentedKalmanFilter(Observer):
-    r"""Batched multi-rate UKF with Merwe scaled sigma points (seed 003 uses alpha 1e-3, beta 2, kappa 0).
+    r"""Batched multi-rate UKF with Merwe scaled sigma points (the multi-rate UKF paper uses alpha 1e-3, beta 2, kappa 0).
 
     Prediction :math:`\mathcal X_{k|k-1} = f(\mathcal X_{k-1|k-1}, u)`,
     :math:`P_{k|k-1} = \sum_i W^c_i \delta\mathcal X_i \delta\mathcal X_i^T + Q`,
@@ -488,7 +488,7 @@ class UnscentedKalmanFilter(Observer):
         """The update of one tick with the samples that ``arrived`` and the one-sided ``bounds`` samples."""
         angles, ang_sel = f.angles, f.angle_sel
         if len(arrived) == 1 and arrived[0][0]["scalar"] and len(arrived[0][1]) == 1:
-            (c, (j,)), = arrived  # one scalar sample that is a state (seed 003's roll at 100 Hz)
+            (c, (j,)), = arrived  # one scalar sample that is a state (the multi-rate UKF paper's roll at 100 Hz)
             x, P = self._update_scalar(x, P, c, j, alive, counts.used, counts.nis)
             if ang_sel is not None:
                 wrap_where_needed(x, ang_sel)
@@ -583,7 +583,7 @@ class UnscentedKalmanFilter(Observer):
         depend on (``model.translation_states``) last. With a lower Cholesky factor of P in that order,
         the last columns move only positions: their sigma points see the same vector field as the central
         point at every RK4 stage, so they are displaced exactly as it is and need no model evaluation
-        (9 of seed 003's 15 points are propagated). Any square root of P gives sigma points with the same
+        (9 of the multi-rate UKF paper's 15 points are propagated). Any square root of P gives sigma points with the same
         mean and covariance. Returns ``(order, inverse, number of propagated columns)``; the order is a
         reversing slice when the positions are the first states (no copies)."""
         fixed = [model.index(k) for k in model.translation_states]
@@ -829,7 +829,7 @@ class UnscentedKalmanFilter(Observer):
             Pyy_m = Pyy * (mask[:, :, None] * mask[:, None, :])
             Pyy_m[:, np.arange(M), np.arange(M)] += 1.0 - mask
             Pxy_m = Pxy * mask[:, None, :]
-        if M == 1:  # one scalar measurement (seed 003's roll at 100 Hz): no solve; P - u u^T stays symmetric
+        if M == 1:  # one scalar measurement (the multi-rate UKF paper's roll at 100 Hz): no solve; P - u u^T stays symmetric
             s = Pyy_m[:, 0, 0]
             pxy = Pxy_m[:, :, 0]
             x = x + pxy * (nu / s[:, None])

@@ -2,9 +2,9 @@
 ``needle evaluate RESULTS --baseline FILE.yaml`` (exit code 1 and a readable diff on a regression) and
 written by ``--write-baseline FILE.yaml``::
 
-    results: seed003_table1            # the experiment's name (checked)
+    results: pose_curvature_error            # the experiment's name (checked)
     cells:
-      - table: seed003_table1
+      - table: pose_curvature_error
         row: {Observer: ukf, Error: E_x,y,z (mm)}   # the table's text columns identify the row
         column: Mean
         value: 0.3595
@@ -45,9 +45,9 @@ class Cell(Strict):
     def _known(cls, v):
         from needlecli.reports import TABLES
 
-        if v not in TABLES.names():
+        if v not in TABLES:
             raise ValueError(f"unknown table {v!r}; known: {', '.join(TABLES.names())}")
-        return v
+        return TABLES.canonical(v)
 
 
 class Baseline(Strict):

@@ -1,5 +1,5 @@
 """The tables of ``needle compare``, from its results file alone: every observer on the same insertions,
-in the form of seed 003's appendix A (Table A.3).
+in the form of the multi-rate UKF paper's appendix A (Table A.3).
 
 The comparison records what it decided per observer in the results file's ``/compare`` group (settings
 origin, start, causal, the observer's model, runtime, the exception that ended a run; the observers it
@@ -81,8 +81,8 @@ def with_axis_errors(res: Group, errors: dict[str, ErrorSet]) -> dict[str, Error
     """The errors of :func:`~needlecli.metrics.compute_errors` (the tip position's norm, each angle, the
     rotation, unit vectors, curvature, any other common state) with each position axis an observer
     estimates on its own, in mm (``E_x``, ``E_y``, ``E_z``; ``E_px``, ... of the magnetic models), over the
-    runs whose truth and estimate are ok: a position error that an observer of fewer axes also has (seed
-    000's E_x), beside every other's. New :class:`~needlecli.metrics.ErrorSet` objects; ``errors`` is
+    runs whose truth and estimate are ok: a position error that an observer of fewer axes also has
+    (the high-gain observer paper's E_x), beside every other's. New :class:`~needlecli.metrics.ErrorSet` objects; ``errors`` is
     left as it is."""
     import dataclasses
 
@@ -280,7 +280,7 @@ def _num(v: float) -> str:
 
 
 def appendix_form(df: pd.DataFrame, res: Group) -> pd.DataFrame:
-    """The table in the form of seed 003's appendix A (Table A.3): one column per observer, one row per
+    """The table in the form of the multi-rate UKF paper's appendix A (Table A.3): one column per observer, one row per
     property, one per error quantity (mean ± std after initialisation; n/a: not estimated) (``df``:
     :func:`compare_table`)."""
     length_unit = str(res.attrs.get("length_unit", "mm"))
@@ -312,7 +312,7 @@ def appendix_form(df: pd.DataFrame, res: Group) -> pd.DataFrame:
 
 @TABLES.register("compare_appendix")
 def compare_appendix_table(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
-    """The comparison of needle compare in the form of seed 003's appendix A (Table A.3): one column per
+    """The comparison of needle compare in the form of the multi-rate UKF paper's appendix A (Table A.3): one column per
     observer, one row per property (sensors, rates, model, settings, start, online curvature, errors,
     prediction error after 25 % of the insertion, runs, failures, runtime). Empty for a results file of
     another command."""

@@ -36,7 +36,7 @@ def _command_stats(cmd: np.ndarray | None, limit: float, held: np.ndarray | None
 @TABLES.register("planar_control")
 def planar_control_table(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
     """Out-of-plane deviation of the true tip from its starting height, |dz| = |pz - pz0| in mm, over each
-    run's insertion (seed 004 sec. 2.3.6: within 3 mm under control): Mean, Std, Max, at the end; with a
+    run's insertion (the magnetic needle EM paper's sec. 2.3.6: within 3 mm under control): Mean, Std, Max, at the end; with a
     controller, the mean |B_z| it applied (mT), the share of time it was saturated and the share of its
     sensor's frames without a detection (command held). First row per controller: all runs whose truth
     is ok, pooled; then one row per run."""

@@ -60,7 +60,7 @@ def evaluate_results(
     plots: bool = False,
     design: dict | None = None,
 ) -> dict[str, pd.DataFrame]:
-    """Compute the tables of a results file (or of a fit file of ``needle fit-em``: seed 004's tables and
+    """Compute the tables of a results file (or of a fit file of ``needle fit-em``: the magnetic needle EM paper's tables and
     those by the trials' design, ``design``: ``group_by``, ``regress``); write them (and plots) to
     ``out_dir`` when given."""
     path = Path(path)
@@ -96,6 +96,7 @@ def results_tables(res: Group, names: list[str], source: str) -> dict[str, pd.Da
         errors = compute_errors(res)
     except KeyError as e:  # a readable HDF5 file that lacks part of the layout
         raise DataError(f"{source}: incomplete results file (missing {e})") from None
+    names = [TABLES.canonical(n) for n in names]
     for name in names:
         if name in FIT_TABLE_NAMES:
             raise DataError(f"{source}: table {name!r} needs a fit file of needle fit-em; this is a results file")

@@ -1,7 +1,7 @@
 """What the data identify in a fit file (``needle evaluate FIT.h5 --tables identifiability``), and the
-marks seed 004's tables put on rows the data do not determine. Reads ``/fit/<model>/identifiability`` only
+marks the magnetic needle EM paper's tables put on rows the data do not determine. Reads ``/fit/<model>/identifiability`` only
 (:mod:`needlecli.fitting.identify` made it and decided every verdict; this module only shows them): per
-design group of trials (seed 004's field strengths, a real export's speeds), with the trials behind each
+design group of trials (the magnetic needle EM paper's field strengths, a real export's speeds), with the trials behind each
 count named."""
 
 from __future__ import annotations
@@ -134,7 +134,7 @@ def trial_counts(verdict: np.ndarray, ids: np.ndarray) -> str:
 
 @TABLES.register("identifiability")
 def identifiability_table(res: Group, errors=None) -> pd.DataFrame:
-    """What the data identify, per fitted model, design group of trials (seed 004's field strengths, a
+    """What the data identify, per fitted model, design group of trials (the magnetic needle EM paper's field strengths, a
     real export's speeds: the information of one group's trials is pooled, never across groups) and
     quantity: the median estimate, the truth where the trials are simulated, the standard error from the
     group's summed observed information and the median of the per-trial ones, the relative SE, the

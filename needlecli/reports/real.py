@@ -46,7 +46,7 @@ def _position_streams(res: Group):
 def real_tip_error(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
     """Tip position error [mm] against the reference (on recorded data the EM tracker): each position
     sensor's raw measurements at its valid frames, each observer at the same frames, and each observer at
-    every frame with a reference sample (seed 003's instantaneous error). A stream identical to the
+    every frame with a reference sample (the multi-rate UKF paper's instantaneous error). A stream identical to the
     reference (the tracker's own positions) is left out."""
     truth = res.data["truth"]
     t_names = list(truth.attrs["names"])

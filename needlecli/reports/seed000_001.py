@@ -1,5 +1,5 @@
-"""Seeds 000 and 001: Table I of seed 000 (x, pitch and roll errors of the high-gain observer); seed
-001's rotation error against insertion distance (a convergence table, the reduction per half turn of
+"""The high-gain observer and SO(3) observer papers: Table I of the first (x, pitch and roll errors of the
+high-gain observer); the second's rotation error against insertion distance (a convergence table, the reduction per half turn of
 the arc, and the Fig. 3 plot of the error against distance per input case)."""
 
 from __future__ import annotations
@@ -45,11 +45,11 @@ def _x_error(res: Group, obs: str) -> np.ndarray | None:
     return np.abs(g.data["state"][keep, :, en.index("x")] - truth.data["state"][keep, :, tn.index("x")])
 
 
-@TABLES.register("seed000_table1")
-def seed000_table1(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
-    """Seed 000 Table I: average absolute estimation error, RMSE and standard deviation (of the absolute
+@TABLES.register("x_pitch_roll_error")
+def x_pitch_roll_error(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
+    """The high-gain observer paper's Table I: average absolute estimation error, RMSE and standard deviation (of the absolute
     error) of x [mm], beta and gamma [rad], over all kept runs and time steps; Max: the largest absolute
-    error (seed 000's simulation states maxima); Final: mean absolute error at the last step. Paper
+    error (the high-gain observer paper's simulation states maxima); Final: mean absolute error at the last step. Paper
     (experiments): e_x 2e-14 / 5e-13 / 5e-13 mm, e_beta 0.02 / 0.04 / 0.037 rad; (simulation) maxima of
     1e-14 mm (x) and 0.05 rad (gamma)."""
     unit = res.attrs.get("length_unit", "mm")
@@ -103,7 +103,7 @@ def _convergence_note(res: Group) -> str:
     return ("Convergence of the linear error dynamics: " + "; ".join(parts) + ".") if parts else ""
 
 
-# ---------------------------------------------------------------------------------------------- seed 001
+# ---------------------------------------------------------------------------------------------- the SO(3) observer paper
 def _cases(res: Group, runs: np.ndarray) -> list[tuple[str, np.ndarray]]:
     """Positions in ``runs`` grouped by input case (all together when the inputs have no cases)."""
     inputs = res.data.get("inputs", Group())
@@ -149,9 +149,9 @@ def _first_below(depth: np.ndarray, curve: np.ndarray, level: float) -> float:
     return float(depth[above[-1] + 1])
 
 
-@TABLES.register("seed001_convergence")
-def seed001_convergence(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
-    """Seed 001: rotation error E_R (mean over the case's kept runs, deg) against insertion distance, and
+@TABLES.register("rotation_convergence")
+def rotation_convergence(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
+    """The SO(3) observer paper: rotation error E_R (mean over the case's kept runs, deg) against insertion distance, and
     the distance from which it stays under 10 and 5 deg. Paper: about 7 cm of insertion for an adequate
     estimate from 90 deg, and about 80 % less error per half turn of the arc."""
     depth = depth_axis(res)
@@ -170,14 +170,14 @@ def seed001_convergence(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame
         row[f"under 5 deg from [{unit}]"] = _first_below(depth, m, 5.0)
         rows.append(row)
     df = pd.DataFrame(rows)
-    note = _seed001_note(res, errors)
+    note = _radius_reading_note(res, errors)
     if note:
         df.attrs["note"] = note
     return df
 
 
-def _seed001_note(res: Group, errors: dict[str, ErrorSet]) -> str:
-    """What this file says about seed 001's two claims, for every observer and case starting about 90 deg
+def _radius_reading_note(res: Group, errors: dict[str, ErrorSet]) -> str:
+    """What this file says about the SO(3) observer paper's two claims, for every observer and case starting about 90 deg
     off: the error at 7 cm, after one half turn and the reduction over the second, and whether "about
     7 cm from 90 deg" holds (under 10 deg, an adequate estimate, by 8 cm at the latest)."""
     depth = depth_axis(res)
@@ -202,8 +202,8 @@ def _seed001_note(res: Group, errors: dict[str, ErrorSet]) -> str:
                 text += f", {e1:.0f} deg after one half turn ({half:.0f} {unit}), {100 * (1 - e2 / e1):.0f} % less over the second"
             below = _first_below(depth, m, 10.0)
             held = np.isfinite(below) and below <= 80.0 + 1e-9  # "about 7 cm": by 8 cm at the latest
-            text += (f": seed 001's about 7 cm from 90 deg holds (under 10 deg from {below:.0f} {unit})" if held else
-                     ": seed 001's about 7 cm from 90 deg is not reproduced" +
+            text += (f": the SO(3) observer paper's about 7 cm from 90 deg holds (under 10 deg from {below:.0f} {unit})" if held else
+                     ": the SO(3) observer paper's about 7 cm from 90 deg is not reproduced" +
                      (f" (under 10 deg from {below:.0f} {unit})" if np.isfinite(below) else " (never under 10 deg)"))
             parts.append(text)
     k = res.data["truth"].data.get("params", Group()).data.get("kappa")
@@ -211,9 +211,9 @@ def _seed001_note(res: Group, errors: dict[str, ErrorSet]) -> str:
     return (f"Here{radius}: " + "; ".join(parts) + ".") if parts else ""
 
 
-@TABLES.register("seed001_half_turns")
-def seed001_half_turns(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
-    """Seed 001: rotation error after each half turn of the arc (pi / kappa of insertion) and its
+@TABLES.register("rotation_half_turns")
+def rotation_half_turns(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
+    """The SO(3) observer paper: rotation error after each half turn of the arc (pi / kappa of insertion) and its
     reduction per half turn, 1 - E_R(j) / E_R(j - 1), from the case's mean error (at most 12 rows per
     case: with more half turns, every k-th and the mean reduction per half turn over the k). Paper:
     about 80 % per half turn with a hand-tuned gain, and about 7 cm of insertion for an adequate estimate
@@ -241,15 +241,15 @@ def seed001_half_turns(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
                          "Reduction [%]": red, "Runs": count_cell(e.shape[0], n_runs)})
             prev = m
     df = pd.DataFrame(rows, columns=cols)
-    note = _seed001_note(res, errors)
+    note = _radius_reading_note(res, errors)
     if note:
         df.attrs["note"] = note
     return df
 
 
-@PLOTS.register("seed001_rotation_error")
+@PLOTS.register("rotation_error")
 def rotation_error_plot(res: Group, errors: dict[str, ErrorSet], path_stem: Path, max_runs: int = 20) -> Path | None:
-    """Seed 001 Fig. 3: rotation error against insertion distance, one panel per input case, one colour
+    """The SO(3) observer paper's Fig. 3: rotation error against insertion distance, one panel per input case, one colour
     per observer (thin: single runs, thick: mean), from the steps where truth exists; dotted verticals
     mark half turns of the arc (pi / kappa) where the insertion reaches one."""
     groups = list(_rotation_groups(res, errors, with_runs=True))

@@ -1,4 +1,4 @@
-"""Seed 003's tables and figures: Table 1 (instantaneous error), Fig. 6 (final-position prediction error
+"""The multi-rate UKF paper's tables and figures: Table 1 (instantaneous error), Fig. 6 (final-position prediction error
 against the depth observed), Figs. 7 and 8 (curvature estimate and its variance against time)."""
 
 from __future__ import annotations
@@ -27,9 +27,9 @@ from needlecli.reports.tables import TABLES, count_cell
 _LENGTH_TO_MM = {"mm": 1.0, "m": 1000.0}
 
 
-@TABLES.register("seed003_table1")
+@TABLES.register("pose_curvature_error")
 def table1(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
-    """Seed 003 Table 1: instantaneous state estimation error over all runs and the time steps after
+    """The multi-rate UKF paper's Table 1: instantaneous state estimation error over all runs and the time steps after
     initialisation (Mean, Std, Max); paper: E_xyz 0.3/0.1/1.3 mm, E_alpha 0.6/1.1/16.4 deg,
     E_beta 0.9/1.1/11.5 deg, E_kappa 0.0007/0.0006/0.0136 1/mm."""
     rows = []
@@ -76,7 +76,7 @@ def prediction_errors(res: Group) -> dict[str, tuple[np.ndarray, np.ndarray]]:
 
 @TABLES.register("prediction")
 def prediction_table(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
-    """Final tip position prediction error against the depth observed (seed 003 Fig. 6 as a table;
+    """Final tip position prediction error against the depth observed (the multi-rate UKF paper's Fig. 6 as a table;
     paper: under 2 mm once 40 mm are observed)."""
     rows = []
     unit = res.attrs.get("length_unit", "mm")
@@ -120,7 +120,7 @@ def prediction_plot(res: Group, errors, path_stem: Path) -> Path | None:
     if not drawn:
         plt.close(fig)
         raise PlotSkipped("no run has both a prediction and a true final position")
-    ax.axhline(2.0, color="grey", ls=":", label="2 mm (seed 003's probe resolution)")
+    ax.axhline(2.0, color="grey", ls=":", label="2 mm (the multi-rate UKF paper's probe resolution)")
     ax.set_xlabel(f"depth observed [{res.attrs.get('length_unit', 'mm')}]")
     ax.set_ylabel("final position prediction error [mm]")
     ax.grid(alpha=0.3)

@@ -1,24 +1,24 @@
-"""The tables and figures of a fit file of ``needle fit-em``: seed 004's and their generic forms.
+"""The tables and figures of a fit file of ``needle fit-em``: the magnetic needle EM paper's and their generic forms.
 
 * ``fit_parameters``: for any fitted model, each constant, tr(Q) per block and tr(R_j) per channel: mean,
   SD and the SD as trajectory error, one row per model and quantity (Tables 1 and 2 below in long form);
-* ``seed004_table1`` (MNM) and ``seed004_table2`` (BiNM): the constant (``c``, ``l_inv``) per parameter case
+* ``mnm_parameters`` (MNM) and ``binm_parameters`` (BiNM): the constant (``c``, ``l_inv``) per parameter case
   (field strength), ``tr(Q_p)``, ``tr(Q_h)``, ``tr(Q_B)`` and ``tr(R_j)`` of every channel, each trace
-  divided by its dimension as the seed reports them; rows Mean, SD and "SD as Traj. Err. (mm)": the
+  divided by its dimension as the paper reports them; rows Mean, SD and "SD as Traj. Err. (mm)": the
   input cases (T1, T2, mirrored) re-simulated with the mean parameters and with each parameter moved by
   one SD up and down, ``repeats`` times with the same process noise for nominal and moved, the RMS
   distance of the tip path to the nominal one averaged (R does not enter the path: 0).
-* ``seed004_table3``: % difference of the BiNM from the MNM, by the mean trace and block-wise by the
+* ``binm_vs_mnm``: % difference of the BiNM from the MNM, by the mean trace and block-wise by the
   Frobenius norm of the difference of the element-wise median matrices.
-* ``fit_recovery`` (formerly ``seed004_recovery``, which still names it): the fits against the truth of a
+* ``fit_recovery``: the fits against the truth of a
   simulated study, for any model.
 * ``fit_status``: statuses, reasons, iterations, log-likelihood decreases.
 
-``needle evaluate FIT.h5`` writes seed 004's own tables (``seed004_table1`` to ``3``) by default only for a fit
+``needle evaluate FIT.h5`` writes the magnetic needle EM paper's own tables (``mnm_parameters`` to ``3``) by default only for a fit
 of the models they are about (:data:`PAPER_TABLE_MODELS`); a fit of a unicycle gets ``fit_parameters``.
 
-Trials whose fit failed for any model (singular, diverged) are left out for every model (seed 004: 3 of
-44 trials). Figures: ``seed004_fig5`` (a trial's paths and measurements, both models), ``seed004_fig10``
+Trials whose fit failed for any model (singular, diverged) are left out for every model (the magnetic needle EM paper: 3 of
+44 trials). Figures: ``fit_paths`` (a trial's paths and measurements, both models), ``binm_singularity``
 (``h . B`` against time through the BiNM singularity).
 """
 
@@ -43,12 +43,12 @@ from needlecli.reports.tables import TABLES, count_cell, table_caption, write_ta
 log = logging.getLogger("needlecli")
 
 FIT_TABLES = FIT_DEFAULT  # written by default (the tables of a fit file: needlecli.reports.FIT_TABLE_NAMES)
-#: seed 004's paper tables and the models each is about: written by default only for a fit of those models
+#: the magnetic needle EM paper's paper tables and the models each is about: written by default only for a fit of those models
 #: (the others' fits get the same content from fit_parameters, under a name that says what it holds)
-PAPER_TABLE_MODELS = {"seed004_table1": ("mnm",), "seed004_table2": ("binm",), "seed004_table3": ("mnm", "binm")}
+PAPER_TABLE_MODELS = {"mnm_parameters": ("mnm",), "binm_parameters": ("binm",), "binm_vs_mnm": ("mnm", "binm")}
 #: every table of a fit file: :data:`FIT_TABLES` (written by default) and those asked for by name
 ALL_FIT_TABLES = FIT_TABLE_NAMES
-FIT_PLOTS = ("seed004_fig5", "seed004_fig10", "fit_regression")
+FIT_PLOTS = ("fit_paths", "binm_singularity", "fit_regression")
 FAILED = ("singular", "diverged")
 _TO_MM = {"m": 1000.0, "mm": 1.0, "cm": 10.0}
 
@@ -58,7 +58,7 @@ def is_fit(res: Group) -> bool:
 
 
 def kept_trials(res: Group) -> np.ndarray:
-    """Trials no model failed on (``(N,)`` bool): compared for every model, as in seed 004."""
+    """Trials no model failed on (``(N,)`` bool): compared for every model, as in the magnetic needle EM paper."""
     fits = res.data["fit"].data
     keep = None
     for g in fits.values():
@@ -110,7 +110,7 @@ def _mean_sd(v: np.ndarray) -> tuple[float, float]:
 
 # ---------------------------------------------------------------------------------------------- Tables 1, 2
 def parameter_table(res: Group, model: str) -> pd.DataFrame:
-    """Seed 004 Table 1 (MNM) / Table 2 (BiNM) for ``model``."""
+    """The magnetic needle EM paper's Table 1 (MNM) / Table 2 (BiNM) for ``model``."""
     if not is_fit(res) or model not in res.data["fit"].data:
         return pd.DataFrame()
     keep = kept_trials(res)
@@ -151,18 +151,18 @@ def parameter_table(res: Group, model: str) -> pd.DataFrame:
     return df
 
 
-@TABLES.register("seed004_table1")
+@TABLES.register("mnm_parameters")
 def table1(res: Group, errors=None) -> pd.DataFrame:
-    """Seed 004 Table 1, MNM parameterization: c per field strength, tr(Q_p), tr(Q_h), tr(Q_B) (per second)
+    """The magnetic needle EM paper's Table 1, MNM parameterization: c per field strength, tr(Q_p), tr(Q_h), tr(Q_B) (per second)
     and tr(R_j) of each channel, traces divided by their dimension; mean, SD and the SD as trajectory
     error. Paper (experiments): c 5.3/9.5/11.9 (SD 3.2/4.8/5.6) 1/m; tr(Q_p) 1.10e-7, tr(Q_h) 6.65e-4,
     tr(Q_B) 7.32e-9, tr(R_p) 2.70e-9, tr(R_B) 5.6e-12; SD as error 0.002/0.022/0.003, 0.052, 2e-13 mm."""
     return parameter_table(res, "mnm")
 
 
-@TABLES.register("seed004_table2")
+@TABLES.register("binm_parameters")
 def table2(res: Group, errors=None) -> pd.DataFrame:
-    """Seed 004 Table 2, BiNM parameterization (l_inv per field strength; as Table 1). Paper: l_inv
+    """The magnetic needle EM paper's Table 2, BiNM parameterization (l_inv per field strength; as Table 1). Paper: l_inv
     1.6/3.5/4.9 (SD 1.6/3.0/3.4) 1/m; tr(Q_p) 1.10e-7, tr(Q_h) 6.40e-3, tr(Q_B) 7.37e-9, tr(R_p) 2.72e-9;
     SD as error 0.114/0.302/0.360, 0.200, 0.001 mm."""
     return parameter_table(res, "binm")
@@ -267,7 +267,7 @@ def fit_parameters_table(res: Group, errors=None) -> pd.DataFrame:
     """What EM fitted, for every model of the fit file: each constant (per parameter case), tr(Q) per state
     block and tr(R_j) per channel, traces divided by their dimension (Q per second); mean and SD over the
     kept trials and the SD as trajectory error (the input cases re-simulated with each quantity moved by one
-    SD; mm). Seed 004's Tables 1 and 2 (tables seed004_table1, seed004_table2) in long form, for any model."""
+    SD; mm). The magnetic needle EM paper's Tables 1 and 2 (tables mnm_parameters, binm_parameters) in long form, for any model."""
     if not is_fit(res):
         return pd.DataFrame()
     rows, notes = [], []
@@ -287,9 +287,9 @@ def fit_parameters_table(res: Group, errors=None) -> pd.DataFrame:
 
 
 # ---------------------------------------------------------------------------------------------- Table 3
-@TABLES.register("seed004_table3")
+@TABLES.register("binm_vs_mnm")
 def table3(res: Group, errors=None) -> pd.DataFrame:
-    """Seed 004 Table 3: % difference of the BiNM from the MNM, by the mean trace and block-wise (Frobenius
+    """The magnetic needle EM paper's Table 3: % difference of the BiNM from the MNM, by the mean trace and block-wise (Frobenius
     norm of the difference of the element-wise median matrices over the norm of the MNM's). Paper: Q_p
     0.0 %, Q_h 863 %, Q_B 0.6 %, R_p 0.7 % (trace); 5.9 %, 369 %, 2.6 %, 0.0 % (block-wise)."""
     if not is_fit(res) or not {"mnm", "binm"} <= set(res.data["fit"].data):
@@ -343,9 +343,8 @@ def _blockwise(ma: np.ndarray, mb: np.ndarray) -> float:
 
 # ---------------------------------------------------------------------------------------------- recovery
 @TABLES.register("fit_recovery")
-@TABLES.register("seed004_recovery")
 def recovery_table(res: Group, errors=None) -> pd.DataFrame:
-    """Fitted against true values of a simulated study, per design group of trials (seed 004: field
+    """Fitted against true values of a simulated study, per design group of trials (the magnetic needle EM paper: field
     strength): each fitted constant (of the model that made the truth), tr(Q) per block (that model) and
     tr(R) per channel (every model), traces divided by their dimension; mean and SD over the kept trials,
     the error of the mean, and the fit's recovery check and verdict (table identifiability: estimate -
@@ -472,9 +471,9 @@ def _pick_trial(res: Group, prefer: tuple[str, ...]) -> int:
     return int(cand[0])
 
 
-@PLOTS.register("seed004_fig5")
+@PLOTS.register("fit_paths")
 def fig5(res: Group, errors, path_stem: Path) -> Path | None:
-    """Seed 004 Fig. 5: one trial's measured positions and the EM position estimates of both models (a),
+    """The magnetic needle EM paper's Fig. 5: one trial's measured positions and the EM position estimates of both models (a),
     and the distance of each estimate from the measurements with its running RMS (b)."""
     if not is_fit(res):
         return None
@@ -535,7 +534,7 @@ def fig5(res: Group, errors, path_stem: Path) -> Path | None:
     from needlecli.reports.design import trial_ids
 
     fig.suptitle(f"{res.attrs.get('name', '')}: trial {trial_ids(res)[i]} ({what}): EM estimates of each model", fontsize=10)
-    return save_figure(fig, Path(f"{path_stem}_seed004_fig5.png"))
+    return save_figure(fig, Path(f"{path_stem}_fit_paths.png"))
 
 
 def _state_of(names: list[str], stem: str) -> int | None:
@@ -571,9 +570,9 @@ def _cos_hb(z: np.ndarray, names: list[str]) -> np.ndarray:
         return (h * b).sum(-1) / (np.linalg.norm(h, axis=-1) * np.linalg.norm(b, axis=-1))
 
 
-@PLOTS.register("seed004_fig10")
+@PLOTS.register("binm_singularity")
 def fig10(res: Group, errors, path_stem: Path) -> Path | None:
-    """Seed 004 Fig. 10: h . B (cosine of the angle between heading and field) against time for one trial
+    """The magnetic needle EM paper's Fig. 10: h . B (cosine of the angle between heading and field) against time for one trial
     (the first whose BiNM fit became singular, else the one coming closest to h . B = 0): the MNM's EM
     estimate, the BiNM's first EKF pass and its EM estimate (until it failed), the truth."""
     if not is_fit(res) or not {"mnm", "binm"} <= set(res.data["fit"].data):
@@ -612,7 +611,7 @@ def fig10(res: Group, errors, path_stem: Path) -> Path | None:
     else:
         what = f"no trial reached the singularity; the closest, min |h . B| = {float(closest[i]):.2f} of the MNM estimate"
     ax.set_title(f"{res.attrs.get('name', '')}: trial {i}, heading against field: {what}", fontsize=9, wrap=True)
-    return save_figure(fig, Path(f"{path_stem}_seed004_fig10.png"))
+    return save_figure(fig, Path(f"{path_stem}_binm_singularity.png"))
 
 
 # ---------------------------------------------------------------------------------------------- evaluate
@@ -633,7 +632,7 @@ def evaluate_fit(
 
     path = Path(path)
     res = read_fit(path)
-    names = tables or default_fit_tables(res)
+    names = [TABLES.canonical(n) for n in tables] if tables else default_fit_tables(res)
     for n in names:
         if n not in ALL_FIT_TABLES:
             raise DataError(f"{path}: table {n!r} needs a results file; a fit file has {', '.join(ALL_FIT_TABLES)}")
@@ -658,7 +657,7 @@ def evaluate_fit(
 
 
 def default_fit_tables(res: Group) -> list[str]:
-    """The tables ``needle evaluate`` writes for a fit file by default: :data:`FIT_TABLES`, seed 004's paper
+    """The tables ``needle evaluate`` writes for a fit file by default: :data:`FIT_TABLES`, the magnetic needle EM paper's paper
     tables only where the fit has their models (:data:`PAPER_TABLE_MODELS`)."""
     fitted = set(res.data["fit"].data) if is_fit(res) else set()
     return [n for n in FIT_TABLES if set(PAPER_TABLE_MODELS.get(n, ())) <= fitted]

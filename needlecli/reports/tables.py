@@ -1,8 +1,8 @@
 """Paper-form tables: pandas views of the error metrics, registered by name in :data:`TABLES`.
 
 A table function takes the loaded results file and the errors of every observer and returns a
-``DataFrame``; :func:`write_table` writes it as Markdown, CSV and LaTeX. Paper-specific tables (seed 000
-Table I, seed 003 Table 1, seed 004 Tables 1-3) register here from their own modules.
+``DataFrame``; :func:`write_table` writes it as Markdown, CSV and LaTeX. Paper-specific tables (the high-gain observer paper
+Table I, the multi-rate UKF paper's Table 1, the magnetic needle EM paper's Tables 1-3) register here from their own modules.
 """
 
 from __future__ import annotations
@@ -63,7 +63,7 @@ def _rows(errors: dict[str, ErrorSet], stats: dict[str, Callable[[np.ndarray], f
 @TABLES.register("summary")
 def summary_table(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
     """Instantaneous estimation error over all kept runs and all time steps, the initial one included:
-    Mean, Std, Max (seed 003's statistics; its Table 1, table seed003_table1, counts only the steps after
+    Mean, Std, Max (the multi-rate UKF paper's statistics; its Table 1, table pose_curvature_error, counts only the steps after
     initialisation). The tip position error E_xyz is also given per axis (E_x, E_y, E_z) and, where the
     model has a needle axis, across it (E_lat, lateral) and along it (E_ax, axial), about the truth's
     tangent."""
@@ -73,8 +73,8 @@ def summary_table(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
 @TABLES.register("accuracy")
 def accuracy_table(res: Group, errors: dict[str, ErrorSet]) -> pd.DataFrame:
     """Average absolute error, RMSE and standard deviation of every error quantity over all kept runs and
-    time steps, in each quantity's own unit (seed 000's statistics; its Table I itself, e_x in mm and
-    e_beta in rad, is the table seed000_table1)."""
+    time steps, in each quantity's own unit (the high-gain observer paper's statistics; its Table I itself, e_x in mm and
+    e_beta in rad, is the table x_pitch_roll_error)."""
     return _rows(
         errors,
         {

@@ -38,7 +38,7 @@ class PositionSettings(SensorSettings):
                                                            "(2D transverse ultrasound: [x, y])")
     sigma: Sigma = Field(0.3, description="noise std per axis at the transducer, model length unit")
     growth: DistanceGrowth | None = Field(None, description="noise growing with the distance to a transducer, "
-                                                            "sigma = (1 + a d / d_max) sigma (seed 003); default: "
+                                                            "sigma = (1 + a d / d_max) sigma (the multi-rate UKF paper); default: "
                                                             "constant sigma")
     image: ImageSection | None = Field(
         None, validate_default=True, description="with pipeline: image, the imaging device (sensors/imaging)")
@@ -68,8 +68,8 @@ class PositionSettings(SensorSettings):
 
 @SENSORS.register("position")
 class PositionSensor(Sensor):
-    """Tip position, any subset of axes: 2D transverse ultrasound (x, y; seed 000), 3D ultrasound
-    (x, y, z at 1 Hz, sigma growing with distance; seed 003), overhead camera (seed 004)."""
+    """Tip position, any subset of axes: 2D transverse ultrasound (x, y; the high-gain observer paper), 3D ultrasound
+    (x, y, z at 1 Hz, sigma growing with distance; the multi-rate UKF paper), overhead camera (the magnetic needle EM paper)."""
 
     Settings = PositionSettings
     requires = ("tip_position",)
@@ -120,8 +120,8 @@ class EncoderSettings(SensorSettings):
 
 @SENSORS.register("encoder")
 class EncoderSensor(Sensor):
-    """Robot encoders (seeds 000, 003): insertion depth, the needle's roll angle, the base angle
-    (integral of the shaft rotation input). Seed 003 reads the tip roll gamma from the robot
+    """Robot encoders (the high-gain observer and multi-rate UKF papers): insertion depth, the needle's roll angle, the base angle
+    (integral of the shaft rotation input). The multi-rate UKF paper reads the tip roll gamma from the robot
     (0.2 deg std)."""
 
     Settings = EncoderSettings
@@ -176,14 +176,14 @@ class ElastographySettings(SensorSettings):
     type: Literal["elastography"]
     sigma: NonNeg = Field(1e-3, description="curvature noise std, 1/(model length unit)")
     interface_sigma: NonNeg = Field(0.0, description="std of the interface depths it reports")
-    preoperative: bool = Field(False, description="a pre-operative map (seed 003): one acquisition at start, not a stream at rate")
+    preoperative: bool = Field(False, description="a pre-operative map (the multi-rate UKF paper): one acquisition at start, not a stream at rate")
 
 
 @SENSORS.register("elastography")
 class ElastographySensor(Sensor):
-    """Shear-wave elastography (seed 003): the stiffness map gives the curvature at the tip's depth
+    """Shear-wave elastography (the multi-rate UKF paper): the stiffness map gives the curvature at the tip's depth
     and the tissue interfaces (reported in the stream's attributes); ``preoperative: true`` makes it the
-    pre-operative map of seed 003's simulations: one acquisition at ``start``, no stream."""
+    pre-operative map of the multi-rate UKF paper's simulations: one acquisition at ``start``, no stream."""
 
     Settings = ElastographySettings
 
@@ -243,7 +243,7 @@ class TangentSettings(UnitVectorSettings):
 
 @SENSORS.register("tangent")
 class TangentSensor(Sensor):
-    """Needle tangent direction as a unit vector (bi-plane fluoroscopy or an EM tracker; seed 001)."""
+    """Needle tangent direction as a unit vector (bi-plane fluoroscopy or an EM tracker; the SO(3) observer paper)."""
 
     Settings = TangentSettings
     requires = ("tangent",)
@@ -270,7 +270,7 @@ class FieldSettings(UnitVectorSettings):
 
 @SENSORS.register("bfield")
 class FieldDirectionSensor(Sensor):
-    """Direction of the magnetic field from the Helmholtz coils' record (seed 004: 18 Hz)."""
+    """Direction of the magnetic field from the Helmholtz coils' record (the magnetic needle EM paper: 18 Hz)."""
 
     Settings = FieldSettings
     requires = ("field_direction",)

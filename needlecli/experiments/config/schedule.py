@@ -50,7 +50,7 @@ class PiecewiseSignal(Strict):
 
 class FlipSignal(Strict):
     """180 deg shaft rotations (or any ``angle``) at given depths or times, at ``rate`` rad/s, on top of
-    a constant ``base`` rate. Seed 000 flips at chosen depths; seed 003 (fig. 7) turns once at 25 s."""
+    a constant ``base`` rate. The high-gain observer paper flips at chosen depths; the multi-rate UKF paper (fig. 7) turns once at 25 s."""
 
     kind: Literal["flips"]
     at_depths: list[NonNeg] | None = Field(None, description="inserted depths at which a flip starts, model length "
@@ -84,7 +84,7 @@ def as_signal(v):
 
 
 class CasesSignal(Strict):
-    """Different schedules for different runs: run ``i`` follows case ``i mod len(cases)`` (seed 003
+    """Different schedules for different runs: run ``i`` follows case ``i mod len(cases)`` (the multi-rate UKF paper
     Fig. 7 compares rotation schedules this way). Not for the insertion input, whose integral is the
     depth shared by all runs."""
 

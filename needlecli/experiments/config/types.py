@@ -94,13 +94,13 @@ class Stop(Strict):
 
 
 class PolynomialReference(Strict):
-    """Seed 000's reference where nothing better was recorded: polynomials in the inserted depth fitted
+    """The high-gain observer paper's reference where nothing better was recorded: polynomials in the inserted depth fitted
     to a position sensor's samples; x, y from the fits, beta = asin(dx/ds) and alpha = asin(-dy/ds / cos
     beta) from their slopes (s the depth, an arc length)."""
 
     kind: Literal["polynomial"] = Field(description="the reference: polynomial (fits in the depth), the only kind")
     sensor: str = Field(description="position sensor whose x (and y) samples are fitted")
-    degree: int = Field(3, ge=1, le=12, description="degree of the polynomials in the depth (seed 000: 5)")
+    degree: int = Field(3, ge=1, le=12, description="degree of the polynomials in the depth (the high-gain observer paper: 5)")
 
 
 class Source(Strict):
@@ -141,13 +141,13 @@ class Output(Strict):
     def _known_tables(cls, v):
         known = TABLES.names()
         for name in v:
-            if name not in known:
+            if name not in TABLES:  # a current name or a former one (TABLES.aliases)
                 raise ValueError(f"unknown table {name!r}; known: {', '.join(known)}" + did_you_mean(name, known))
         return v
 
 
 class ParamCases(Strict):
-    """Per-run parameter cases (a factor of the experiment design, e.g. seed 004's field strengths, each
+    """Per-run parameter cases (a factor of the experiment design, e.g. the magnetic needle EM paper's field strengths, each
     with its own true ``c``). Runs cycle through the input cases fastest, then through these: run ``i``
     has input case ``i mod K_in`` and parameter case ``(i div K_in) mod K_p`` (``K_in = 1`` without input
     cases), so every combination occurs once in each block of ``K_in * K_p`` runs. A case sets some of
@@ -214,7 +214,7 @@ class ExperimentConfig(Strict):
     source: Source | None = Field(None, description="recorded logs to replay instead of simulating")
     simulation: Simulation = Field(default_factory=Simulation, description="the truth's integration")
     output: Output = Field(default_factory=Output, description="what the results file keeps and which tables")
-    fit: FitSettings | None = Field(None, description="how needle fit-em fits the trials (seed 004)")
+    fit: FitSettings | None = Field(None, description="how needle fit-em fits the trials (the magnetic needle EM paper)")
 
     @field_validator("inputs", mode="before")
     @classmethod

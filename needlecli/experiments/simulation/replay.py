@@ -134,7 +134,7 @@ def replay_truth(cfg: ExperimentConfig, base_dir: Path):
 
 def polynomial_reference(ref, model, streams, depth: np.ndarray, time: np.ndarray) -> np.ndarray:
     """Reference states ``(N, T, n)`` from polynomial fits ``x(s)``, ``y(s)`` of a position sensor's valid
-    samples against the depth ``s`` (seed 000); NaN for what the fit does not give, outside the depths
+    samples against the depth ``s`` (the high-gain observer paper); NaN for what the fit does not give, outside the depths
     the samples cover, and for trials with too few samples. All trials are fitted at once: weighted least
     squares in a Chebyshev basis on each trial's sampled depth range mapped to [-1, 1] (the valid samples
     weigh 1, the others 0), solved by batched normal equations."""

@@ -17,13 +17,13 @@ declares ``default_reference``, with its derived settings: built-in types before
 mean of every run, drawn once from its random stream, and its initial covariance -- and every observer
 that can take it (``Observer.takes_common_start``) starts from it, whatever its own ``init`` says, the
 open-loop reference included. Where an observer's settings prescribe their own start in terms of the
-common one (``Observer.prescribed_start``: seed 000's high-gain observer, x_hat0 = beta_hat0 = 0), that
+common one (``Observer.prescribed_start``: the high-gain observer (`highgain-us2d`), x_hat0 = beta_hat0 = 0), that
 applies on top. No observer starts from a run's own truth unless the reference does, and the table
 names, per observer, where it started (``start``) and the common start's recipe (footnote), flagging
 any state taken exactly from the truth.
 
 Observers with a ``predict_at_depths`` setting also predict the final tip position from 25 % of the
-insertion length (added to the depths they already have), the prediction error of seed 003's
+insertion length (added to the depths they already have), the prediction error of the multi-rate UKF paper's
 appendix A.
 
 What the comparison decided per observer (settings origin, start, causal, runtime, the observers skipped
@@ -449,7 +449,7 @@ def common_start(ctx: ComparisonContext, chosen: list[Candidate], cfg: Experimen
             c.start = "own settings"
         elif c.name == ref:
             c.start = "common (reference)"
-        elif note := cls.prescribed_start(by_name[c.name]):  # e.g. seed 000's start on top of the common one
+        elif note := cls.prescribed_start(by_name[c.name]):  # e.g. the high-gain observer paper's start on top of the common one
             c.start = f"common; {note}"
         else:
             c.start = "common"

@@ -57,7 +57,7 @@ class Trials:
     simulated: bool
 
 
-#: ``needle fit-em --model both``: every model of the config's fit section (``fit.models``; seed 004's
+#: ``needle fit-em --model both``: every model of the config's fit section (``fit.models``; the magnetic needle EM paper's
 #: configs fit mnm and binm, whence the word)
 EVERY_MODEL = "both"
 
@@ -118,7 +118,7 @@ def load_trials(path: str | Path, *, overrides: list[str] | None = None, models:
 
 
 #: s per trial, tick and model that EM and its identifiability take more on the numpy path than compiled:
-#: seed 004's study (48 trials x 486 ticks x 2 models, 71.5 s against 9.0 s: docs/benchmarks.md)
+#: the magnetic needle EM paper's study (48 trials x 486 ticks x 2 models, 71.5 s against 9.0 s: docs/benchmarks.md)
 NUMPY_EXTRA_S = 1.3e-3
 #: the kernels a fit compiles (EM's passes, its M-step, identifiability's log-likelihoods)
 FIT_KERNELS = ("kalman_filter_smoother", "rts_smoother", "transition_all", "linearise", "em_process_noise",
@@ -166,7 +166,7 @@ def _not_a_config(path: Path) -> str:
     kind = root_format(path) or ""
     if kind == "log":
         return (f"{shown(path)}: is a log file; fit-em takes a config: write one with `source: {{logs: [{path.name}]}}`, "
-                "the model and a `fit:` section (see configs/replay/seed004_like.yaml) and pass that")
+                "the model and a `fit:` section (see configs/replay/em-magnetic-pratt2022_like.yaml) and pass that")
     if kind == "results":
         return f"{shown(path)}: is a results file; fit-em takes the experiment's config (.yaml)"
     if kind == "fit":
@@ -223,14 +223,14 @@ def fit_trials(
     progress: Callable[[str, int, int], None] | None = None,
     workers: int = 2,
 ) -> FitOutput:
-    """EM (seed 004, Algorithm 1) on every trial for each model, all trials of a model at once; with
+    """EM (the magnetic needle EM paper, Algorithm 1) on every trial for each model, all trials of a model at once; with
     ``workers > 1`` the models run in parallel processes (one per model, at most ``workers``)."""
     import time
 
     cfg = trials.cfg
     if cfg.fit is None:
         raise DataError(f"{trials.source}: [fit] required key is missing: fit-em needs the initial guesses of "
-                        "Q, R and the constant (see configs/seed004/study.yaml)")
+                        "Q, R and the constant (see configs/em-magnetic-pratt2022/study.yaml)")
     fit = cfg.fit
     names = models or list(fit.models)
     problem = build_problem(cfg, trials.truth, trials.sensors, trials.streams)
@@ -713,7 +713,7 @@ def identifiability_group(idf: Identifiability, fit: FitSettings) -> Group:
 def design_groups(truth: Truth, cfg: ExperimentConfig) -> tuple[np.ndarray, list[str]]:
     """The trials' design groups, ``(group (N,), labels)``: the combinations of the design factors
     (``fit.design.group_by`` of the config, else the trials' ``design_factors``: a real export's speed), else
-    the parameter cases of a simulated study (seed 004: its field strengths), else one group of every trial.
+    the parameter cases of a simulated study (the magnetic needle EM paper: its field strengths), else one group of every trial.
     Identifiability pools the information of one group's trials only."""
     N = truth.states.shape[0]
     meta = design_columns(truth, cfg)

@@ -3,9 +3,9 @@
 One module per device, registered in :data:`DEVICES` and chosen in a position sensor's ``image:``
 section by ``device``:
 
-``us2d``    2D transverse ultrasound following the tip, tip by RANSAC (seed 000) -- :mod:`.ultrasound2d`
-``us3d``    3D end-fire ultrasound volumes at a fixed pose, tip by segmentation (seed 003) -- :mod:`.ultrasound3d`
-``camera``  overhead camera, OpenCV threshold / contours / minAreaRect, opacity (seed 004) -- :mod:`.camera`
+``us2d``    2D transverse ultrasound following the tip, tip by RANSAC (the high-gain observer paper) -- :mod:`.ultrasound2d`
+``us3d``    3D end-fire ultrasound volumes at a fixed pose, tip by segmentation (the multi-rate UKF paper) -- :mod:`.ultrasound3d`
+``camera``  overhead camera, OpenCV threshold / contours / minAreaRect, opacity (the magnetic needle EM paper) -- :mod:`.camera`
 
 Shared rendering helpers are in :mod:`.render`; the ``image`` pipeline that runs a device for a sensor
 is :mod:`.pipeline`; measuring a pipeline's error on chosen poses is :mod:`.characterize`.

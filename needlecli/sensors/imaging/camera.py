@@ -1,14 +1,14 @@
-"""Overhead camera over the agar phantom (seed 004, sec. 2.3.2), rendered and measured with OpenCV.
+"""Overhead camera over the agar phantom (the magnetic needle EM paper, sec. 2.3.2), rendered and measured with OpenCV.
 
 Rendering (grey levels, 0..255): a light agar background with vignetting, a low-frequency texture and a
 few dark specks (bubbles, debris; fixed for a run), the silicone sheath and nitinol wire along the path
 behind the tip, and the magnetic tip as a dark 7 x 1 mm rectangle from the state position ``p`` forward
-along the heading (``p`` is the tip's trailing end, where the wire joins: seed 004 computes ``p`` by
+along the heading (``p`` is the tip's trailing end, where the wire joins: the magnetic needle EM paper computes ``p`` by
 offsetting half the tip length from the silhouette centre toward the wire). The needle's darkness fades
 with its depth below the agar surface, ``c = exp(-(surface_z - z) / clarity)``: this is the opacity
 signal. Per-frame sensor noise is added last.
 
-Measurement (seed 004): 8-bit grey; binary threshold at the needle's grey level + 5 (seeded at a clicked
+Measurement (the magnetic needle EM paper): 8-bit grey; binary threshold at the needle's grey level + 5 (seeded at a clicked
 pixel, then updated from the detected centre every frame: the "adaptive" threshold); open then close;
 ``cv2.findContours``; ``cv2.minAreaRect`` of the silhouette: its centre is the tip centre and its long
 axis the heading, whose sign points away from the trailing wire (the darker end); ``p`` = centre - half
@@ -16,7 +16,7 @@ the tip length along the heading; pixels to world by the calibration. OpenCV has
 contours, so frames are drawn and measured one at a time (a Python loop over frames); the geometry,
 calibration and the opacity rule are vectorised over runs.
 
-Opacity: the grey level at the detected centre; the out-of-plane rule of seed 004 eq. (7),
+Opacity: the grey level at the detected centre; the out-of-plane rule of the magnetic needle EM paper's eq. (7),
 ``B_z = 2.0 mT * (opacity - opacity_0)`` saturated at +-28 mT (:func:`bz_command`), ``opacity_0`` the
 opacity at a run's first detection. Both are stored per sample (``opacity``, ``bz_command``). The loop is
 closed by a controller (config section ``control:``, type ``opacity_bz``, :mod:`needlecli.control`): the
@@ -43,25 +43,25 @@ _NOISE_MEAN = 32  # noise images are stored as uint8 around this level (added wi
 
 
 def bz_command(opacity: np.ndarray, opacity_0: np.ndarray, *, gain: float = 2.0, limit: float = 28.0) -> np.ndarray:
-    """Out-of-plane field command of seed 004 eq. (7), mT: ``clip(gain (opacity - opacity_0), -limit, limit)``.
+    """Out-of-plane field command of the magnetic needle EM paper's eq. (7), mT: ``clip(gain (opacity - opacity_0), -limit, limit)``.
 
     Parameters
     ----------
     opacity, opacity_0 : grey levels (0..255) at the tip now and at the initial insertion point
         (broadcastable; NaN gives NaN)
-    gain : mT per grey level (seed 004: 2.0)
+    gain : mT per grey level (the magnetic needle EM paper: 2.0)
     limit : saturation, mT (the coils' 28 mT)
     """
     return np.clip(gain * (np.asarray(opacity, dtype=float) - opacity_0), -limit, limit)
 
 
 class CameraSettings(ImageSettings):
-    """Overhead camera of seed 004: 800 x 668 px over 90 x 75 mm (about 0.11 mm per pixel), 6 Hz."""
+    """Overhead camera of the magnetic needle EM paper: 800 x 668 px over 90 x 75 mm (about 0.11 mm per pixel), 6 Hz."""
 
-    device: Literal["camera"] = Field(description="the imaging device: camera, seed 004's overhead camera")
+    device: Literal["camera"] = Field(description="the imaging device: camera, the magnetic needle EM paper's overhead camera")
     size: tuple[int, int] = Field((800, 668), description="frame width, height, px")
     fov: tuple[Positive, Positive] = Field((90.0, 75.0), description="field of view in x, y, mm")
-    center: tuple[float, float] = Field((0.0, -30.0), description="world x, y (mm) at the frame centre (seed 004: "
+    center: tuple[float, float] = Field((0.0, -30.0), description="world x, y (mm) at the frame centre (the magnetic needle EM paper: "
                                         "the needle enters at the top centre, x = 0, and goes down, -y)")
     background: float = Field(200.0, ge=0, le=255, description="grey level of the agar")
     vignetting: NonNeg = Field(0.08, le=0.9, description="relative darkening at the frame corners")
@@ -80,13 +80,13 @@ class CameraSettings(ImageSettings):
     click: tuple[int, int] | None = Field(
         None, description="pixel (column, row) clicked on the needle; default: the tip's centre in the first frame "
         "that shows it")
-    threshold_offset: float = Field(5.0, ge=0, description="threshold = needle grey level + this (seed 004: 5)")
+    threshold_offset: float = Field(5.0, ge=0, description="threshold = needle grey level + this (the magnetic needle EM paper: 5)")
     center_window: int = Field(3, ge=1, le=9, description="odd window (px) over which the centre grey level is read")
     kernel: int = Field(5, ge=1, le=31, description="size of the open / close structuring element, px")
     area_range: tuple[Positive, Positive] = Field(
         (0.6, 2.0), description="accepted silhouette area as a fraction of the tip's expected area")
     wire_contrast: NonNeg = Field(2.0, description="grey levels by which the wire end must be darker to set the heading")
-    opacity_gain: float = Field(2.0, description="mT per grey level (seed 004 eq. 7)")
+    opacity_gain: float = Field(2.0, description="mT per grey level (the magnetic needle EM paper's eq. 7)")
     bz_limit: Positive = Field(28.0, description="saturation of the out-of-plane command, mT")
     calibration_scale: float = Field(0.0, ge=-0.1, le=0.1, description="relative scale error of the calibration")
     calibration_offset: tuple[float, float] = Field((0.0, 0.0), description="offset error of the calibration, mm")
@@ -100,7 +100,7 @@ class CameraSettings(ImageSettings):
 
 @DEVICES.register("camera")
 class OverheadCamera(Device):
-    """Seed 004's overhead camera: tip position ``(x, y)``, heading, opacity (see the module docstring)."""
+    """The magnetic needle EM paper's overhead camera: tip position ``(x, y)``, heading, opacity (see the module docstring)."""
 
     Settings = CameraSettings
     axes = ("x", "y")
@@ -237,7 +237,7 @@ class OverheadCamera(Device):
         return float(win.mean()) if win.size else float("nan")
 
     def detect(self, img: np.ndarray, threshold: float, near: np.ndarray, heading: np.ndarray | None):
-        """Seed 004's pipeline on one grey frame.
+        """The magnetic needle EM paper's pipeline on one grey frame.
 
         Parameters
         ----------

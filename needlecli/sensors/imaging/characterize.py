@@ -1,10 +1,10 @@
-"""Measuring an image pipeline's error the way seed 003 characterised its segmentation: repeated
-measurements of the same pose (seed 003: 20), their bias and standard deviation per axis, and how often a
+"""Measuring an image pipeline's error the way the multi-rate UKF paper characterised its segmentation: repeated
+measurements of the same pose (the multi-rate UKF paper: 20), their bias and standard deviation per axis, and how often a
 frame gives no measurement (lost) or a measurement far from the truth (outlier), against the quantities
 the device's quality depends on (distance from the transducer and needle angle; depth in the agar and
 heading; depth below the probe and tilt).
 
-The result sets the Gaussian sensors' ``sigma`` from the image pipeline: :func:`fit_growth` fits seed 003's
+The result sets the Gaussian sensors' ``sigma`` from the image pipeline: :func:`fit_growth` fits the multi-rate UKF paper's
 ``sigma = (1 + a d / d_max) sigma_c`` to the 3D ultrasound's standard deviations.
 """
 
@@ -112,7 +112,7 @@ def characterize_device(
 
 
 def fit_growth(table: pd.DataFrame, d_max: float) -> tuple[float, float]:
-    """Fit ``sigma = (1 + a d / d_max) sigma_c`` (seed 003) to the mean per-axis standard deviation against
+    """Fit ``sigma = (1 + a d / d_max) sigma_c`` (the multi-rate UKF paper) to the mean per-axis standard deviation against
     ``Distance [mm]`` at the best needle angle; returns ``(sigma_c, a)`` (``a >= 0``)."""
     best = table["Angle [deg]"].max()
     t = table[(table["Angle [deg]"] == best)].dropna()

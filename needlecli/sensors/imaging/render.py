@@ -71,7 +71,7 @@ class TruthPath:
     truth : the simulated insertions; ``truth.depth`` (T,) is the inserted arc length of the tip
     visible_from : arc length (mm) from which the shaft is visible; negative values extend the shaft
         behind the starting point along the initial tangent (a needle pre-inserted that far, as for the
-        initialisation volume of seed 003)
+        initialisation volume of the multi-rate UKF paper)
     """
 
     def __init__(self, truth, visible_from: float = 0.0) -> None:

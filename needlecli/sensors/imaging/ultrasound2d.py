@@ -1,4 +1,4 @@
-"""2D transverse ultrasound following the tip (seed 000), rendered as B-mode images; tip by RANSAC.
+"""2D transverse ultrasound following the tip (the high-gain observer paper), rendered as B-mode images; tip by RANSAC.
 
 Geometry: the probe sits on the phantom with its face centre at world ``(x, y) = face`` and images the
 plane ``z = z_tip - plane_offset`` (it rides on a stage that follows the tip). Image columns are the
@@ -10,7 +10,7 @@ bright echo of its near wall, of the point-spread function's size) with its reve
 every needle diameter deeper, decaying), depth attenuation of every echo, electronic noise, envelope,
 log compression to 8 bit.
 
-Measurement (seed 000 finds the tip "using RANSAC"): candidate pixels brighter than their row's median by
+Measurement (the high-gain observer paper finds the tip "using RANSAC"): candidate pixels brighter than their row's median by
 ``threshold_db``; RANSAC fits the line of the needle's echo and its tail, which runs along the beam;
 the near-wall echo is the brightest point on that line (sub-pixel by a parabola), and the needle's centre
 lies one radius deeper. Fewer inliers than ``min_inliers``: no measurement. Vectorised over frames
@@ -39,9 +39,9 @@ from needlecli.sensors.imaging.render import (
 
 
 class TransverseUltrasoundSettings(ImageSettings):
-    """2D transverse B-mode ultrasound (seed 000: SonixTouch, 18 G needle in gelatin)."""
+    """2D transverse B-mode ultrasound (the high-gain observer paper: SonixTouch, 18 G needle in gelatin)."""
 
-    device: Literal["us2d"] = Field(description="the imaging device: us2d, 2D transverse ultrasound (seed 000)")
+    device: Literal["us2d"] = Field(description="the imaging device: us2d, 2D transverse ultrasound (the high-gain observer paper)")
     pixel: Positive = Field(0.2, description="pixel edge, mm")
     width: Positive = Field(40.0, description="lateral extent of the image (world x), mm")
     depth: Positive = Field(40.0, description="imaging depth below the probe face, mm")
@@ -65,7 +65,7 @@ class TransverseUltrasoundSettings(ImageSettings):
 
 @DEVICES.register("us2d")
 class TransverseUltrasound(Device):
-    """Seed 000's 2D transverse ultrasound: tip ``(x, y)`` (see the module docstring)."""
+    """The high-gain observer paper's 2D transverse ultrasound: tip ``(x, y)`` (see the module docstring)."""
 
     Settings = TransverseUltrasoundSettings
     axes = ("x", "y")

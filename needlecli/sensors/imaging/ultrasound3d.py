@@ -1,7 +1,7 @@
-"""3D ultrasound volumes from a motorised end-fire probe at a fixed pose (seed 003), tip by segmentation.
+"""3D ultrasound volumes from a motorised end-fire probe at a fixed pose (the multi-rate UKF paper), tip by segmentation.
 
 Probe: the transducer at ``transducer`` looks along ``axis``; the volume is the cone of half-angle
-``half_angle`` around it up to the acquisition depth ``max_depth`` (seed 003: 80 mm), scan-converted to
+``half_angle`` around it up to the acquisition depth ``max_depth`` (the multi-rate UKF paper: 80 mm), scan-converted to
 cubic voxels of ``voxel`` mm (0.4 mm) on a world-aligned lattice. Beams fan out from the transducer: the
 beam at a point runs along the line from the transducer to it.
 
@@ -13,7 +13,7 @@ Rendering (B-mode, 8 bit after log compression), vectorised over runs:
   following the tip's path) with an anisotropic point-spread function: ``psf_axial`` along the beam,
   ``psf_lateral (1 + lateral_growth d / max_depth)`` across it (the beam widens with the distance ``d``
   from the transducer). Its echo falls with the angle ``theta`` between needle and beam (specular
-  reflection, seed 003 sec. 2.1): ``needle_echo (floor + (1 - floor) sin(theta)^power)``, spread over
+  reflection, the multi-rate UKF paper's sec. 2.1): ``needle_echo (floor + (1 - floor) sin(theta)^power)``, spread over
   the wider beam far away;
 * artefacts: a reverberation tail behind the needle along the beam, and bright clutter blobs;
 * electronic noise, amplified with depth by the time-gain compensation (``attenuation`` dB/mm).
@@ -63,14 +63,14 @@ _SPECKLE_DB = 5.57  # std of fully developed speckle in dB (robust: 1.4826 MAD)
 
 
 class EndFireUltrasoundSettings(ImageSettings):
-    """3D end-fire ultrasound at 1 Hz (seed 003: 4DEC-9/10 on a Sonix RP, 0.4 mm voxels)."""
+    """3D end-fire ultrasound at 1 Hz (the multi-rate UKF paper: 4DEC-9/10 on a Sonix RP, 0.4 mm voxels)."""
 
-    device: Literal["us3d"] = Field(description="the imaging device: us3d, 3D end-fire ultrasound volumes (seed 003)")
+    device: Literal["us3d"] = Field(description="the imaging device: us3d, 3D end-fire ultrasound volumes (the multi-rate UKF paper)")
     voxel: Positive = Field(0.4, description="voxel edge, mm")
     transducer: Vec3 = Field((0.0, -50.0, 40.0), description="world position of the transducer, mm")
     axis: Vec3 = Field((0.0, 1.0, 0.0), description="direction the probe looks along")
     half_angle: float = Field(60.0, gt=0, lt=90, description="half-angle of the imaged cone, deg")
-    max_depth: Positive = Field(80.0, description="acquisition depth d_max, mm (seed 003: 80)")
+    max_depth: Positive = Field(80.0, description="acquisition depth d_max, mm (the multi-rate UKF paper: 80)")
     psf_lateral: Positive = Field(1.0, description="lateral std of the point-spread function at the transducer, mm")
     lateral_growth: NonNeg = Field(1.0, description="lateral std grows as (1 + lateral_growth d / max_depth)")
     psf_axial: Positive = Field(0.4, description="axial std of the point-spread function, mm")
@@ -86,7 +86,7 @@ class EndFireUltrasoundSettings(ImageSettings):
     clutter_size: Positive = Field(0.8, description="std of a clutter blob, mm")
     dynamic_range: Positive = Field(50.0, description="display dynamic range, dB")
     visible_from: float = Field(-10.0, le=0, description="arc length from which the shaft shows, mm (negative: "
-                                "pre-inserted, as the initialisation volume of seed 003)")
+                                "pre-inserted, as the initialisation volume of the multi-rate UKF paper)")
     roi_size: Positive = Field(12.0, description="edge of the region rendered and segmented at full resolution, mm")
     roi_prior: Vec3 | None = Field(None, description="where to look before the first detection (default: search)")
     coarse: int = Field(4, ge=2, le=8, description="voxel factor of the coarse search level")
@@ -108,7 +108,7 @@ class EndFireUltrasoundSettings(ImageSettings):
 
 @DEVICES.register("us3d")
 class EndFireUltrasound(Device):
-    """Seed 003's 3D end-fire ultrasound: tip ``(x, y, z)`` (see the module docstring)."""
+    """The multi-rate UKF paper's 3D end-fire ultrasound: tip ``(x, y, z)`` (see the module docstring)."""
 
     Settings = EndFireUltrasoundSettings
     axes = ("x", "y", "z")

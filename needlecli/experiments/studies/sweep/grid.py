@@ -148,7 +148,7 @@ class Grid(Strict):
 
     Example::
 
-        description: curvature process noise of the seed 003 filter
+        description: curvature process noise of the multi-rate UKF paper's filter
         fixed: {runs.count: 10}
         grid:
           observers.0.q.kappa: [5.0e-7, 1.0e-6, 2.0e-6, 4.0e-6, 8.0e-6]

@@ -230,28 +230,46 @@ def max_name_length(folder) -> int:
 
 
 @contextlib.contextmanager
-def file_lock(path) -> Iterator[None]:
+def file_lock(path, *, blocking: bool = True) -> Iterator[bool]:
     """Hold an exclusive lock named by the file ``path`` while the block runs: one process (or thread's
-    block) at a time, across processes of this machine. ``fcntl.flock`` on the file ``path`` (created if
-    missing) where it exists (POSIX); else ``msvcrt.locking`` of its first byte (Windows); else the
-    exclusive creation of ``<path>.excl`` (removed afterwards; see :data:`LOCK_STALE`). Waits as long as
-    another holds it."""
+    block) at a time, across the processes of this machine, and of every machine that shares the file
+    system where it locks (NFS, Lustre mounted with ``flock``). ``fcntl.flock`` on the file ``path``
+    (created if missing) where it exists (POSIX) and the file system takes it; else ``msvcrt.locking`` of
+    its first byte (Windows); else the exclusive creation of ``<path>.excl`` (removed afterwards; see
+    :data:`LOCK_STALE`): also where ``flock`` is refused by the file system (a network file system
+    without lock support, Lustre without ``-o flock``: ``ENOLCK``, ``EOPNOTSUPP``, ...). Waits as long as
+    another holds it, or with ``blocking=False`` yields False at once when another does (the block then
+    runs without the lock: the caller decides). Yields True when held."""
     path = os.fspath(path)
     if has_flock():
         import fcntl
 
         with open(path, "a") as lock:
-            fcntl.flock(lock, fcntl.LOCK_EX)
             try:
-                yield
-            finally:
-                fcntl.flock(lock, fcntl.LOCK_UN)
-    elif has_msvcrt_locking():
-        with _msvcrt_lock(path):
-            yield
+                fcntl.flock(lock, fcntl.LOCK_EX | (0 if blocking else fcntl.LOCK_NB))
+            except BlockingIOError:
+                yield False
+                return
+            except OSError as e:
+                if e.errno not in _NO_FLOCK:
+                    raise
+                lock.close()  # the file system takes no flock: the lock file's way
+            else:
+                try:
+                    yield True
+                finally:
+                    fcntl.flock(lock, fcntl.LOCK_UN)
+                return
+    if has_msvcrt_locking():
+        with _msvcrt_lock(path, blocking) as held:
+            yield held
     else:
-        with _exclusive_file_lock(path + ".excl"):
-            yield
+        with _exclusive_file_lock(path + ".excl", blocking) as held:
+            yield held
+
+
+#: errors of ``flock`` on a file system that takes no such lock (NFS without lockd, Lustre without -o flock)
+_NO_FLOCK = {getattr(errno, n) for n in ("ENOLCK", "EOPNOTSUPP", "ENOTSUP", "ENOSYS", "EINVAL") if hasattr(errno, n)}
 
 
 def has_flock() -> bool:
@@ -280,7 +298,7 @@ _LOCK_POLL = 0.01  # s between attempts at a lock held by another
 
 
 @contextlib.contextmanager
-def _msvcrt_lock(path: str) -> Iterator[None]:
+def _msvcrt_lock(path: str, blocking: bool = True) -> Iterator[bool]:
     import msvcrt
     import time
 
@@ -293,9 +311,12 @@ def _msvcrt_lock(path: str) -> Iterator[None]:
             except OSError as e:
                 if e.errno not in (errno.EACCES, getattr(errno, "EDEADLOCK", errno.EDEADLK)):
                     raise
+                if not blocking:
+                    yield False
+                    return
                 time.sleep(_LOCK_POLL)
         try:
-            yield
+            yield True
         finally:
             os.lseek(fd, 0, os.SEEK_SET)
             msvcrt.locking(fd, msvcrt.LK_UNLCK, 1)
@@ -303,13 +324,14 @@ def _msvcrt_lock(path: str) -> Iterator[None]:
         os.close(fd)
 
 
-#: s: an exclusive lock file older than this is taken as left by a process that is gone (the locked
-#: sections, saves of a compiled kernel, take well under a second)
+#: s: an exclusive lock file older than this is taken as left by a process that is gone (saves of a
+#: compiled kernel take well under a second; a compilation that takes longer than this may then run twice,
+#: which costs only the time)
 LOCK_STALE = 120.0
 
 
 @contextlib.contextmanager
-def _exclusive_file_lock(held: str) -> Iterator[None]:
+def _exclusive_file_lock(held: str, blocking: bool = True) -> Iterator[bool]:
     import socket
     import time
 
@@ -320,13 +342,16 @@ def _exclusive_file_lock(held: str) -> Iterator[None]:
             break
         except FileExistsError:
             _break_stale_lock(held)
+            if not blocking and os.path.exists(held):
+                yield False
+                return
             time.sleep(_LOCK_POLL)
     try:
         os.write(fd, me.encode())
     finally:
         os.close(fd)
     try:
-        yield
+        yield True
     finally:
         with contextlib.suppress(OSError):
             os.unlink(held)
@@ -404,10 +429,52 @@ def malloc_tune(*, mmap_threshold: int, trim_threshold: int, top_pad: int) -> bo
 
 # ---------------------------------------------------------------------------------------------- threads
 def usable_cores() -> int:
-    """The cores this process may run on: its CPU affinity (Linux), else every core of the machine."""
+    """The cores this process may run on: its CPU affinity (Linux), else every core of the machine; at most
+    its control group's CPU quota, rounded up (Linux: a batch scheduler's or a container's limit,
+    :func:`cpu_quota`)."""
     if hasattr(os, "sched_getaffinity") and not without("sched_getaffinity"):
-        return max(1, len(os.sched_getaffinity(0)))
-    return max(1, os.cpu_count() or 1)
+        n = len(os.sched_getaffinity(0))
+    else:
+        n = os.cpu_count() or 1
+    quota = cpu_quota()
+    return max(1, min(n, quota) if quota is not None else n)
+
+
+def cpu_quota() -> int | None:
+    """The CPU quota of this process's control group in whole cores, rounded up (cgroup v2 ``cpu.max``,
+    v1 ``cpu.cfs_quota_us`` / ``cpu.cfs_period_us``: what SLURM, Kubernetes or ``docker --cpus`` set), or
+    None where there is none or it cannot be read (not Linux, no ``/proc``)."""
+    if without("proc") or not sys.platform.startswith("linux"):
+        return None
+    import math
+
+    try:
+        with open("/proc/self/cgroup", encoding="utf-8") as f:
+            lines = f.read().splitlines()
+    except OSError:
+        return None
+    for line in lines:  # "0::/path" (v2) or "4:cpu,cpuacct:/path" (v1)
+        _, controllers, rel = (line.split(":", 2) + ["", ""])[:3]
+        try:
+            if controllers == "":
+                with open(f"/sys/fs/cgroup{rel}/cpu.max", encoding="utf-8") as f:
+                    quota, period = (f.read().split() + ["100000"])[:2]
+                if quota != "max":
+                    return max(1, math.ceil(int(quota) / int(period)))
+            elif "cpu" in controllers.split(","):
+                base = next((f"/sys/fs/cgroup/{d}{rel}" for d in ("cpu,cpuacct", "cpu", "cpuacct,cpu")
+                             if os.path.isdir(f"/sys/fs/cgroup/{d}{rel}")), None)
+                if base is None:
+                    continue
+                with open(f"{base}/cpu.cfs_quota_us", encoding="utf-8") as f:
+                    quota_us = int(f.read())
+                with open(f"{base}/cpu.cfs_period_us", encoding="utf-8") as f:
+                    period_us = int(f.read())
+                if quota_us > 0 and period_us > 0:
+                    return max(1, math.ceil(quota_us / period_us))
+        except (OSError, ValueError):
+            continue
+    return None
 
 
 #: environment variables that size the thread pools of BLAS / OpenMP in a process started after they are set
@@ -508,6 +575,78 @@ def fork_available() -> bool:
     import multiprocessing as mp
 
     return "fork" in mp.get_all_start_methods()
+
+
+def spawn_detached(fn, *args, ready=None) -> int | None:
+    """Run ``fn(*args)`` in a process of its own that outlives this one (a forked grandchild in a new
+    session: a Ctrl-C in this command's terminal does not stop it; it is nobody's zombie), its output to
+    nowhere, and return its pid once it has started; it ends when ``fn`` returns or raises. ``ready()``,
+    if given, runs in that process first: when it returns False the process ends at once and None is
+    returned. None also where processes cannot be forked (:func:`fork_available`): the caller does the
+    work itself. Used for the background compilation of the kernels for the next run
+    (:func:`needlecli.kernels.compile_in_background`)."""
+    if not fork_available():
+        return None
+    r, w = os.pipe()
+    try:
+        pid = os.fork()
+    except OSError:
+        os.close(r)
+        os.close(w)
+        return None
+    if pid == 0:  # the child: a new session, then the grandchild that does the work
+        try:
+            os.close(r)
+            os.setsid()
+            if os.fork() == 0:
+                try:
+                    signal.signal(signal.SIGINT, signal.SIG_IGN)
+                    signal.signal(signal.SIGHUP, signal.SIG_IGN)
+                    devnull = os.open(os.devnull, os.O_RDWR)
+                    for fd in (0, 1, 2):
+                        os.dup2(devnull, fd)
+                    go = ready is None or ready()
+                    os.write(w, str(os.getpid() if go else 0).encode())
+                    os.close(w)
+                    if go:
+                        fn(*args)
+                except BaseException:  # noqa: BLE001  (nobody to tell: the work's own files say what it did)
+                    pass
+                finally:
+                    os._exit(0)
+        finally:
+            os._exit(0)  # the child ends at once: the grandchild is re-parented (no zombie)
+    os.close(w)
+    try:
+        os.waitpid(pid, 0)
+        with os.fdopen(r, "rb") as f:
+            got = f.read().strip()
+    except OSError:
+        return None
+    return int(got) if got.isdigit() and int(got) > 0 else None
+
+
+_HELD_LOCKS: list = []
+
+
+def hold_lock(path) -> bool:
+    """Take the exclusive lock :func:`file_lock` names by ``path`` without waiting, and keep it until this
+    process ends (the kernel releases a ``flock`` then, even after SIGKILL; a lock file is taken as stale
+    once its process is gone). False when another holds it."""
+    cm = file_lock(path, blocking=False)
+    if cm.__enter__():
+        _HELD_LOCKS.append(cm)
+        return True
+    cm.__exit__(None, None, None)
+    return False
+
+
+def lock_held(path) -> bool:
+    """Whether another process (or another :func:`hold_lock` of this one) holds the lock of ``path``."""
+    if not os.path.exists(path) and not os.path.exists(os.fspath(path) + ".excl"):
+        return False
+    with file_lock(path, blocking=False) as got:
+        return not got
 
 
 def die_with_parent() -> bool:

@@ -2,12 +2,18 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
 
 from needlecli.cli.app import app
+
+# The suite's numbers never depend on the state of the kernel cache: on a cold one, commands compile first
+# (as `kernels: numba` would) instead of taking the numpy path while the kernels compile in the background
+# (tests/test_cold_cache.py tests that, explicitly). Inherited by the commands the tests start.
+os.environ.setdefault("NEEDLECLI_COLD", "wait")
 
 
 @pytest.fixture(scope="session")

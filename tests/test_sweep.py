@@ -386,3 +386,181 @@ def test_swept_keys_are_named_with_their_units(files, tmp_path):
     assert mnm.length_unit == "m"
     assert describe_key(cfg, "stop.depth")["unit"] == "m" and describe_key(cfg, "sensors.0.sigma")["unit"] == "m"
     assert describe_key(cfg, "model.params.c")["unit"] == "1/m"
+
+
+# ---------------------------------------------------------------------------------------------- on a cluster
+ROOT = Path(__file__).resolve().parents[1]
+
+#: a lab's observer (an entry point of a package on PYTHONPATH): the open loop with a setting whose default
+#: the test changes (GAIN), and one that kills its worker process (die: "once:<file>" the first time, or
+#: "always")
+LAB = '''\
+import os, signal
+from pathlib import Path
+from typing import Literal
+from needlecli.observers.open_loop import OpenLoop, OpenLoopSettings
+
+class LabSettings(OpenLoopSettings):
+    type: Literal["lab_ol"]
+    gain: float = GAIN
+    die: str = ""
+
+class LabOL(OpenLoop):
+    Settings = LabSettings
+
+    def run(self, problem, rng, progress=None):
+        die = self.settings.die
+        if die == "always" or (die.startswith("once:") and not Path(die[5:]).exists()):
+            if die.startswith("once:"):
+                Path(die[5:]).write_text("died once")
+            os.kill(os.getpid(), signal.SIGKILL)
+        return super().run(problem, rng, progress)
+'''
+
+
+@pytest.fixture()
+def lab(tmp_path) -> dict:
+    """TINY with the lab's observer, the package on PYTHONPATH (commands run in processes of their own:
+    registries read entry points once per process)."""
+    site = tmp_path / "site"
+    info = site / "labobs-0.1.dist-info"
+    info.mkdir(parents=True)
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: labobs\nVersion: 0.1\n")
+    (info / "entry_points.txt").write_text("[needlecli.observers]\nlab_ol = labobs:LabOL\n")
+    (site / "labobs.py").write_text(LAB.replace("GAIN", "1.0"))
+    (tmp_path / "tiny.yaml").write_text(TINY.replace("  - {name: ol, type: open_loop}", "  - {name: lab, type: lab_ol}"))
+    (tmp_path / "grid.yaml").write_text(GRID)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(site), str(ROOT)])}
+    return {"dir": tmp_path, "site": site, "env": env}
+
+
+def needle(env, cwd, *args):
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "needlecli", *map(str, args)], env=env, cwd=cwd, capture_output=True,
+                          text=True)
+
+
+def test_cell_by_cell_in_separate_processes_then_collect_gives_the_local_sweeps_table(files, tmp_path):
+    """A job array: each cell by its index in a process of its own (``--cell I``), then ``--collect``:
+    the table of a local sweep, to the last digit; the collect of a partial sweep says what is missing."""
+    config, grid = files
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    n = needle(env, tmp_path, "sweep", config, "--grid", grid, "--dry-run", "--quiet")
+    assert n.returncode == 0 and n.stdout.strip() == "4", n.stderr
+    arr = tmp_path / "array"
+    for i in (0, 2, 3):
+        r = needle(env, tmp_path, "sweep", config, "--grid", grid, "--out", arr, "--cell", i)
+        assert r.returncode == 0 and r.stdout.startswith(f"cell {i} of 4 ok in "), r.stderr
+    r = invoke("sweep", config, "--grid", grid, "--out", arr, "--collect")
+    assert r.exit_code == 1 and "3 complete, 0 failed, 1 missing" in r.output  # a partial table: exit 1
+    assert (table(arr)["status"] == "not run").sum() == 2  # the missing cell's 2 observers
+    r = needle(env, tmp_path, "sweep", config, "--grid", grid, "--out", arr, "--cell", 1)
+    assert r.returncode == 0, r.stderr
+    again = needle(env, tmp_path, "sweep", config, "--grid", grid, "--out", arr, "--cell", 1, "--resume")
+    assert again.stdout.startswith("cell 1 of 4 complete from an earlier run"), again.stdout
+    bad = needle(env, tmp_path, "sweep", config, "--grid", grid, "--out", arr, "--cell", 4)
+    assert bad.returncode == 2 and bad.stderr.strip() == "error: --cell 4: the grid has 4 cell(s), numbered 0 to 3"
+    r = invoke("sweep", config, "--grid", grid, "--out", arr, "--collect", "--quiet")
+    assert r.exit_code == 0, r.output
+    local = tmp_path / "local"
+    r = invoke("sweep", config, "--grid", grid, "--out", local, "--workers", "2", "--quiet")
+    assert r.exit_code == 0, r.output
+    pd.testing.assert_frame_equal(table(arr), table(local))
+    assert (arr / "sweep_E_xyz_mean_vs_observers.0.q.kappa.png").exists()
+
+
+def test_a_worker_running_another_needlecli_is_refused_naming_it(files, tmp_path):
+    distributed = pytest.importorskip("distributed", reason="needs dask[distributed] (pip install 'needlecli[dask]')")
+    from needlecli.provenance import REPORT_ENV
+
+    config, grid = files
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=":0",
+                                  env={REPORT_ENV: "9.9.9 0123abc"}) as cluster:
+        r = needle({**os.environ, "PYTHONPATH": str(ROOT)}, tmp_path, "sweep", config, "--grid", grid, "--out",
+                   tmp_path / "o", "--executor", "dask", "--scheduler", cluster.scheduler_address, "--quiet")
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1, r.stderr
+    assert lines[0].startswith("error: dask worker tcp://") and "runs needlecli 9.9.9 (git 0123abc)" in lines[0]
+    assert not list((tmp_path / "o" / "cells").glob("*.h5"))  # no cell ran
+
+
+def test_resume_runs_again_the_cells_whose_defaults_or_needlecli_changed(lab):
+    d, env = lab["dir"], lab["env"]
+    args = ("sweep", "tiny.yaml", "--grid", "grid.yaml", "--out", "out", "--executor", "inline", "--quiet")
+    assert needle(env, d, *args).returncode == 0
+    before = mtimes(d / "out")
+    r = needle(env, d, *args, "--resume")
+    assert r.returncode == 0 and mtimes(d / "out") == before, r.stderr  # nothing changed: nothing ran
+    (lab["site"] / "labobs.py").write_text(LAB.replace("GAIN", "2.0"))  # a default the configs do not set
+    r = needle(env, d, *args, "--resume")
+    after = mtimes(d / "out")
+    assert r.returncode == 0 and all(after[k] != before[k] for k in before), r.stderr  # every cell ran again
+    r = needle({**env, "NEEDLECLI_REPORT_VERSION": "0.2.0"}, d, *args, "--resume")  # another needlecli
+    assert r.returncode == 0 and all(mtimes(d / "out")[k] != after[k] for k in after), r.stderr
+
+
+def test_a_dead_local_worker_fails_only_its_own_cell_after_one_retry(lab):
+    """One cell kills its worker process the first time (it passes when run again), one every time (it
+    fails, twice); the others are not touched; outside a terminal, one line per finished cell."""
+    d, env = lab["dir"], lab["env"]
+    (d / "grid.yaml").write_text(f"""\
+cells:
+  - {{observers.1.die: "once:{d / 'died'}"}}
+  - {{observers.1.die: always}}
+  - {{observers.1.die: ""}}
+  - {{observers.1.die: "", observers.0.q.kappa: 8.0e-6}}
+""")
+    r = needle(env, d, "sweep", "tiny.yaml", "--grid", "grid.yaml", "--out", "out", "--workers", "2")
+    assert r.returncode == 1, r.stderr
+    t = table(d / "out")
+    status = t.groupby("cell")["status"].first()
+    assert sorted(status) == ["failed", "ok", "ok", "ok"] and (d / "died").exists()
+    failed = t[t["status"] == "failed"]
+    assert failed["error"].str.contains("its worker process ended (exit code -9), 2 time", regex=False).all()
+    import re
+
+    done = [ln for ln in r.stderr.splitlines() if re.match(r"cell \d/4 (ok|failed) in ", ln)]
+    assert len(done) == 4, r.stderr
+    assert sum("running it again" in ln for ln in r.stderr.splitlines()) == 2, r.stderr  # each dying cell once
+    r = needle(env, d, "sweep", "tiny.yaml", "--grid", "grid.yaml", "--out", "out", "--resume", "--quiet")
+    assert r.returncode == 1 and len(list((d / "out" / "cells").glob("*.error.txt"))) == 1  # beside the failed one
+
+
+def test_the_code_state_counts_the_packages_own_changes_only(tmp_path):
+    """What a sweep's resume key and its workers compare: the commit, and a hash of uncommitted changes to
+    the package's files only; the same code gives the same answer, other code another."""
+    import shutil
+    import subprocess
+
+    from needlecli.provenance import code_state
+
+    if shutil.which("git") is None:
+        pytest.skip("needs git")
+    env = {**os.environ, "GIT_AUTHOR_NAME": "t", "GIT_AUTHOR_EMAIL": "t@t", "GIT_COMMITTER_NAME": "t",
+           "GIT_COMMITTER_EMAIL": "t@t"}
+
+    def git(*args):
+        subprocess.run(["git", *args], cwd=tmp_path, env=env, check=True, capture_output=True)
+
+    pkg = tmp_path / "pkg"
+    pkg.mkdir()
+    (pkg / "a.py").write_text("X = 1\n")
+    (tmp_path / "notes.md").write_text("notes\n")
+    git("init", "-q")
+    git("add", ".")
+    git("commit", "-qm", "first")
+    clean = code_state(pkg)
+    assert len(clean) == 40 and "+" not in clean
+    (tmp_path / "notes.md").write_text("other notes\n")  # outside the package: not its code
+    assert code_state(pkg) == clean
+    (pkg / "a.py").write_text("X = 2\n")
+    two = code_state(pkg)
+    assert two.startswith(clean + "+") and len(two) == 41 + 12
+    (pkg / "a.py").write_text("X = 3\n")
+    assert code_state(pkg) not in (clean, two)  # other uncommitted code: another state
+    (pkg / "a.py").write_text("X = 2\n")
+    assert code_state(pkg) == two  # the same code: the same state
+    (pkg / "b.py").write_text("Y = 1\n")  # a new file of the package, not yet added
+    assert code_state(pkg) not in (clean, two)

@@ -1,7 +1,8 @@
 """``make bench``: run every benchmark in order, show its output as it comes, and write what they printed as
 the documentation's benchmark page (``docs/benchmarks.md``): the machine and the load it ran under, issue
 14's targets as a table (from ``bench_kernels.py --json``), then each benchmark's own words (its
-docstring) and its output as printed. The page is written only when every benchmark finished.
+docstring) and its output as printed (with ``bench_sweep.py --json``'s targets, issue 27's, in the table
+too). The page is written only when every benchmark finished.
 
     python tools/bench_page.py [--out docs/benchmarks.md] [--only bench_kernels ...] [-- ARGS for bench_kernels]
     python tools/bench_page.py --render       # the page again from the last round's record, running nothing
@@ -94,10 +95,12 @@ def page(outputs: dict[str, tuple[str, float]], targets: list[dict], info: dict[
            "prints its figures as ratios against a reference measured in the same run, and each time is the best "
            "of a few.", ""]
     if targets:
-        out += ["## Issue 14's targets", "",
+        out += ["## Targets", "",
                 "What a user waits for, as whole `needle` processes, against FilterPy's UKF on the same model and "
                 "data written as FilterPy users write it (scalar `math` fx; its estimate within 1e-6 mm of "
-                "needlecli's), measured in the same run (`benchmarks/bench_kernels.py`):", "",
+                "needlecli's), measured in the same run (`benchmarks/bench_kernels.py`, issue 14); a first run "
+                "on an empty kernel cache against a warm one (issue 27); a sweep on 1 and 2 Dask workers "
+                "(`benchmarks/bench_sweep.py`, issue 27):", "",
                 "| target | measured | verdict |", "| --- | --- | --- |"]
         for t in targets:
             cells = [str(t[k]).replace("|", "\\|") for k in ("target", "measured", "verdict")]
@@ -125,13 +128,15 @@ def main() -> None:
         names = a.only or BENCHMARKS
         rec = {"started": dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%d %H:%M"), "load": os.getloadavg(),
                "machine": machine(), "outputs": {}}
-        summary = Path(tempfile.mkdtemp(prefix="bench_page_")) / "targets.json"
+        scratch = Path(tempfile.mkdtemp(prefix="bench_page_"))
+        summary, sweep = scratch / "targets.json", scratch / "sweep_targets.json"
         for name in names:
-            args = [*a.kernel_args, "--json", str(summary)] if name == "bench_kernels" else []
+            args = ([*a.kernel_args, "--json", str(summary)] if name == "bench_kernels" else
+                    ["--json", str(sweep)] if name == "bench_sweep" else [])
             rec["outputs"][name] = run(name, args)
         if a.only:
             return
-        rec["targets"] = json.loads(summary.read_text()) if summary.exists() else []
+        rec["targets"] = [row for f in (summary, sweep) if f.exists() for row in json.loads(f.read_text())]
         a.record.parent.mkdir(parents=True, exist_ok=True)
         a.record.write_text(json.dumps(rec, indent=1), encoding="utf-8")
     text = page({k: tuple(v) for k, v in rec["outputs"].items()}, rec["targets"], rec["machine"], rec["started"],

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -74,7 +75,10 @@ def digest_config(cfg: Path, tmp: Path) -> tuple[str, dict | str]:
     text = cfg.read_text()
     if "source:" in text:  # replays: their trial count comes from the logs
         cmd = ["needle", "simulate", str(cfg), "--out", str(out), "--quiet"]
-    p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+    # on a cold kernel cache a command may take the numpy path while its kernels compile for the next run
+    # (other bits, needlecli.kernels.dispatch): the digests are always those of the compiled path
+    env = {**os.environ, "NEEDLECLI_COLD": "wait"}
+    p = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, env=env)
     key = cfg.relative_to(ROOT).as_posix()
     if p.returncode != 0:
         return key, "skipped: " + _text((p.stderr.strip().splitlines() or [f"exit {p.returncode}"])[-1])

@@ -1350,8 +1350,8 @@ def linearise(mm, kind, z, y=None):
     H = np.empty((N, M, m, n))
     d = np.empty((N, M, m))
     yo = np.empty((N, M, m))
-    axis = mm._axis() if kd == 1 else 0
-    parallel_for(fd_linearise, _trials(N, N * M * n), (z3, kd, idx, np.ascontiguousarray(yy, dtype=float),
+    axis = mm._axis() if kd == 1 else 0  # (idx copied: one compiled signature, whether given writable or not)
+    parallel_for(fd_linearise, _trials(N, N * M * n), (z3, kd, np.array(idx, dtype=np.int64), np.ascontiguousarray(yy, dtype=float),
                                             np.ascontiguousarray(valid, dtype=np.bool_), int(axis), yh, H, d, yo))
     if one:
         return yh[:, 0], H[:, 0], d[:, 0], yo[:, 0]

@@ -148,18 +148,59 @@ def run_experiment(
                             tree=tree if write else None)
 
 
+#: s per insertion-step that the numpy path takes more than the compiled one, for each component of a run
+#: with a compiled twin (the truth, each such observer): Table 1's whole processes at 100 and at 1,000
+#: runs give the same 7.3 us (docs/benchmarks.md); what a first run on a cold cache weighs against waiting
+#: for the compilation (:func:`needlecli.kernels.on_cold`)
+NUMPY_EXTRA_S = 7e-6
+
+
 def warm_up_observers(cfg: ExperimentConfig) -> kernels.WarmUp:
-    """On a kernel cache without the observers' compiled code (the first run after an install or a change
-    of the kernels), compile the observers' kernels in a second process while this one compiles and runs the
-    truth simulation: the child runs the observers on a short copy of the experiment (one run, 2 s, its
-    truth and sensors on the numpy path), which compiles them for the same argument types."""
-    if cfg.source is not None or not cfg.observers or not kernels.compiled(cfg.simulation.kernels):
-        return kernels.WarmUp()  # recorded trials: no truth to simulate briefly; numpy: numba not even imported
-    entries = [OBSERVERS.get(o.type).compiled_entry for o in cfg.observers]  # (the observers'
-    if not kernels.cold(entries):  # declarations: the kernel each compiles longest)
+    """What this run does about its compiled kernels on a cold cache (the first run after an install or a
+    change of the kernels), decided at its first kernel not compiled (:func:`needlecli.kernels.on_cold`):
+
+    * a run whose numpy path costs less than the compilation (``NUMPY_EXTRA_S`` per insertion-step of each
+      component with a compiled twin, against this machine's compile times) takes the numpy path, while a
+      process of its own compiles the kernels for the next run: this experiment shortened to one run of
+      2 s, its tables included (:func:`_compile_briefly`); under ``auto`` and the cold policy
+      ``background`` (``NEEDLECLI_COLD``), for simulated insertions;
+    * otherwise it compiles them, on two cores: a second process compiles the observers' kernels on a
+      short copy of the experiment (one run, 2 s, its truth and sensors on the numpy path) while this one
+      compiles and runs the truth simulation (returned: :meth:`~needlecli.kernels.WarmUp.wait` before the
+      observers run)."""
+    setting = cfg.simulation.kernels
+    if kernels.requested(setting) == "numpy" or not kernels.numba_available():
+        return kernels.WarmUp()  # numpy: numba not even imported
+    observers = [OBSERVERS.get(o.type).compiled_entry for o in cfg.observers]  # (the observers' declarations:
+    entries = [*observers, kernels.TWINS["state_errors"].entry, kernels.TWINS["rotation_error"].entry]  # the kernel
+    tiny = cfg.model_copy(update={"runs": cfg.runs.model_copy(update={"count": 1}), "stop": Stop(time=2.0)})  # each
+    if cfg.source is None:  # compiles longest)
+        from needlecli.experiments.config.budget import estimate
+        from needlecli.models import MODELS
+
+        truth = kernels.TWINS["truth"].entry if MODELS.get(cfg.model.type).compiled_equations and not cfg.control else None
+        size = estimate(cfg)
+        parts = (truth is not None) + sum(e is not None for e in observers)
+        kernels.on_cold(entries=[truth, *entries], numpy_seconds=NUMPY_EXTRA_S * size.runs * size.steps * parts,
+                        compile_for_next_run=_compile_briefly, args=(tiny,))
+    else:  # recorded trials: no truth to simulate briefly
+        kernels.on_cold(entries=entries)
+    if cfg.source is not None or not cfg.observers or kernels.would_defer(setting) or not kernels.cold(observers):
         return kernels.WarmUp()
-    tiny = cfg.model_copy(update={"runs": cfg.runs.model_copy(update={"count": 1}), "stop": Stop(time=2.0)})
     return kernels.warm_up(_observe_briefly, tiny)
+
+
+def _compile_briefly(cfg: ExperimentConfig) -> None:
+    """The run of ``cfg`` and its summary table, its results file in a temporary folder: every kernel a run
+    of this experiment compiles, with the argument types it has (:func:`warm_up_observers`)."""
+    import tempfile
+
+    from needlecli.reports.evaluate import results_tables
+
+    with tempfile.TemporaryDirectory(prefix="needle-compile-") as d:
+        res = run_experiment(cfg, "", out=Path(d) / "brief.h5")
+        if cfg.observers:
+            results_tables(res.tree, ["summary"], str(res.path))
 
 
 def _observe_briefly(cfg: ExperimentConfig) -> None:

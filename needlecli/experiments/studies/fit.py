@@ -21,6 +21,7 @@ import numpy as np
 from needlecli import kernels, platform
 from needlecli.errors import DataError
 from needlecli.experiments.config.load import load_config
+from needlecli.experiments.config.types import Stop
 from needlecli.experiments.simulation.runner import build_problem, simulate_and_measure
 from needlecli.experiments.simulation.truth import Truth
 from needlecli.fitting.canonical import flip_negative_curvature
@@ -96,8 +97,9 @@ def load_fit_config(path: str | Path, *, overrides: list[str] | None = None):
     return load_config(path, overrides=overrides)
 
 
-def load_trials(path: str | Path, *, overrides: list[str] | None = None) -> Trials:
-    """Read a config and simulate (or replay) its trials.
+def load_trials(path: str | Path, *, overrides: list[str] | None = None, models: list[str] | None = None) -> Trials:
+    """Read a config and simulate (or replay) its trials (``models``: those the fit will fit, None for the
+    fit section's; what its plan for a cold kernel cache counts, :func:`plan_kernels`).
 
     Raises
     ------
@@ -105,6 +107,7 @@ def load_trials(path: str | Path, *, overrides: list[str] | None = None) -> Tria
     """
     path = Path(path)
     cfg, text = load_fit_config(path, overrides=overrides)
+    plan_kernels(cfg, models)
     if cfg.source is not None:  # recorded trials through the replay machinery
         from needlecli.experiments.simulation.replay import replay_truth
 
@@ -112,6 +115,46 @@ def load_trials(path: str | Path, *, overrides: list[str] | None = None) -> Tria
         return Trials(cfg, text, path, truth, sensors, streams, simulated=False)
     truth, sensors, streams, _ = simulate_and_measure(cfg)  # a control section closes its loop
     return Trials(cfg, text, path, truth, sensors, streams, simulated=True)
+
+
+#: s per trial, tick and model that EM and its identifiability take more on the numpy path than compiled:
+#: the magnetic needle EM paper's study (48 trials x 486 ticks x 2 models, 71.5 s against 9.0 s: docs/benchmarks.md)
+NUMPY_EXTRA_S = 1.3e-3
+#: the kernels a fit compiles (EM's passes, its M-step, identifiability's log-likelihoods)
+FIT_KERNELS = ("kalman_filter_smoother", "rts_smoother", "transition_all", "linearise", "em_process_noise",
+               "em_measurement_noise", "kalman_loglik_affine")
+
+
+def plan_kernels(cfg: ExperimentConfig, models: list[str] | None = None) -> None:
+    """The fit's plan for a cold kernel cache (:func:`needlecli.kernels.on_cold`): the numpy path for the
+    whole command while a process of its own compiles the kernels on a short copy of the fit
+    (:func:`_fit_briefly`), where that is quicker than compiling first (small fits); otherwise the
+    compilation first, said once. Simulated trials only (recorded ones: the compilation first)."""
+    if cfg.fit is None or kernels.requested(cfg.simulation.kernels) == "numpy" or not kernels.numba_available():
+        return
+    from needlecli.experiments.config.budget import estimate
+
+    entries = [kernels.TWINS[t].entry for t in FIT_KERNELS]
+    if cfg.source is not None:
+        kernels.on_cold(entries=entries)
+        return
+    truth = kernels.TWINS["truth"].entry if MODELS.get(cfg.model.type).compiled_equations and not cfg.control else None
+    size = estimate(cfg)
+    rate = max([getattr(s, "rate", 0.0) or 0.0 for s in cfg.sensors], default=0.0)
+    ticks = max(2.0, rate * (size.steps - 1) * cfg.simulation.dt) if rate else float(size.steps)
+    n_models = len(models or cfg.fit.models)
+    tiny = cfg.model_copy(update={
+        "runs": cfg.runs.model_copy(update={"count": min(2, cfg.runs.count)}), "stop": Stop(time=2.0),
+        "fit": cfg.fit.model_copy(update={"em": cfg.fit.em.model_copy(update={"max_iter": 2})})})
+    kernels.on_cold(entries=[truth, *entries], numpy_seconds=NUMPY_EXTRA_S * size.runs * ticks * n_models,
+                    compile_for_next_run=_fit_briefly, args=(tiny, models))
+
+
+def _fit_briefly(cfg: ExperimentConfig, models: list[str] | None) -> None:
+    """The fit of ``cfg`` (a short copy of the command's), nothing written: every kernel the fit compiles,
+    with its argument types (:func:`plan_kernels`)."""
+    truth, sensors, streams, _ = simulate_and_measure(cfg)
+    fit_trials(Trials(cfg, "", Path("brief.yaml"), truth, sensors, streams, simulated=True), models=models, workers=1)
 
 
 def _not_a_config(path: Path) -> str:

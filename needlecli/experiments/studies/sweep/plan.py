@@ -16,7 +16,11 @@ same random numbers, and replicates are an explicit axis of seeds.
   seed in every sweep.
 
 A cell's id is the first 10 hex digits of the sha256 of its overrides (with the seed) as JSON with sorted
-keys; its config hash the sha256 of the overridden config, the same way (what ``resume`` compares).
+keys. Its ``text_hash`` is the sha256 of the overridden config the same way (what its results file
+holds); its ``config_hash``, what ``--resume`` and ``--collect`` compare, the sha256 of the *resolved*
+config (every default filled in, as the code that runs it reads it) together with the needlecli version
+and git commit that planned it (:func:`resume_key`): a cell computed before a default changed, or by
+another needlecli, is not complete.
 """
 
 from __future__ import annotations
@@ -48,6 +52,12 @@ def config_hash(data: dict) -> str:
     return hashlib.sha256(_canonical(data).encode()).hexdigest()
 
 
+def resume_key(cfg: ExperimentConfig, ident: dict[str, str]) -> str:
+    """sha256 of the resolved config ``cfg`` (every default included) and ``ident``, the needlecli version
+    and git commit (:func:`needlecli.provenance.identity`), as JSON with sorted keys."""
+    return config_hash({"config": cfg.model_dump(mode="json"), "needlecli": dict(ident)})
+
+
 def derived_seed(sweep_seed: int, overrides: dict) -> int:
     """The seed of a cell that does not set runs.seed: ``int(sha256("<sweep seed>:<overrides JSON>")[:8],
     16) mod 2**31``."""
@@ -60,7 +70,9 @@ class Cell:
     """One experiment of a sweep (picklable: it is what a worker receives).
 
     ``overrides`` are the varying overrides (grid axes, cell entry, random sample) plus ``runs.seed``;
-    ``fixed`` the overrides every cell shares; ``config_text`` the complete config with both applied.
+    ``fixed`` the overrides every cell shares; ``config_text`` the complete config with both applied;
+    ``text_hash`` its hash, ``config_hash`` the resume key (:func:`resume_key`) and ``planned_by`` the
+    needlecli that planned it (version, git commit).
     """
 
     index: int
@@ -79,6 +91,8 @@ class Cell:
     #: what each override key is: {key: {name, description, unit}} (:func:`.describe.describe_key`)
     param_info: dict = field(default_factory=dict)
     file_bytes: int = 0  # at most what its results file takes on disk (:mod:`needlecli.experiments.config.budget`)
+    text_hash: str = ""
+    planned_by: dict = field(default_factory=dict)
 
     def label(self) -> str:
         return ", ".join(f"{k} = {format_value(v)}" for k, v in self.overrides.items()) or "(no overrides)"
@@ -116,7 +130,9 @@ def plan_sweep(
     from needlecli.experiments.config.load import load_config
     from needlecli.experiments.config.overrides import parse_override, set_dotted
     from needlecli.io.yamlfile import read_yaml
+    from needlecli.provenance import identity
 
+    ident = identity()
     config = Path(config)
     source = str(config)
     base, _ = read_yaml(config)
@@ -153,13 +169,14 @@ def plan_sweep(
         except NeedleError as e:  # a replay config whose logs are bad
             raise SweepError(f"{where}: {e}") from None
         h = config_hash(yaml.safe_load(cell_text))
+        key = resume_key(cfg, ident)
         cid = hashlib.sha256(_canonical(ov).encode()).hexdigest()[:10]
         if cid in seen:
             raise SweepError(f"{where}: the same overrides as cell {seen[cid]}; each cell must differ")
         seen[cid] = i
         cells.append(Cell(
             index=i, id=cid, overrides=ov, fixed=fixed, seed=int(cfg.runs.seed), seed_from=seed_from,
-            config_source=str(config.resolve()), config_text=cell_text, config_hash=h,
+            config_source=str(config.resolve()), config_text=cell_text, config_hash=key, text_hash=h, planned_by=ident,
             observers=tuple(o.name or o.type for o in cfg.observers), n_runs=_n_runs(cfg),
             path=str(cells_dir / f"{cid}.h5"), base_dir=str(config.resolve().parent),
             param_info={k: _describe(cfg, k) for k in ov},

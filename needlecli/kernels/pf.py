@@ -33,6 +33,7 @@ import numpy as np
 
 from needlecli.kernels._jit import inline, jit
 from needlecli.kernels._threads import blocks, parallel_for
+from needlecli.kernels.channels import gaussian_part
 from needlecli.kernels.core import PI, cholesky_into, repaired_root, solve_into, wrap_inline
 from needlecli.kernels.models import equation_id, normalize, step_fast
 from needlecli.kernels.truth import margin
@@ -641,14 +642,8 @@ def filter_runs(f, problem, max_trace: float, progress=None) -> dict:
     pad = max(C, 1)
     ch_m = np.array([c["m"] for c in chans] or [1], dtype=np.int64)
     kind = np.zeros(pad, dtype=np.int64)
-    idx = np.zeros((pad, mmax), dtype=np.int64)
-    ang = np.zeros((pad, mmax), dtype=np.bool_)
-    sig2 = np.ones((pad, mmax))
-    pos = np.full((pad, mmax), -1, dtype=np.int64)
+    idx, ang, sig2, gate, growth, ga, gd, gtr, pos = gaussian_part(chans, "idx", 1.0)
     mpos = np.zeros((pad, mmax), dtype=np.int64)
-    gate = np.full(pad, np.nan)
-    growth = np.zeros(pad, dtype=np.bool_)
-    ga, gd, gtr = np.zeros(pad), np.ones(pad), np.zeros((pad, 3))
     student = np.zeros(pad, dtype=np.bool_)
     dof, const = np.ones(pad), np.zeros(pad)
     marginal = np.zeros(pad, dtype=np.bool_)
@@ -656,18 +651,6 @@ def filter_runs(f, problem, max_trace: float, progress=None) -> dict:
     for ci, c in enumerate(chans):
         m = c["m"]
         kind[ci] = c["kind"]
-        idx[ci, :m] = c["idx"]
-        ang[ci, :m] = c["angle"]
-        sig2[ci, :m] = c["sigma"] ** 2
-        if c["gate"] is not None:
-            gate[ci] = c["gate"]
-        g = c["growth"]
-        if g is not None and c["pos_cols"]:
-            growth[ci] = True
-            ga[ci], gd[ci] = float(g.a), float(g.d_max)
-            gtr[ci] = np.asarray(g.transducer, dtype=float)
-            for col, ax in zip(c["pos_cols"], c["pos_axes"]):
-                pos[ci, col] = ax
         student[ci], dof[ci], const[ci] = c["student"], c["dof"] or 1.0, c["const"]
         if c["marginal"]:
             marginal[ci] = True

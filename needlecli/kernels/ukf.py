@@ -29,6 +29,7 @@ import numpy as np
 
 from needlecli.kernels._jit import inline, jit, lanes
 from needlecli.kernels._threads import blocks, parallel_for
+from needlecli.kernels.channels import gaussian_part
 from needlecli.kernels.core import PI, repaired_root, solve_into, wrap_if_needed, wrap_inline
 from needlecli.kernels.models import equation_id, step_fast
 from needlecli.kernels.truth import margin
@@ -729,32 +730,10 @@ def filter_runs(model, params, problem, s, chans, ticks, inputs, x0, P0, Q, kapp
     # ---- channels as arrays; their samples as a tuple of MAX_CHANNELS arrays (padded: one compiled kernel for
     # any number of channels; numba's typed lists would cost 0.6 s of compilation in every process)
     C = len(chans)
-    mmax = max([c["m"] for c in chans], default=1)
     ch_m = np.array([c["m"] for c in chans], dtype=np.int64)
-    ch_sel = np.zeros((max(C, 1), mmax), dtype=np.int64)
-    ch_ang = np.zeros((max(C, 1), mmax), dtype=np.bool_)
-    ch_sig2 = np.zeros((max(C, 1), mmax))
-    ch_gate = np.full(max(C, 1), np.nan)
-    ch_growth = np.zeros(max(C, 1), dtype=np.bool_)
-    ch_ga = np.zeros(max(C, 1))
-    ch_gd = np.ones(max(C, 1))
-    ch_gtr = np.zeros((max(C, 1), 3))
-    ch_pos = np.full((max(C, 1), mmax), -1, dtype=np.int64)
+    ch_sel, ch_ang, ch_sig2, ch_gate, ch_growth, ch_ga, ch_gd, ch_gtr, ch_pos = gaussian_part(chans, "select", 0.0)
     vals, valids = [], []
-    for ci, c in enumerate(chans):
-        m = c["m"]
-        ch_sel[ci, :m] = c["select"]
-        ch_ang[ci, :m] = c["angle"]
-        ch_sig2[ci, :m] = c["sigma"] ** 2
-        if c["gate"] is not None:
-            ch_gate[ci] = c["gate"]
-        g = c["growth"]
-        if g is not None and c["pos_cols"]:
-            ch_growth[ci] = True
-            ch_ga[ci], ch_gd[ci] = float(g.a), float(g.d_max)
-            ch_gtr[ci] = np.asarray(g.transducer, dtype=float)
-            for col, ax in zip(c["pos_cols"], c["pos_axes"]):
-                ch_pos[ci, col] = ax
+    for c in chans:
         vals.append(np.ascontiguousarray(c["value"], dtype=float))
         valids.append(np.ascontiguousarray(c["valid"], dtype=np.bool_))
     nisv = tuple([np.full(np.shape(c["valid"]), np.nan) for c in chans] + [np.full((1, 1), np.nan)] * (MAX_CHANNELS - C))

@@ -198,6 +198,34 @@ def test_image_plane_channel_is_the_recorded_plane_and_the_detectors_verdict(log
     assert "plane" not in next(t for t in lg.trials if t.id != "resultsOrig").sensors
 
 
+@needs_data
+def test_the_detectors_boundary_is_not_where_the_tracked_tip_is(log):
+    """Why the shaft model's along constant is not in resultsOrig without the tracker (docs/real-data.md,
+    (a4); ``make real-start``): the inserted length's reference, the first frame that saw the needle, has
+    its plane 2.03 mm behind the tracked tip; the only along information the ultrasound has, the plane
+    position at which the detector stops seeing the needle, lies 5.3 mm ahead of the tracked tip on average
+    over the changes of verdict in the first 30 s (4.0 to 8.7) and 0.75 mm ahead after them (-1.65 to
+    2.58): the first sweep's farthest seen plane is 5.57 mm ahead. Checked against the tracker, never by a
+    filter."""
+    lg, _ = log
+    orig = next(t for t in lg.trials if t.id == "resultsOrig")
+    pl, trk, ins = orig.sensors["plane"], orig.sensors["tracker"], orig.sensors["inserted"]
+    assert trk.valid.all()
+    n, d, seen = pl.value[:, :3], pl.value[:, 3], pl.value[:, 4] > 0.5
+    g = np.sum(n * trk.value, -1) - d  # the tracker's tip past the plane (negative: the plane ahead of it)
+    first = int(np.argmax(ins.valid))
+    assert first == 0 and seen[0] and g[0] == pytest.approx(2.03, abs=0.01)
+    np.testing.assert_allclose(ins.value[first, 1:4], orig.sensors["us"].value[first])  # its reference
+    k = np.nonzero(seen[1:] != seen[:-1])[0]
+    mid, when = (g[k] + g[k + 1]) / 2, pl.t[k + 1]
+    early, late = mid[when < 30.0], mid[(when >= 30.0) & (when < 61.0)]
+    assert len(early) == 11 and len(late) == 10
+    assert early.mean() == pytest.approx(-5.31, abs=0.01) and early.max() == pytest.approx(-4.00, abs=0.01)
+    assert late.mean() == pytest.approx(-0.75, abs=0.01) and np.abs(late).max() < 2.6
+    first_lost = int(np.argmin(seen))
+    assert g[:first_lost].min() == pytest.approx(-5.57, abs=0.01)
+
+
 @pytest.fixture(scope="module")
 def resultsorig(log, tmp_path_factory):
     """configs/real/ukf_resultsorig.yaml on two copies of resultsOrig, the filters at 20 Hz."""

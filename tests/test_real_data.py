@@ -7,9 +7,11 @@ synthetic-folder tests at the end run everywhere."""
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from pathlib import Path
 
+import h5py
 import numpy as np
 import pytest
 import yaml
@@ -224,6 +226,54 @@ def test_the_detectors_boundary_is_not_where_the_tracked_tip_is(log):
     assert late.mean() == pytest.approx(-0.75, abs=0.01) and np.abs(late).max() < 2.6
     first_lost = int(np.argmin(seen))
     assert g[:first_lost].min() == pytest.approx(-5.57, abs=0.01)
+
+
+@needs_data
+def test_the_shaft_fit_and_filter_read_no_tracker_past_the_start(log, tmp_path):
+    """configs/real/em_resultsorig_shaft.yaml and ukf_shaft_em of configs/real/ukf_resultsorig_shaft.yaml are
+    tracker-free (docs/real-data.md, (a3), (a4)): with every tracker frame after the first (the first is the
+    trial's start, where every filter takes its orientation from) replaced by another pose, truth and the
+    ``tracker`` channel alike, EM fits the same noise and the filter gives the same estimates."""
+    lg, _ = log
+    orig = next(t for t in lg.trials if t.id == "resultsOrig")
+    garbled = dataclasses.replace(orig, sensors=dict(orig.sensors))
+    rng = np.random.default_rng(3)
+    state = orig.truth.state.copy()
+    state[1:, :3] += rng.normal(0.0, 5.0, (len(state) - 1, 3))
+    state[1:, 3:6] += rng.normal(0.0, 0.3, (len(state) - 1, 3))
+    garbled.truth = dataclasses.replace(orig.truth, state=state)
+    trk = orig.sensors["tracker"]
+    garbled.sensors["tracker"] = dataclasses.replace(trk, value=np.r_[trk.value[:1], state[1:, :3]])
+    runner, out = CliRunner(), {}
+    for name, tr in (("recorded", orig), ("garbled", garbled)):
+        path = tmp_path / f"{name}.h5"
+        write_log(path, dataclasses.replace(lg, trials=[tr]))
+        fit = yaml.safe_load((ROOT / "configs" / "real" / "em_resultsorig_shaft.yaml").read_text())
+        fit["source"]["logs"] = [str(path)]
+        fit["fit"]["em"] = {"max_iter": 20, "tol": 1.0e-3}  # converges in 4
+        (tmp_path / f"fit_{name}.yaml").write_text(yaml.safe_dump(fit))
+        res = runner.invoke(app, ["fit-em", str(tmp_path / f"fit_{name}.yaml"), "--out", str(tmp_path / f"fit_{name}.h5"),
+                                  "--quiet"])
+        assert res.exit_code == 0, res.output
+        data = yaml.safe_load((ROOT / "configs" / "real" / "ukf_resultsorig_shaft.yaml").read_text())
+        obs = {o["name"]: o for o in data["observers"]}
+        data["observers"] = [dict(obs["ukf_gated"], rate=20.0), dict(obs["ukf_shaft_em"], rate=20.0)]
+        data["observers"][1]["from_fit"]["file"] = str(tmp_path / "fit_recorded.h5")
+        data["source"] = {"logs": [str(path)], "trials": ["resultsOrig"]}
+        data["runs"] = {"seed": 8, "common_start": {"observer": "ukf_gated", "observers": ["ukf_shaft_em"]}}
+        (tmp_path / f"ukf_{name}.yaml").write_text(yaml.safe_dump(data))
+        cfg, text = load_config(tmp_path / f"ukf_{name}.yaml")
+        run_experiment(cfg, text, out=tmp_path / f"ukf_{name}.h5", base_dir=tmp_path)
+        res = read_results(tmp_path / f"ukf_{name}.h5")
+        with h5py.File(tmp_path / f"fit_{name}.h5") as f:
+            r = {k: f[f"fit/unicycle/R/{k}"][()] for k in ("transverse", "inserted")}
+        out[name] = (r, np.asarray(res.data["estimates"].data["ukf_shaft_em"].data["state"]),
+                     np.asarray(res.data["truth"].data["state"]))
+    (r0, x0, t0), (r1, x1, t1) = out["recorded"], out["garbled"]
+    assert np.nanmax(np.abs(t0 - t1)) > 1.0  # the tracker did change
+    for k in r0:
+        np.testing.assert_array_equal(r0[k], r1[k])
+    np.testing.assert_array_equal(x0, x1)
 
 
 @pytest.fixture(scope="module")

@@ -182,13 +182,15 @@ real:
 	needle simulate configs/real/ukf_resultsorig_shaft.yaml --out $(REAL)/ukf_resultsorig_shaft.h5 --quiet > /dev/null
 	needle evaluate $(REAL)/ukf_resultsorig_shaft.h5 --out $(REAL)/tables --tables real_tip_error,real_error_along_across \
 	  --no-plots --quiet
+	@# (a4) the shaft model's along constant from the ultrasound alone: every candidate reference against the tracker
+	$(PY) tools/along_start.py --runs 20 > /dev/null
 	@# (d) the tracker trials cross-validated: EM on the other trials of the day, the held-out path from its first pose
 	needle crossval configs/real/em_tracker.yaml --observer open_loop --leave-one-out --group-by 'id~^[^-]+' --within \
 	  --out $(REAL)/crossval --quiet > /dev/null
 	@# (d) again, EM on the other trials of the day at the held-out one's speed only
 	needle crossval configs/real/em_tracker.yaml --observer open_loop --leave-one-out --group-by 'id~^[^-]+-[^-]+' --within \
 	  --out $(REAL)/crossval_speed --quiet > /dev/null
-	@echo "tables: $(REAL)/tables, $(REAL)/crossval, $(REAL)/crossval_speed"
+	@echo "tables: $(REAL)/tables, $(REAL)/along_start, $(REAL)/crossval, $(REAL)/crossval_speed"
 
 # The time constant of the image plane's offset (configs/real/em_resultsorig.yaml): the ultrasound's
 # log-likelihood at EM's fit for each tau (needs `make real` first); tables in $(REAL)/tau.
@@ -224,10 +226,10 @@ real-plane:
 # The along constant of the shaft model without the tracker (docs/real-data.md (a4)): the detector's seen/lost
 # boundary against the tracked tip, the length's reference from the ultrasound alone (first seen frame, first
 # sweep, the verdicts' boundary, the scan's mean), each run through ukf_shaft_em of
-# configs/real/ukf_resultsorig_shaft.yaml, and EM's log-likelihood against the reference (needs `make real`
-# first; about 3 minutes). Table in $(REAL)/along_start/along_start.md.
+# configs/real/ukf_resultsorig_shaft.yaml, and EM's log-likelihood against the reference (a step of `make real`;
+# alone after it, about 2 minutes). Table in $(REAL)/along_start/along_start.md.
 real-start:
-	python tools/along_start.py --runs 20
+	$(PY) tools/along_start.py --runs 20
 
 # The two parts of the held-out error on the tracker trials (docs/real-data.md (d), issue 30): leave one out
 # within the day as make real's crossval, each held-out trial also predicted from its own pose at 0-60 mm,

@@ -179,6 +179,7 @@ real:
 	@# noise (the needle's motion held by its physics), the causal UKF, the fixed-lag smoother, side by side
 	needle fit-em configs/real/em_resultsorig_shaft.yaml --out $(REAL)/em_resultsorig_shaft.h5 --quiet
 	needle fit-em configs/real/em_resultsorig_shaft_start.yaml --out $(REAL)/em_resultsorig_shaft_start.h5 --quiet
+	needle fit-em configs/real/em_resultsorig_shaft_edge.yaml --out $(REAL)/em_resultsorig_shaft_edge.h5 --quiet
 	needle simulate configs/real/ukf_resultsorig_shaft.yaml --out $(REAL)/ukf_resultsorig_shaft.h5 --quiet > /dev/null
 	needle evaluate $(REAL)/ukf_resultsorig_shaft.h5 --out $(REAL)/tables --tables real_tip_error,real_error_along_across \
 	  --no-plots --quiet

@@ -11,7 +11,8 @@ plane and the detector's verdict; ``inserted``: the length), and judges them aga
 (1) the seen/lost verdicts against the tracker (a check, no filter): where the detector's boundary, the
     plane position at which the needle stops being seen, lies from the tracked tip at each change;
 (2) the references, each a shift ``c`` of the length's reference along the insertion: the farthest plane
-    position that saw the needle in the first sweep, the first sweep's seen/lost boundary, the verdicts'
+    position that saw the needle in the first sweep, the first sweep's seen/lost boundary, where its Doppler
+    power falls to a fraction of its maximum so far (0.25, 0.5, 0.75), the verdicts'
     maximum-likelihood boundary (the filter's tip moved until the verdicts fit it best: probit, 1 mm;
     causal, from the verdicts up to each frame, and offline), the scan's mean (a probe centred on the tip);
     constant ones are run through the filter (the log's ``inserted`` reference moved by ``c``), the causal
@@ -166,6 +167,17 @@ def main(argv=None) -> int:
     r = run_filter(0.0, args.runs, plane=True)
     rows.append(("the first frame that saw the needle, the image plane's bound added (channel plane, sigma 1 mm)",
                  "filter run", 0.0, r["along"], r["across"], r["E"]))
+    from needlecli.io import ultrasteer as us_io
+
+    raw = next(r for r in us_io.find_trials(us_io.default_data_dir()) if r.id == TRIAL)
+    power = raw.doppler[np.nonzero(raw.ok)[0][0]:][: len(t)]  # the kept frames, as the log's
+    for frac in (0.25, 0.5, 0.75):
+        k, w = us_io.doppler_edge(power, frac)
+        c = np.where(np.arange(len(t)) >= k, -((1.0 - w) * g_est[k - 1] + w * g_est[k]), 0.0)
+        al = al0 + c[None, :]
+        rows.append((f"the first sweep's Doppler power at {frac:g} of its maximum so far (known at {t[k]:.2f} s"
+                     + ("; channel inserted_edge" if frac == 0.5 else "") + ")", "shift of the estimates", float(c[-1]), float(al.mean()),
+                     float(ac0.mean()), float(np.hypot(al, ac0).mean())))
     for label, c in (("the verdicts' boundary, maximum likelihood from the verdicts up to each frame (causal)",
                       causal_ml), ("the scan's mean up to each frame, a probe centred on the tip (causal)",
                                    causal_scan)):

@@ -3,7 +3,7 @@ PY ?= python
 
 STUDIES := results/studies
 
-.PHONY: help install demo test bench lint docs clean datasets regress real real-tau real-plane real-poses shaft owndata faults papers particles
+.PHONY: help install demo test bench lint docs clean datasets regress real real-tau real-plane real-start real-poses shaft owndata faults papers particles
 PAPERS := highgain-us2d so3-invariant multirate-ukf-us3d em-magnetic-pratt2022
 # the papers' former names (needlecli/papers.py: the seed texts' numbers), kept as aliases of their targets
 ALIASES := seed000 seed001 seed003 seed004
@@ -27,6 +27,7 @@ help:
 	@echo "make real     - import the recorded ultrasteer insertions (../shared/real-data) and make their tables in $(REAL)"
 	@echo "make real-tau - after make real: the ultrasound's likelihood against the image plane offset's time constant"
 	@echo "make real-plane - after make real: the image plane's bound with margins 0-8 mm and lost frames only (tip error against the tracker)"
+	@echo "make real-start - after make real: the shaft model's along constant from the ultrasound alone, each candidate reference against the tracker"
 	@echo "make real-poses - after make real: the held-out tracker trials predicted from the start and from their own pose at 0-60 mm"
 	@echo "make shaft    - the transverse-plane studies: a probe scanning around the tip, shaft-crossing vs tip model; latency (in $(SHAFT))"
 	@echo "make owndata  - a lab's exports made by needlecli, imported by a mapping, fitted with and without the slip (in $(OWN))"
@@ -178,16 +179,19 @@ real:
 	@# noise (the needle's motion held by its physics), the causal UKF, the fixed-lag smoother, side by side
 	needle fit-em configs/real/em_resultsorig_shaft.yaml --out $(REAL)/em_resultsorig_shaft.h5 --quiet
 	needle fit-em configs/real/em_resultsorig_shaft_start.yaml --out $(REAL)/em_resultsorig_shaft_start.h5 --quiet
+	needle fit-em configs/real/em_resultsorig_shaft_edge.yaml --out $(REAL)/em_resultsorig_shaft_edge.h5 --quiet
 	needle simulate configs/real/ukf_resultsorig_shaft.yaml --out $(REAL)/ukf_resultsorig_shaft.h5 --quiet > /dev/null
 	needle evaluate $(REAL)/ukf_resultsorig_shaft.h5 --out $(REAL)/tables --tables real_tip_error,real_error_along_across \
 	  --no-plots --quiet
+	@# (a4) the shaft model's along constant from the ultrasound alone: every candidate reference against the tracker
+	$(PY) tools/along_start.py --runs 20 > /dev/null
 	@# (d) the tracker trials cross-validated: EM on the other trials of the day, the held-out path from its first pose
 	needle crossval configs/real/em_tracker.yaml --observer open_loop --leave-one-out --group-by 'id~^[^-]+' --within \
 	  --out $(REAL)/crossval --quiet > /dev/null
 	@# (d) again, EM on the other trials of the day at the held-out one's speed only
 	needle crossval configs/real/em_tracker.yaml --observer open_loop --leave-one-out --group-by 'id~^[^-]+-[^-]+' --within \
 	  --out $(REAL)/crossval_speed --quiet > /dev/null
-	@echo "tables: $(REAL)/tables, $(REAL)/crossval, $(REAL)/crossval_speed"
+	@echo "tables: $(REAL)/tables, $(REAL)/along_start, $(REAL)/crossval, $(REAL)/crossval_speed"
 
 # The time constant of the image plane's offset (configs/real/em_resultsorig.yaml): the ultrasound's
 # log-likelihood at EM's fit for each tau (needs `make real` first); tables in $(REAL)/tau.
@@ -219,6 +223,14 @@ real-plane:
 	  --set observers.5.measurements.plane.margin=0.0 > /dev/null
 	@needle evaluate $(REAL)/plane/short.h5 --out $(REAL)/plane/short --tables real_error_along_across --no-plots --quiet
 	@echo "lost frames only:"; grep -E '^\| (ukf_em_plane|ukf_em_white_plane_m5) ' $(REAL)/plane/short/*along_across.md | cut -d'|' -f2-7
+
+# The along constant of the shaft model without the tracker (docs/real-data.md (a4)): the detector's seen/lost
+# boundary against the tracked tip, the length's reference from the ultrasound alone (first seen frame, first
+# sweep, the verdicts' boundary, the scan's mean), each run through ukf_shaft_em of
+# configs/real/ukf_resultsorig_shaft.yaml, and EM's log-likelihood against the reference (a step of `make real`;
+# alone after it, about 2 minutes). Table in $(REAL)/along_start/along_start.md.
+real-start:
+	$(PY) tools/along_start.py --runs 20
 
 # The two parts of the held-out error on the tracker trials (docs/real-data.md (d), issue 30): leave one out
 # within the day as make real's crossval, each held-out trial also predicted from its own pose at 0-60 mm,

@@ -66,7 +66,10 @@ Each trial becomes one log trial with
 * sensor ``inserted`` (``insertion``, resultsOrig only): the inserted length since the first ultrasound frame
   that saw the needle, the commanded speed ``V.dat`` over the frame intervals
   (:mod:`needlecli.sensors.insertion`), its reference pose that frame's ultrasound point and the trial's
-  initial insertion direction (``z`` of the trial frame); valid from that frame on; and ``inserted_from_start``,
+  initial insertion direction (``z`` of the trial frame); valid from that frame on; ``inserted_edge``, the
+  same length from where the first sweep's Doppler power (``MeasDoppler``) fell to half its maximum so far
+  (:func:`doppler_edge`: the plane passing the tip), its reference the needle's crossing there, valid from
+  the frame that showed the edge (1.24 s into resultsOrig); and ``inserted_from_start``,
   the same length from the trial's start with the tip's pose at ``t = 0`` as its reference (what a robot's
   needle guide gives; in this recording the tracker's first frame);
 * input ``v`` (mm/s): ``V.dat`` where present (``V[k]`` drives ``(t_{k-1}, t_k]``), else the folder's
@@ -194,6 +197,7 @@ class RawTrial:
     us_reasons: dict[str, int] = field(default_factory=dict)
     plane: tuple[np.ndarray, np.ndarray] | None = None  # (N, 3) a corner, (N, 3) unit normal along the insertion
     image_axes: tuple[np.ndarray, np.ndarray] | None = None  # (N, 3) unit MeasBx, MeasBy (NaN where not usable)
+    doppler: np.ndarray | None = None  # (N,) MeasDoppler: the needle's Doppler power in the image, per frame
     rho: float | None = None
     dt_source: str = "nominal 0.177 s"
     same_as: str | None = None  # a trial of trials/ holding the same tracker record
@@ -301,6 +305,10 @@ def read_trial(folder: Path, *, trial_id: str, session: str, speed_folder: str |
         raw.us, raw.us_lost, raw.us_reasons = us, *_us_lost(folder, us)
         raw.plane = _image_plane(folder, N)
         raw.image_axes = _image_axes(folder, N) if raw.plane is not None else None
+        dop = folder / "MeasDoppler.dat"
+        if dop.exists():
+            d = read_numbers(dop).ravel()
+            raw.doppler = d if d.size == N else None
     return raw
 
 
@@ -365,6 +373,33 @@ def _us_lost(folder: Path, us: np.ndarray) -> tuple[np.ndarray, dict[str, int]]:
                "image coordinates outside the image": int(outside.sum()), "no Doppler (0)": int(no_doppler.sum()),
                "lost (any of these)": int(lost.sum())}
     return lost, {k: v for k, v in reasons.items() if v}
+
+
+def doppler_edge(power: np.ndarray, fraction: float = 0.5) -> tuple[int, float] | None:
+    """Where the needle's Doppler power first falls below ``fraction`` of its maximum so far: the image plane
+    passing the tip (the half-maximum edge of the needle's Doppler profile along the plane's sweep).
+
+    Parameters
+    ----------
+    power : (K,) array
+        The Doppler power per frame (``MeasDoppler``), in time order.
+    fraction : float
+        The edge's level against the running maximum (0.5: the half maximum).
+
+    Returns
+    -------
+    ``(k, w)``: the edge lies ``w`` (0 to 1) of the way from frame ``k - 1`` to frame ``k``, the first frame
+    below the level (known at frame ``k``: it reads frames up to ``k`` only); None if the power never falls
+    below it after a positive maximum.
+    """
+    p = np.where(np.isfinite(power), power, 0.0)
+    top = np.maximum.accumulate(p)
+    below = np.nonzero((p < fraction * top) & (top > 0))[0]
+    if not below.size:
+        return None
+    k = int(below[0])
+    level = fraction * top[k]
+    return k, float((p[k - 1] - level) / (p[k - 1] - p[k]))
 
 
 def find_trials(root: Path) -> list[RawTrial]:
@@ -570,6 +605,20 @@ def to_trial(raw: RawTrial, al: Alignment, *, frame: str = "trial") -> Trial:
                                                             -1), 0.0), valid=on & bool(seen.size),
             names=("length", "ex", "ey", "ez", "dx", "dy", "dz"), units=("mm",) * 4 + ("1",) * 3,
             settings={"type": "insertion", "name": "inserted", "rate": rate, "sigma": 0.2})
+        # the same length from where the first sweep's Doppler power fell to half its maximum so far: the image
+        # plane passing the tip; its reference point the needle's crossing there (interpolated between the two
+        # frames), valid from the frame that showed the edge on (a delay: the edge is known then)
+        edge = doppler_edge(raw.doppler[keep]) if raw.doppler is not None else None
+        if edge is not None and not raw.us_lost[keep][edge[0] - 1: edge[0] + 1].any():
+            k, w = edge
+            ref = (1.0 - w) * us_k[k - 1] + w * us_k[k]
+            length0 = (1.0 - w) * total[k - 1] + w * total[k]
+            on = np.arange(len(t)) >= k
+            tr.sensors["inserted_edge"] = SensorStream(
+                t=t, value=np.where(on[:, None], np.concatenate(
+                    [(total - length0)[:, None], np.tile(np.concatenate([ref, entry[3:]]), (len(t), 1))], -1), 0.0),
+                valid=on, names=("length", "ex", "ey", "ez", "dx", "dy", "dz"), units=("mm",) * 4 + ("1",) * 3,
+                settings={"type": "insertion", "name": "inserted_edge", "rate": rate, "sigma": 0.2})
         # the same length from the trial's start, its reference pose the tip's at t = 0 (the trial frame's
         # origin and z): what a robot's needle guide gives; in this recording only the tracker's first frame
         start = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 1.0]) if frame == "trial" else np.concatenate([pos[0], R[0][:, 2]])

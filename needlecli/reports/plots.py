@@ -59,16 +59,10 @@ def _name_hash(name: str) -> int:
     return zlib.crc32(str(name).encode("utf-8"), NAME_SALT)
 
 
-#: names whose hash would give them the colour of another built-in observer type that meets them in one
-#: figure (``needle compare`` runs the particle filters beside the EKS): the nine built-in types take the
-#: nine colours, each its own; every other name is drawn by its hash
-OWN_COLOURS = {"rbpf": "#9467bd"}
-
-
 def observer_colour(name: str) -> str:
     """The colour of observer (or fitted model) ``name`` in every figure: stable across files and studies
-    (:data:`OBSERVER_PALETTE`, :data:`NAME_SALT`, :data:`OWN_COLOURS`)."""
-    return OWN_COLOURS.get(str(name)) or OBSERVER_PALETTE[_name_hash(name) % len(OBSERVER_PALETTE)]
+    (:data:`OBSERVER_PALETTE`, :data:`NAME_SALT`)."""
+    return OBSERVER_PALETTE[_name_hash(name) % len(OBSERVER_PALETTE)]
 
 
 #: markers on a curve of many points: about this many, each name's first at another eighth of the spacing

@@ -60,29 +60,8 @@ def test_compared_observers_start_from_the_configs_initial_state(path):
             np.testing.assert_allclose(d, 0.0, atol=4 * np.sqrt(start.cov[j, j]) + 1e-9, err_msg=k)
 
 
-# the multi-rate UKF paper's set-up, tiny: 2 insertions of 6 mm, two UKFs alike but for their names, and the open loop
-TWINS = """\
-name: twins
-model: {type: modified_unicycle, params: {kappa: 0.005, beta_cut: 0.035}, param_std: {kappa: 0.001}}
-inputs: {v: 1.5, u: 0.0}
-process_noise: {std: {x: 0.02, y: 0.02, z: 0.02, alpha: 2.0e-4, beta: 2.0e-4, gamma: 5.0e-3}}
-sensors:
-  - {name: us3d, type: position, rate: 2.0, sigma: 0.3}
-  - {name: robot, type: encoder, rate: 50.0, channels: [roll], sigma: 0.0035}
-observers:
-  - &ukf
-    name: first
-    type: ukf
-    q: {x: 2.0e-3, y: 2.0e-3, z: 2.0e-3, alpha: 2.0e-5, beta: 2.0e-5, gamma: 5.0e-4, kappa: 2.0e-6}
-    p0: {x: 1.0, y: 1.0, z: 1.0, alpha: 5.0e-3, beta: 5.0e-3, gamma: 0.1, kappa: 2.0e-6}
-    init: {from: truth, std: {alpha: 0.0873, beta: 0.0873, kappa: 0.001}, first_measurement: {x: us3d.x, y: us3d.y, z: us3d.z}}
-  - {<<: *ukf, name: second}
-  - {name: model, type: open_loop, init: {from: truth, std: {alpha: 0.0873, beta: 0.0873}}}
-runs: {count: 2, seed: 5}
-stop: {depth: 6.0}
-simulation: {dt: 0.02}
-output: {covariance: none}
-"""
+# the multi-rate UKF paper's set-up, tiny: two UKFs alike but for their names, and the open loop
+from test_shared_start import TWINS  # noqa: E402
 
 
 def test_ekf_takes_the_distance_growth_of_r_as_the_ukf_does(tmp_path):

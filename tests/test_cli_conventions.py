@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 from needlecli.cli.app import app
 
 #: commands that print a report and never log: no --quiet to give them
-REPORTS = {"list", "explain", "log info"}
+REPORTS = {"list", "explain", "log info", "kernels status"}
 
 
 def _commands():

@@ -104,7 +104,7 @@ def test_pictures_are_committed_and_shown(site):
 def test_readme_is_a_front_page_with_the_two_commands():
     text = (ROOT / "README.md").read_text(encoding="utf-8")
     assert len(text.splitlines()) <= 200
-    assert "pip install -e . && needle simulate configs/default.yaml" in text
+    assert "pip install -e . && needle kernels compile && needle simulate configs/default.yaml" in text
     assert "pip install -e '.[test]' && python -m pytest" in text
     ci = (ROOT / ".ci" / "run").read_text()
     assert "/^## Set up/" in ci and 'bash -c "set -e; $cmd"' in ci  # CI runs README's two commands verbatim

@@ -19,6 +19,7 @@ from needlecli.cli import (
     explain,
     fit_em,
     imports,
+    kernels,
     listing,
     log,
     simulate,
@@ -99,6 +100,7 @@ app.command()(sweep.sweep)
 app.command("characterize-sensor")(characterize.characterize_sensor)
 app.add_typer(log.log_app, name="log")
 app.add_typer(imports.import_app, name="import")
+app.add_typer(kernels.kernels_app, name="kernels")
 
 
 def _quiet_exit(signum, frame) -> None:  # noqa: ARG001

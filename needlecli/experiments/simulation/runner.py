@@ -171,14 +171,12 @@ def warm_up_observers(cfg: ExperimentConfig) -> kernels.WarmUp:
     setting = cfg.simulation.kernels
     if kernels.requested(setting) == "numpy" or not kernels.numba_available():
         return kernels.WarmUp()  # numpy: numba not even imported
-    observers = [OBSERVERS.get(o.type).compiled_entry for o in cfg.observers]  # (the observers' declarations:
-    entries = [*observers, kernels.TWINS["state_errors"].entry, kernels.TWINS["rotation_error"].entry]  # the kernel
-    tiny = cfg.model_copy(update={"runs": cfg.runs.model_copy(update={"count": 1}), "stop": Stop(time=2.0)})  # each
-    if cfg.source is None:  # compiles longest)
+    observers = observer_entries(cfg)
+    truth, *entries = run_entries(cfg)
+    tiny = brief_copy(cfg)
+    if cfg.source is None:
         from needlecli.experiments.config.budget import estimate
-        from needlecli.models import MODELS
 
-        truth = kernels.TWINS["truth"].entry if MODELS.get(cfg.model.type).compiled_equations and not cfg.control else None
         size = estimate(cfg)
         parts = (truth is not None) + sum(e is not None for e in observers)
         kernels.on_cold(entries=[truth, *entries], numpy_seconds=NUMPY_EXTRA_S * size.runs * size.steps * parts,
@@ -188,6 +186,30 @@ def warm_up_observers(cfg: ExperimentConfig) -> kernels.WarmUp:
     if cfg.source is not None or not cfg.observers or kernels.would_defer(setting) or not kernels.cold(observers):
         return kernels.WarmUp()
     return kernels.warm_up(_observe_briefly, tiny)
+
+
+def observer_entries(cfg: ExperimentConfig) -> list[tuple[str, str] | None]:
+    """The entry kernel of each observer of ``cfg`` (its declaration ``compiled_entry``: the kernel that
+    compiles longest; None: none)."""
+    return [OBSERVERS.get(o.type).compiled_entry for o in cfg.observers]
+
+
+def run_entries(cfg: ExperimentConfig) -> list[tuple[str, str] | None]:
+    """The entry kernels a run of ``cfg`` compiles: the truth's first (None for recorded trials, a closed
+    loop or a model without compiled equations), then the observers' and the error tables'."""
+    truth = None
+    if cfg.source is None and not cfg.control:
+        from needlecli.models import MODELS
+
+        if MODELS.get(cfg.model.type).compiled_equations:
+            truth = kernels.TWINS["truth"].entry
+    return [truth, *observer_entries(cfg), kernels.TWINS["state_errors"].entry, kernels.TWINS["rotation_error"].entry]
+
+
+def brief_copy(cfg: ExperimentConfig) -> ExperimentConfig:
+    """``cfg`` shortened to one run of 2 s: what compiles every kernel of its runs with their argument
+    types, in a few seconds of work (:func:`_compile_briefly`)."""
+    return cfg.model_copy(update={"runs": cfg.runs.model_copy(update={"count": 1}), "stop": Stop(time=2.0)})
 
 
 def _compile_briefly(cfg: ExperimentConfig) -> None:

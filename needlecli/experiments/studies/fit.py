@@ -134,20 +134,34 @@ def plan_kernels(cfg: ExperimentConfig, models: list[str] | None = None) -> None
         return
     from needlecli.experiments.config.budget import estimate
 
-    entries = [kernels.TWINS[t].entry for t in FIT_KERNELS]
+    truth, *entries = fit_entries(cfg)
     if cfg.source is not None:
         kernels.on_cold(entries=entries)
         return
-    truth = kernels.TWINS["truth"].entry if MODELS.get(cfg.model.type).compiled_equations and not cfg.control else None
     size = estimate(cfg)
     rate = max([getattr(s, "rate", 0.0) or 0.0 for s in cfg.sensors], default=0.0)
     ticks = max(2.0, rate * (size.steps - 1) * cfg.simulation.dt) if rate else float(size.steps)
     n_models = len(models or cfg.fit.models)
-    tiny = cfg.model_copy(update={
-        "runs": cfg.runs.model_copy(update={"count": min(2, cfg.runs.count)}), "stop": Stop(time=2.0),
-        "fit": cfg.fit.model_copy(update={"em": cfg.fit.em.model_copy(update={"max_iter": 2})})})
     kernels.on_cold(entries=[truth, *entries], numpy_seconds=NUMPY_EXTRA_S * size.runs * ticks * n_models,
-                    compile_for_next_run=_fit_briefly, args=(tiny, models))
+                    compile_for_next_run=_fit_briefly, args=(brief_fit(cfg), models))
+
+
+def fit_entries(cfg: ExperimentConfig) -> list[tuple[str, str] | None]:
+    """The entry kernels a fit of ``cfg`` compiles: the truth's first (None for recorded trials, a closed
+    loop or a model without compiled equations), then EM's and identifiability's."""
+    truth = None
+    if cfg.source is None and not cfg.control and MODELS.get(cfg.model.type).compiled_equations:
+        truth = kernels.TWINS["truth"].entry
+    return [truth, *(kernels.TWINS[t].entry for t in FIT_KERNELS)]
+
+
+def brief_fit(cfg: ExperimentConfig) -> ExperimentConfig:
+    """``cfg`` shortened to two trials of 2 s and two EM iterations, taken as converged (so that
+    identifiability assesses them): what compiles every kernel of its fit with their argument types
+    (:func:`_fit_briefly`)."""
+    return cfg.model_copy(update={
+        "runs": cfg.runs.model_copy(update={"count": min(2, cfg.runs.count)}), "stop": Stop(time=2.0),
+        "fit": cfg.fit.model_copy(update={"em": cfg.fit.em.model_copy(update={"max_iter": 2, "tol": 1e300})})})
 
 
 def _fit_briefly(cfg: ExperimentConfig, models: list[str] | None) -> None:

@@ -77,6 +77,16 @@ def test_nothing_to_do_when_the_cache_holds_every_kernel(empty_cache, monkeypatc
     assert r.exit_code == 0 and "NOT compiled" not in r.output and "ukf.run" in r.output
 
 
+def test_without_numba_there_is_nothing_to_compile_and_the_install_goes_on(empty_cache, monkeypatch):
+    from needlecli.kernels import dispatch
+
+    monkeypatch.setattr(dispatch, "numba_available", lambda: False)
+    monkeypatch.setattr(kernels, "numba_available", lambda: False)
+    r = cli("kernels", "compile")
+    assert r.exit_code == 0 and "numba is not installed: nothing to compile" in r.output
+    assert not empty_cache.exists()
+
+
 def test_status_names_what_an_empty_cache_lacks_and_exits_1(empty_cache):
     r = cli("kernels", "status", DEFAULT)
     assert r.exit_code == 1, r.output

@@ -37,8 +37,10 @@ def compile_cmd(
     from needlecli.errors import shown
     from needlecli.experiments.studies import precompile
 
-    if not kernels.numba_available():
-        fail("kernels: numba is not installed: every run takes the numpy path (pip install numba)")
+    if not kernels.numba_available():  # not an error: README's install command goes on to its first run
+        typer.echo("kernels: numba is not installed: nothing to compile, every run takes the numpy path "
+                   "(pip install numba for the compiled kernels)")
+        return
     paths = list(configs) if configs else precompile.bundled_configs()
     plan = precompile.plan(paths)
     for line in plan.skipped:

@@ -64,6 +64,8 @@ ENV = "NEEDLECLI_KERNELS"
 #: the quicker) or ``wait`` (compile now: every run's numbers those of the compiled path)
 COLD_ENV = "NEEDLECLI_COLD"
 COLD_POLICIES = ("background", "wait")
+#: the command that compiles the kernels ahead of the runs (README's install step), named where a run waits
+AHEAD = "needle kernels compile"
 
 log = logging.getLogger("needlecli")
 
@@ -306,7 +308,7 @@ def _decide(setting: str | None, entry: tuple[str, str]) -> bool:
     _DEFERRED[0] = True
     log.info("kernels not compiled yet: this run takes the numpy path (the numbers of kernels: numpy) while they "
              "compile in the background for the next run, once per install: about %.0f s (%s=wait compiles "
-             "first)", max(1.0, _PLAN["estimate"]), COLD_ENV)
+             "first; %s compiles ahead)", max(1.0, _PLAN["estimate"]), COLD_ENV, AHEAD)
     return True
 
 
@@ -323,7 +325,8 @@ def announce(function: str | None = None) -> None:
     entries = list(_PLAN.get("entries", ()))
     if function is not None and "." in function:
         entries.append(tuple(function.split(".", 1)))
-    log.info("compiling kernels, once per install: about %.0f s", max(1.0, compile_estimate(entries)))
+    log.info("compiling kernels, once per install: about %.0f s (%s compiles ahead)",
+             max(1.0, compile_estimate(entries)), AHEAD)
 
 
 def resolve(setting: str | None = None) -> str:

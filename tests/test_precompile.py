@@ -145,3 +145,35 @@ def test_a_config_compiled_ahead_runs_first_without_compiling(tmp_path):
     again = subprocess.run([*needle, "kernels", "status", "truth.yaml"], env=env, cwd=tmp_path, capture_output=True,
                            text=True)
     assert again.returncode == 0 and "truth.advance" in again.stdout and "NOT" not in again.stdout
+
+
+def test_ctrl_c_ends_the_jobs_still_compiling_and_exits_130(tmp_path):
+    """Ctrl-C reaches the terminal's whole process group; the jobs' processes leave it to the command,
+    which ends them (none goes on compiling into the cache) and says it was interrupted."""
+    import signal
+    import time
+
+    (tmp_path / "truth.yaml").write_text(TRUTH_ONLY)
+    env = {**os.environ, "NEEDLECLI_KERNEL_CACHE": str(tmp_path / "kcache"), "PYTHONPATH": str(ROOT)}
+    p = subprocess.Popen([sys.executable, "-m", "needlecli", "kernels", "compile", "truth.yaml", str(DEFAULT),
+                          "--jobs", "1"],
+                         env=env, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         start_new_session=True)
+    deadline = time.monotonic() + 60
+    while not list((tmp_path / "kcache").rglob("*.nbi")) and time.monotonic() < deadline and p.poll() is None:
+        time.sleep(0.1)  # until a job is compiling (numba wrote an index)
+    os.killpg(p.pid, signal.SIGINT)
+    t0 = time.monotonic()
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == 130, err
+    assert time.monotonic() - t0 < 5  # at once (0.3 s here), not after the next job (9 s here before the fix)
+    assert err.strip().splitlines()[-1].startswith("error: interrupted by SIGINT")
+    deadline = time.monotonic() + 20  # (multiprocessing's resource tracker ends when it sees the command end)
+    while time.monotonic() < deadline:
+        try:
+            os.killpg(p.pid, 0)
+        except ProcessLookupError:  # no process of the group is left: none goes on compiling
+            break
+        time.sleep(0.2)
+    else:
+        pytest.fail("a process of the command's group outlived it by 20 s")

@@ -146,33 +146,63 @@ class Outcome:
 
 
 def run(jobs: list[Job], processes: int, progress: Callable[[Outcome, int, int], None] | None = None) -> list[Outcome]:
-    """Run ``jobs`` (the longest first) in at most ``processes`` processes of their own (spawned: nothing of
-    this process is shared but the cache on disk), each on one kernel thread and with every kernel compiled
-    (the cold policy ``wait``). ``progress(outcome, done, total)`` after each. A job that fails is reported
-    in its outcome (the others go on)."""
-    import concurrent.futures as cf
+    """Run ``jobs`` in their order (the longest first), each in a process of its own, at most ``processes``
+    at a time (spawned: nothing of this process is shared but the cache on disk), each on one kernel
+    thread and with every kernel compiled (the cold policy ``wait``). ``progress(outcome, done, total)``
+    after each. A job that fails is reported in its outcome (the others go on). An interruption of this
+    process (Ctrl-C, SIGTERM: raised here) ends the jobs still running before it goes on up: the cache
+    keeps what they saved (each save is whole and locked)."""
     import multiprocessing as mp
+    from multiprocessing.connection import wait
 
-    if not jobs:
-        return []
-    out: list[Outcome] = []
-    with cf.ProcessPoolExecutor(max_workers=max(1, min(processes, len(jobs))), mp_context=mp.get_context("spawn")) as ex:
-        futures = {ex.submit(_job, j.config, j.kind): j for j in jobs}
-        for f in cf.as_completed(futures):
-            job = futures[f]
-            try:
-                o = Outcome(job, f.result())
-            except Exception as e:  # noqa: BLE001  (reported: a job's failure is its config's)
-                o = Outcome(job, float("nan"), f"{type(e).__name__}: {e}")
-            out.append(o)
-            if progress is not None:
-                progress(o, len(out), len(jobs))
+    ctx = mp.get_context("spawn")
+    pending, running, out = list(jobs), {}, []
+    try:
+        while pending or running:
+            while pending and len(running) < max(1, processes):
+                job = pending.pop(0)
+                recv, send = ctx.Pipe(duplex=False)
+                proc = ctx.Process(target=_child, args=(send, job.config, job.kind), name=f"needle-compile-{job.kind}")
+                proc.start()
+                send.close()
+                running[recv] = (proc, job)
+            for conn in wait(list(running)):
+                proc, job = running.pop(conn)
+                try:
+                    seconds, error = conn.recv()
+                except EOFError:  # the process died without a word (killed, out of memory)
+                    proc.join()
+                    seconds, error = float("nan"), f"its process ended with exit code {proc.exitcode}"
+                conn.close()
+                proc.join()
+                out.append(Outcome(job, seconds, error))
+                if progress is not None:
+                    progress(out[-1], len(out), len(jobs))
+    finally:
+        for proc, _ in running.values():
+            proc.terminate()
+        for proc, _ in running.values():
+            proc.join()
     return out
 
 
+def _child(conn, config: str, kind: str) -> None:
+    """A job's process: its seconds, or what failed, sent back; Ctrl-C is the parent's to handle (it ends
+    this process)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        conn.send((_job(config, kind), None))
+    except Exception as e:  # noqa: BLE001  (reported by the parent: a job's failure is its config's)
+        conn.send((float("nan"), f"{type(e).__name__}: {e}"))
+    finally:
+        conn.close()
+
+
 def _job(config: str, kind: str) -> float:
-    """In a process of its own: the short copy of ``config``'s ``kind`` of work with every kernel compiled,
-    on one thread; its seconds. (The config is read again here: its classes are made at run time, with
+    """The short copy of ``config``'s ``kind`` of work with every kernel compiled, on one thread; its
+    seconds. (The config is read again here, in the job's process: its classes are made at run time, with
     the plug-ins', and do not pickle.)"""
     import logging
 

@@ -23,10 +23,11 @@ def compile_cmd(
     jobs: int = typer.Option(0, "--jobs", "-j", min=0, help="Processes compiling at once (0: one per usable core)."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No log lines (errors still)."),
 ) -> None:
-    """Compile the kernels the configs' runs and fits use into the on-disk cache, on every core, so that no
-    later run waits for the compiler (README's install step; on a cluster, before the job array). Each
-    config's simulation and fit run briefly with every kernel compiled; what the cache holds already is
-    loaded, not compiled again. A line per finished job; the last line says what the cache holds.
+    """Compile the kernels that the configs' runs and fits use, on every core: no later run waits.
+
+    README's install step; on a cluster, the job before the array. Each config's simulation and fit run
+    briefly with every kernel compiled into the on-disk cache; what the cache holds already is loaded, not
+    compiled again. A line per finished job; the last line says what the cache holds.
 
     Example: needle kernels compile configs/default.yaml configs/em-magnetic-pratt2022/study.yaml
     """
@@ -80,9 +81,10 @@ def compile_cmd(
 def status_cmd(
     configs: list[Path] = typer.Argument(None, metavar="[CONFIG]...", help=_CONFIGS_HELP),
 ) -> None:
-    """Say, for the entry kernels the configs use, whether the cache holds them and how long each took to
-    compile on this machine; exit code 1 when one is missing (a run would compile it first, or take the
-    numpy path while it compiles).
+    """Say which of the kernels the configs use the cache holds; exit code 1 when one is missing.
+
+    For each entry kernel: compiled or not, and how long it took to compile on this machine. A missing
+    one is compiled by the run that first needs it (or that run takes the numpy path while it compiles).
 
     Example: needle kernels status configs/default.yaml
     """

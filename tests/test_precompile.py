@@ -87,6 +87,14 @@ def test_without_numba_there_is_nothing_to_compile_and_the_install_goes_on(empty
     assert not empty_cache.exists()
 
 
+def test_on_the_numpy_path_there_is_nothing_to_compile(empty_cache, monkeypatch):
+    monkeypatch.setenv(kernels.ENV, "numpy")
+    r = cli("kernels", "compile", DEFAULT)
+    assert r.exit_code == 0, r.output
+    assert r.output.strip() == f"kernels: nothing to compile for 1 config(s): {DEFAULT}: {kernels.ENV}=numpy (nothing to compile)"
+    assert not empty_cache.exists()
+
+
 def test_status_names_what_an_empty_cache_lacks_and_exits_1(empty_cache):
     r = cli("kernels", "status", DEFAULT)
     assert r.exit_code == 1, r.output

@@ -44,6 +44,9 @@ def compile_cmd(
         return
     paths = list(configs) if configs else precompile.bundled_configs()
     plan = precompile.plan(paths)
+    if not plan.jobs:
+        typer.echo(f"kernels: nothing to compile for {len(paths)} config(s): " + "; ".join(plan.skipped))
+        return
     for line in plan.skipped:
         log.info("skipped %s", line)
     todo = plan.todo()

@@ -101,7 +101,10 @@ def plan(configs: Iterable[str | Path]) -> Plan:
     loaded = [(str(p), load_config(Path(p))[0]) for p in configs]
     for name, cfg in loaded:
         if kernels.requested(cfg.simulation.kernels) == "numpy":
-            out.skipped.append(f"{name}: kernels: numpy (nothing to compile)")
+            import os
+
+            why = f"{kernels.ENV}=numpy" if os.environ.get(kernels.ENV, "").strip() else "kernels: numpy"
+            out.skipped.append(f"{name}: {why} (nothing to compile)")
             continue
         if cfg.source is not None:
             out.skipped.append(f"{name}: recorded trials (source:): compiled at its first run")

@@ -1197,8 +1197,10 @@ def _forward_inputs(m0, P0, Qc, dt, A, b, channels, H, d, state_angles, Ns, src)
     """The records :data:`Affine` and :data:`Samples` of a pass, contiguous."""
     N, n = m0.shape
     K = len(dt)
-    P0 = np.ascontiguousarray(np.broadcast_to(P0, (N, n, n)), dtype=float)
-    Qc = np.ascontiguousarray(np.broadcast_to(Qc, (N, n, n)), dtype=float)
+    # writeable always (a broadcast of an (N, n, n) array would pass through read-only): one type for the
+    # kernels whatever the caller's shapes, the type of the RTS smoother's records too (one compilation)
+    P0 = np.require(np.broadcast_to(P0, (N, n, n)), dtype=float, requirements=["C", "W"])
+    Qc = np.require(np.broadcast_to(Qc, (N, n, n)), dtype=float, requirements=["C", "W"])
     A = np.ascontiguousarray(A, dtype=float)
     b = np.ascontiguousarray(b, dtype=float)
     Y, V, R, Hc, Dc, ang, hcnt, hidx, ch_m, offsets = _channels_concat(channels, H, d, N, n, Ns)

@@ -120,6 +120,8 @@ def load_trials(path: str | Path, *, overrides: list[str] | None = None, models:
 #: s per trial, tick and model that EM and its identifiability take more on the numpy path than compiled:
 #: the magnetic needle EM paper's study (48 trials x 486 ticks x 2 models, 71.5 s against 9.0 s: docs/benchmarks.md)
 NUMPY_EXTRA_S = 1.3e-3
+#: processes a fit runs its models in (one per model, at most this many)
+FIT_WORKERS = 2
 #: the kernels a fit compiles (EM's passes, its M-step, identifiability's log-likelihoods)
 FIT_KERNELS = ("kalman_filter_smoother", "rts_smoother", "transition_all", "linearise", "em_process_noise",
                "em_measurement_noise", "kalman_loglik_affine")
@@ -142,7 +144,13 @@ def plan_kernels(cfg: ExperimentConfig, models: list[str] | None = None) -> None
     rate = max([getattr(s, "rate", 0.0) or 0.0 for s in cfg.sensors], default=0.0)
     ticks = max(2.0, rate * (size.steps - 1) * cfg.simulation.dt) if rate else float(size.steps)
     n_models = len(models or cfg.fit.models)
-    kernels.on_cold(entries=[truth, *entries], numpy_seconds=NUMPY_EXTRA_S * size.runs * ticks * n_models,
+    # the numpy path would share the cores with the background compilation: the models' processes (one per
+    # model, at most FIT_WORKERS) and the compiler on the usable cores slow it by their ratio when they
+    # outnumber the cores (the magnetic needle EM paper's fit on 2 cores: 84 s on numpy beside the
+    # compiler, 60 s alone)
+    busy = min(n_models, FIT_WORKERS) + 1
+    shared = max(1.0, busy / platform.usable_cores())
+    kernels.on_cold(entries=[truth, *entries], numpy_seconds=NUMPY_EXTRA_S * size.runs * ticks * n_models * shared,
                     compile_for_next_run=_fit_briefly, args=(brief_fit(cfg), models))
 
 
@@ -235,7 +243,7 @@ def fit_trials(
     *,
     models: list[str] | None = None,
     progress: Callable[[str, int, int], None] | None = None,
-    workers: int = 2,
+    workers: int = FIT_WORKERS,
 ) -> FitOutput:
     """EM (the magnetic needle EM paper, Algorithm 1) on every trial for each model, all trials of a model at once; with
     ``workers > 1`` the models run in parallel processes (one per model, at most ``workers``)."""

@@ -194,16 +194,21 @@ def observer_entries(cfg: ExperimentConfig) -> list[tuple[str, str] | None]:
     return [OBSERVERS.get(o.type).compiled_entry for o in cfg.observers]
 
 
-def run_entries(cfg: ExperimentConfig) -> list[tuple[str, str] | None]:
-    """The entry kernels a run of ``cfg`` compiles: the truth's first (None for recorded trials, a closed
-    loop or a model without compiled equations), then the observers' and the error tables'."""
-    truth = None
-    if cfg.source is None and not cfg.control:
-        from needlecli.models import MODELS
+def truth_entry(cfg: ExperimentConfig) -> tuple[str, str] | None:
+    """The entry kernel of ``cfg``'s truth simulation: None for recorded trials, a closed loop (its model
+    steps on numpy) or a model without compiled equations."""
+    if cfg.source is not None or cfg.control:
+        return None
+    from needlecli.models import MODELS
 
-        if MODELS.get(cfg.model.type).compiled_equations:
-            truth = kernels.TWINS["truth"].entry
-    return [truth, *observer_entries(cfg), kernels.TWINS["state_errors"].entry, kernels.TWINS["rotation_error"].entry]
+    return kernels.TWINS["truth"].entry if MODELS.get(cfg.model.type).compiled_equations else None
+
+
+def run_entries(cfg: ExperimentConfig) -> list[tuple[str, str] | None]:
+    """The entry kernels a run of ``cfg`` compiles: the truth's first (:func:`truth_entry`), then the
+    observers' and the error tables'."""
+    return [truth_entry(cfg), *observer_entries(cfg), kernels.TWINS["state_errors"].entry,
+            kernels.TWINS["rotation_error"].entry]
 
 
 def brief_copy(cfg: ExperimentConfig) -> ExperimentConfig:

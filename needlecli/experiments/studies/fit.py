@@ -22,7 +22,7 @@ from needlecli import kernels, platform
 from needlecli.errors import DataError
 from needlecli.experiments.config.load import load_config
 from needlecli.experiments.config.types import Stop
-from needlecli.experiments.simulation.runner import build_problem, simulate_and_measure
+from needlecli.experiments.simulation.runner import build_problem, simulate_and_measure, truth_entry
 from needlecli.experiments.simulation.truth import Truth
 from needlecli.fitting.canonical import flip_negative_curvature
 from needlecli.fitting.em import EMOptions, EMResult, fit_em
@@ -155,12 +155,9 @@ def plan_kernels(cfg: ExperimentConfig, models: list[str] | None = None) -> None
 
 
 def fit_entries(cfg: ExperimentConfig) -> list[tuple[str, str] | None]:
-    """The entry kernels a fit of ``cfg`` compiles: the truth's first (None for recorded trials, a closed
-    loop or a model without compiled equations), then EM's and identifiability's."""
-    truth = None
-    if cfg.source is None and not cfg.control and MODELS.get(cfg.model.type).compiled_equations:
-        truth = kernels.TWINS["truth"].entry
-    return [truth, *(kernels.TWINS[t].entry for t in FIT_KERNELS)]
+    """The entry kernels a fit of ``cfg`` compiles: the truth's first (:func:`truth_entry`), then EM's and
+    identifiability's."""
+    return [truth_entry(cfg), *(kernels.TWINS[t].entry for t in FIT_KERNELS)]
 
 
 def brief_fit(cfg: ExperimentConfig) -> ExperimentConfig:

@@ -17,6 +17,7 @@ loads what the first saved (:mod:`needlecli.kernels._patch_cache_lock`).
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -101,8 +102,6 @@ def plan(configs: Iterable[str | Path]) -> Plan:
     loaded = [(str(p), load_config(Path(p))[0]) for p in configs]
     for name, cfg in loaded:
         if kernels.requested(cfg.simulation.kernels) == "numpy":
-            import os
-
             why = f"{kernels.ENV}=numpy" if os.environ.get(kernels.ENV, "").strip() else "kernels: numpy"
             out.skipped.append(f"{name}: {why} (nothing to compile)")
             continue

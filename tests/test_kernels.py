@@ -400,3 +400,42 @@ def test_the_commands_memory_policy():
         out = subprocess.run([sys.executable, "-c", code], env={**env, **extra}, capture_output=True, text=True,
                              check=True).stdout.strip()
         assert out == want, (extra, out)
+
+
+def test_a_kernels_argument_types_do_not_depend_on_how_the_caller_made_its_arrays():
+    """numba types an array by its layout and its flags: a read-only or broadcast input would compile a
+    kernel again (the RTS smoother's and the filter-smoother's records once did). Every wrapper takes its
+    arrays through kernel_array, so the records of a Kalman pass have one type for any such input."""
+    import numba
+
+    from needlecli.kernels.channels import kernel_array
+    from needlecli.kernels.kalman import _forward_inputs
+    from needlecli.numerics.kalman import Channel
+
+    ro = np.broadcast_to(np.eye(3), (4, 3, 3))
+    a = kernel_array(ro, dtype=float)
+    assert a.flags.writeable and a.flags.c_contiguous
+    fresh = np.zeros((4, 3))
+    assert kernel_array(fresh, dtype=float) is fresh  # no copy where none is needed
+
+    N, n, K = 4, 3, 5
+    rng = np.random.default_rng(0)
+
+    def frozen(x):
+        x = np.array(x)
+        x.flags.writeable = False
+        return x
+
+    def records(P0, Qc, A):
+        ch = Channel(np.arange(K + 1), rng.normal(size=(N, K + 1, 1)), np.ones((N, K + 1), bool), np.eye(1))
+        H, d = [np.ones((N, K + 1, 1, n))], [np.zeros((N, K + 1, 1))]
+        return _forward_inputs(np.zeros((N, n)), P0, Qc, np.full(K, 0.1), A, np.zeros((N, K, n)), [ch], H, d, None,
+                               N, np.arange(N, dtype=np.int64))
+
+    base = records(np.eye(n), np.eye(n), np.tile(np.eye(n), (N, K, 1, 1)))
+    for P0, Qc, A in [(np.tile(np.eye(n), (N, 1, 1)), np.eye(n), np.tile(np.eye(n), (N, K, 1, 1))),
+                      (frozen(np.tile(np.eye(n), (N, 1, 1))), frozen(np.tile(np.eye(n), (N, 1, 1))),
+                       frozen(np.tile(np.eye(n), (N, K, 1, 1)))),
+                      (np.eye(n), np.eye(n), np.broadcast_to(np.eye(n), (N, K, n, n)))]:
+        other = records(P0, Qc, A)
+        assert [numba.typeof(r) for r in other] == [numba.typeof(r) for r in base]

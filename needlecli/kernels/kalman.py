@@ -18,6 +18,7 @@ import numpy as np
 
 from needlecli.kernels._jit import jit, lanes
 from needlecli.kernels._threads import blocks, parallel_for
+from needlecli.kernels.channels import kernel_array
 from needlecli.kernels.core import cholesky_into, wrap
 from needlecli.kernels.models import magnetic_field
 
@@ -1179,9 +1180,9 @@ def kalman_forward_affine(m0, P0, Qc, dt, A, b, channels, H, d, *, state_angles=
     of :mod:`needlecli.fitting.identify`). ``rows (N,)``: trial r filters with row ``rows[r]`` of ``A, b,
     H, d`` and of the channels' samples (their leading axis that long), with its own ``m0, P0, Qc`` and
     noise (the channels' ``R``, N rows); the same numbers as those rows copied out first."""
-    m0 = np.ascontiguousarray(m0, dtype=float)
+    m0 = kernel_array(m0, dtype=float)
     N, n = m0.shape
-    src = np.arange(N, dtype=np.int64) if rows is None else np.ascontiguousarray(rows, dtype=np.int64)
+    src = np.arange(N, dtype=np.int64) if rows is None else kernel_array(rows, dtype=np.int64)
     if len(src) != N:
         raise ValueError(f"rows: {len(src)} rows for {N} trials")
     K = len(dt)
@@ -1197,12 +1198,12 @@ def _forward_inputs(m0, P0, Qc, dt, A, b, channels, H, d, state_angles, Ns, src)
     """The records :data:`Affine` and :data:`Samples` of a pass, contiguous."""
     N, n = m0.shape
     K = len(dt)
-    # writeable always (a broadcast of an (N, n, n) array would pass through read-only): one type for the
-    # kernels whatever the caller's shapes, the type of the RTS smoother's records too (one compilation)
-    P0 = np.require(np.broadcast_to(P0, (N, n, n)), dtype=float, requirements=["C", "W"])
-    Qc = np.require(np.broadcast_to(Qc, (N, n, n)), dtype=float, requirements=["C", "W"])
-    A = np.ascontiguousarray(A, dtype=float)
-    b = np.ascontiguousarray(b, dtype=float)
+    # (a broadcast of an (N, n, n) array is read-only: copied, so that the records have one type, the RTS
+    # smoother's too: one compilation of the backward block)
+    P0 = kernel_array(np.broadcast_to(P0, (N, n, n)), dtype=float)
+    Qc = kernel_array(np.broadcast_to(Qc, (N, n, n)), dtype=float)
+    A = kernel_array(A, dtype=float)
+    b = kernel_array(b, dtype=float)
     Y, V, R, Hc, Dc, ang, hcnt, hidx, ch_m, offsets = _channels_concat(channels, H, d, N, n, Ns)
     J = len(channels)
     slot = np.full((max(J, 1), K + 1), -1, dtype=np.int64)
@@ -1210,12 +1211,12 @@ def _forward_inputs(m0, P0, Qc, dt, A, b, channels, H, d, state_angles, Ns, src)
         t = np.asarray(ch.tick)
         ok = (t >= 0) & (t < K + 1)
         slot[j, t[ok]] = offsets[j] + np.nonzero(ok)[0]
-    return (Affine(m0, P0, Qc, np.ascontiguousarray(dt, dtype=float), A, b, src, _angles(state_angles, n)),
+    return (Affine(m0, P0, Qc, kernel_array(dt, dtype=float), A, b, src, _angles(state_angles, n)),
             Samples(slot, ch_m, Y, V, R, Hc, Dc, ang, hcnt, hidx))
 
 
 def _angles(state_angles, n):
-    return np.zeros(n, dtype=np.bool_) if state_angles is None else np.ascontiguousarray(state_angles, dtype=np.bool_)
+    return np.zeros(n, dtype=np.bool_) if state_angles is None else kernel_array(state_angles, dtype=np.bool_)
 
 
 def _no_samples(n, K1):
@@ -1235,7 +1236,7 @@ def kalman_filter_smoother(m0, P0, Qc, dt, A, b, channels, H, d, *, state_angles
     :func:`em_measurement_noise` for every channel (``(N, J, mm, mm)``, ``(N, J)``), and not the
     cross-covariances (empty), which only those sums read. Then the smoothed standard deviations ``(N, K+1, n)`` and whether each trial's covariances are all
     finite ``(N,)``: what EM computes from the covariances at every pass, made as they are written."""
-    m0 = np.ascontiguousarray(m0, dtype=float)
+    m0 = kernel_array(m0, dtype=float)
     N, n = m0.shape
     K = len(dt)
     aff, obs = _forward_inputs(m0, P0, Qc, dt, A, b, channels, H, d, state_angles, N, np.arange(N, dtype=np.int64))
@@ -1258,7 +1259,7 @@ def rts_smoother(fwd, *, state_angles=None):
     """:func:`needlecli.numerics.kalman.rts_smoother`, compiled: the fields of its ``SmoothResult``
     (``m, P, C, G, repairs``)."""
     N, K1, n = fwd.m_filt.shape
-    c = np.ascontiguousarray
+    c = kernel_array
     flt = Filtered(c(fwd.m_pred, dtype=float), c(fwd.P_pred, dtype=float), c(fwd.m_filt, dtype=float),
                    c(fwd.P_filt, dtype=float), np.zeros(0), np.zeros(0, dtype=np.int64))
     aff = Affine(np.empty((0, n)), np.empty((0, n, n)), np.empty((0, n, n)), np.empty(0), c(fwd.A, dtype=float),
@@ -1273,7 +1274,7 @@ def rts_smoother(fwd, *, state_angles=None):
 def em_process_noise(sm, A, b, dt, *, index=None, state_angles=None):
     """:func:`needlecli.numerics.kalman.em_process_noise`, compiled."""
     N, K1, n = sm.m.shape
-    c = np.ascontiguousarray
+    c = kernel_array
     keep = np.ones(n, dtype=np.bool_)
     if index is not None:
         keep[:] = False
@@ -1289,7 +1290,7 @@ def em_process_noise(sm, A, b, dt, *, index=None, state_angles=None):
 def em_measurement_noise(sm, channel, H, d):
     """:func:`needlecli.numerics.kalman.em_measurement_noise`, compiled."""
     N = sm.m.shape[0]
-    c = np.ascontiguousarray
+    c = kernel_array
     m = channel.y.shape[-1]
     ang = np.zeros(m, dtype=np.bool_) if channel.angle is None else c(channel.angle, dtype=np.bool_)
     R = np.empty((N, m, m))
@@ -1306,7 +1307,7 @@ def transition_all(dm, zbar):
     N, K, n = zbar.shape
     z = np.empty((N, K, n))
     A = np.empty((N, K, n, n))
-    c = np.ascontiguousarray
+    c = kernel_array
     parallel_for(transitions, _trials(N), (c(zbar, dtype=float), c(dm.sub_dt, dtype=float), c(dm.sub_u, dtype=float),
                                            int(dm.nx), dm.model.compiled_equations == "binm", z, A))
     return z, A
@@ -1318,7 +1319,7 @@ def transition_one(dm, k, z):
     N, n = z.shape
     z_out = np.empty((N, 1, n))
     A = np.empty((N, 1, n, n))
-    c = np.ascontiguousarray
+    c = kernel_array
     parallel_for(transitions, _trials(N, N * n * n), (c(z[:, None], dtype=float), c(dm.sub_dt[k : k + 1], dtype=float),
                                                       c(dm.sub_u[:, k : k + 1], dtype=float), int(dm.nx),
                                                       dm.model.compiled_equations == "binm", z_out, A))
@@ -1341,7 +1342,7 @@ def linearise(mm, kind, z, y=None):
     """:meth:`MeasurementModel.linearise`, compiled: ``(h(z), H, d, y)`` at ``z (N, M, n)`` or ``(N, n)``."""
     kd, idx = kind
     one = z.ndim == 2
-    z3 = np.ascontiguousarray(z[:, None] if one else z, dtype=float)
+    z3 = kernel_array(z[:, None] if one else z, dtype=float)
     N, M, n = z3.shape
     if y is None:
         yy, valid = mm.y, mm.valid
@@ -1353,8 +1354,8 @@ def linearise(mm, kind, z, y=None):
     d = np.empty((N, M, m))
     yo = np.empty((N, M, m))
     axis = mm._axis() if kd == 1 else 0  # (idx copied: one compiled signature, whether given writable or not)
-    parallel_for(fd_linearise, _trials(N, N * M * n), (z3, kd, np.array(idx, dtype=np.int64), np.ascontiguousarray(yy, dtype=float),
-                                            np.ascontiguousarray(valid, dtype=np.bool_), int(axis), yh, H, d, yo))
+    parallel_for(fd_linearise, _trials(N, N * M * n), (z3, kd, np.array(idx, dtype=np.int64), kernel_array(yy, dtype=float),
+                                            kernel_array(valid, dtype=np.bool_), int(axis), yh, H, d, yo))
     if one:
         return yh[:, 0], H[:, 0], d[:, 0], yo[:, 0]
     return yh, H, d, yo

@@ -20,6 +20,7 @@ import numpy as np
 
 from needlecli.kernels._jit import inline, jit
 from needlecli.kernels._threads import blocks, parallel_for
+from needlecli.kernels.channels import kernel_array
 from needlecli.kernels.core import PI, SINCOS_MAX, TWO_PI, sincos
 
 NORM, ANGLE, ABS = 0, 1, 2  # kinds of quantity of :func:`state_errors`
@@ -63,9 +64,9 @@ def state_errors(ts: np.ndarray, xs: np.ndarray, keep: np.ndarray, quantities: l
         tcol[j, : len(tc)] = tc
         ecol[j, : len(ec)] = ec
     scale = np.array([float(q[3]) for q in quantities])
-    ts = ts if ts.flags.c_contiguous and ts.dtype == float else np.ascontiguousarray(ts, dtype=float)
-    xs = xs if xs.flags.c_contiguous and xs.dtype == float else np.ascontiguousarray(xs, dtype=float)
-    keep = np.ascontiguousarray(keep, dtype=np.int64)
+    ts = ts if ts.flags.c_contiguous and ts.dtype == float else kernel_array(ts, dtype=float)
+    xs = xs if xs.flags.c_contiguous and xs.dtype == float else kernel_array(xs, dtype=float)
+    keep = kernel_array(keep, dtype=np.int64)
     out = np.empty((Q, keep.size, ts.shape[1]))
     parallel_for(_state_errors, blocks(keep.size, per_thread=4), (ts, xs, keep, kinds, tcol, ecol, scale, out))
     return out
@@ -122,9 +123,9 @@ def rotation_error(t_ang: np.ndarray, e_ang: np.ndarray, keep: np.ndarray | None
                    t_cols=(0, 1, 2), e_cols=(0, 1, 2)) -> np.ndarray:
     """Rotation error angles ``(len(keep), T)`` in rad of the kept runs (default: all) from Euler angles:
     columns ``t_cols`` of the truth's ``(N, T, n)`` states and ``e_cols`` of the estimate's."""
-    t_ang = t_ang if t_ang.flags.c_contiguous and t_ang.dtype == float else np.ascontiguousarray(t_ang, dtype=float)
-    e_ang = e_ang if e_ang.flags.c_contiguous and e_ang.dtype == float else np.ascontiguousarray(e_ang, dtype=float)
-    keep = np.arange(t_ang.shape[0]) if keep is None else np.ascontiguousarray(keep, dtype=np.int64)
+    t_ang = t_ang if t_ang.flags.c_contiguous and t_ang.dtype == float else kernel_array(t_ang, dtype=float)
+    e_ang = e_ang if e_ang.flags.c_contiguous and e_ang.dtype == float else kernel_array(e_ang, dtype=float)
+    keep = np.arange(t_ang.shape[0]) if keep is None else kernel_array(keep, dtype=np.int64)
     out = np.empty((keep.size, t_ang.shape[1]))
     parallel_for(euler_error_angles, blocks(keep.size, per_thread=4),
                  (t_ang, e_ang, keep, np.asarray(t_cols, dtype=np.int64), np.asarray(e_cols, dtype=np.int64), out))

@@ -33,13 +33,12 @@ import numpy as np
 
 from needlecli.kernels._jit import inline, jit
 from needlecli.kernels._threads import blocks, parallel_for
-from needlecli.kernels.channels import gaussian_part
+from needlecli.kernels.channels import LAYOUT_FULL, LAYOUT_NONE, estimate_arrays, gaussian_part, kept_covariance, kernel_array
 from needlecli.kernels.core import PI, cholesky_into, repaired_root, solve_into, wrap_inline
 from needlecli.kernels.models import equation_id, normalize, step_fast
 from needlecli.kernels.truth import margin
 
 OK, DIVERGED, SINGULAR, DEAD = 0, 1, 2, 3
-LAYOUT_NONE, LAYOUT_DIAG, LAYOUT_FULL = 0, 1, 2
 INIT, PROCESS, RESAMPLE, ROUGHEN = 0, 1, 2, 3  # as needlecli.observers.pf
 MAX_CHANNELS = 4
 _G = np.uint64(0x9E3779B97F4A7C15)
@@ -634,7 +633,7 @@ def filter_runs(f, problem, max_trace: float, progress=None) -> dict:
     T = len(problem.time)
     K = len(f.ticks)
     u = f.inputs
-    u3 = np.ascontiguousarray(u[:1] if u.strides[0] == 0 else u, dtype=float)
+    u3 = kernel_array(u[:1] if u.strides[0] == 0 else u, dtype=float)
     p_arr = np.array([float(np.asarray(v)) for v in f.params.values()], dtype=float)
     chans = f.chans
     C = len(chans)
@@ -655,16 +654,11 @@ def filter_runs(f, problem, max_trace: float, progress=None) -> dict:
         if c["marginal"]:
             marginal[ci] = True
             mpos[ci, :m] = [int(np.nonzero(marg == i)[0][0]) for i in c["idx"]]
-    vals = tuple([np.ascontiguousarray(c["value"], dtype=float) for c in chans] + [np.zeros((1, 1, 1))] * (MAX_CHANNELS - C))
-    valids = tuple([np.ascontiguousarray(c["valid"], dtype=np.bool_) for c in chans]
+    vals = tuple([kernel_array(c["value"], dtype=float) for c in chans] + [np.zeros((1, 1, 1))] * (MAX_CHANNELS - C))
+    valids = tuple([kernel_array(c["valid"], dtype=np.bool_) for c in chans]
                    + [np.zeros((1, 1), dtype=np.bool_)] * (MAX_CHANNELS - C))
     nisv = tuple([np.full(np.shape(c["valid"]), np.nan) for c in chans] + [np.full((1, 1), np.nan)] * (MAX_CHANNELS - C))
-    states = np.empty((N, T, n))
-    layout = {"none": LAYOUT_NONE, "diag": LAYOUT_DIAG, "full": LAYOUT_FULL}[problem.cov_layout]
-    stride = int(problem.cov_stride)
-    Tc = len(range(0, T, stride))
-    cov_full = np.empty((N, Tc, n, n)) if layout == LAYOUT_FULL else np.empty((1, 1, 1, 1))
-    cov_diag = np.empty((N, Tc, n)) if layout == LAYOUT_DIAG else np.empty((1, 1, 1))
+    states, layout, stride, cov_full, cov_diag = estimate_arrays(problem, N, T, n)
     status = np.zeros(N, dtype=np.int64)
     event = np.full(N, -1, dtype=np.int64)
     used = np.zeros((N, pad), dtype=np.int64)
@@ -675,14 +669,14 @@ def filter_runs(f, problem, max_trace: float, progress=None) -> dict:
     prog = np.zeros(N, dtype=np.int64)
     kd, mi = margin(model)
     nt = marg.size
-    Pp0 = np.zeros((1, 1)) if f.Pp0 is None else np.ascontiguousarray(f.Pp0, dtype=float)
-    Qp = np.zeros((1, 1)) if f.Qp is None else np.ascontiguousarray(f.Qp, dtype=float)
-    args = (Filter(equation_id(model), np.ascontiguousarray(f.x0, dtype=float), np.ascontiguousarray(f.B0, dtype=float),
-                   np.ascontiguousarray(f.ticks, dtype=np.int64), u3, p_arr, float(f.dt),
-                   np.ascontiguousarray(f.angles, dtype=np.bool_), np.ascontiguousarray(f.q, dtype=float),
-                   np.ascontiguousarray(f.noisy, dtype=np.int64), marg, Pp0 if nt else np.zeros((0, 0)),
+    Pp0 = np.zeros((1, 1)) if f.Pp0 is None else kernel_array(f.Pp0, dtype=float)
+    Qp = np.zeros((1, 1)) if f.Qp is None else kernel_array(f.Qp, dtype=float)
+    args = (Filter(equation_id(model), kernel_array(f.x0, dtype=float), kernel_array(f.B0, dtype=float),
+                   kernel_array(f.ticks, dtype=np.int64), u3, p_arr, float(f.dt),
+                   kernel_array(f.angles, dtype=np.bool_), kernel_array(f.q, dtype=float),
+                   kernel_array(f.noisy, dtype=np.int64), marg, Pp0 if nt else np.zeros((0, 0)),
                    Qp if nt else np.zeros((0, 0)), np.uint64(f.key), int(f.P), float(f.below), float(f.rough),
-                   np.ascontiguousarray(f.drawn, dtype=np.int64), kd, mi, float(model.singular_threshold),
+                   kernel_array(f.drawn, dtype=np.int64), kd, mi, float(model.singular_threshold),
                    float(max_trace)),
             Channels(vals, valids, ch_m, kind, idx, ang, sig2, gate, growth, ga, gd, gtr, pos, student, dof, const,
                      marginal, mpos),
@@ -692,6 +686,6 @@ def filter_runs(f, problem, max_trace: float, progress=None) -> dict:
     total = N * max(K - 1, 1)
     poll = None if progress is None else (lambda: progress(int(prog.sum()) * (K - 1) // total, K - 1))
     parallel_for(run, blocks(N, per_thread=2), args, poll)
-    cov = cov_full if layout == LAYOUT_FULL else cov_diag if layout == LAYOUT_DIAG else None
+    cov = kept_covariance(layout, cov_full, cov_diag)
     return {"states": states, "cov": cov, "status": status, "event": event, "used": used[:, :C],
             "gated": gated[:, :C], "nis": nisv[:C], "ess": ess, "resampled": resampled, "loglik": loglik}

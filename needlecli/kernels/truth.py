@@ -15,6 +15,7 @@ import numpy as np
 
 from needlecli.kernels._jit import jit
 from needlecli.kernels._threads import blocks, parallel_for
+from needlecli.kernels.channels import kernel_array
 from needlecli.kernels.dispatch import KernelError
 from needlecli.kernels.models import equation_id, step_fast
 
@@ -147,7 +148,7 @@ class TruthKernel:
             if a.ndim == 2:  # along time: the tissue schedule, the same for every run
                 if a.strides[0] != 0 and not (a == a[:1]).all():
                     raise ValueError("a parameter that differs between runs along time")
-                p_t = np.ascontiguousarray(a[0], dtype=float)
+                p_t = kernel_array(a[0], dtype=float)
                 p_t_index = j
                 p_run[:, j] = a[:, 0]
             else:
@@ -158,11 +159,11 @@ class TruthKernel:
                               "state at most")
         u = sim.u
         kind, mi = margin(model)
-        u3 = np.ascontiguousarray(u[:1] if u.strides[0] == 0 else u, dtype=float)
+        u3 = kernel_array(u[:1] if u.strides[0] == 0 else u, dtype=float)
         sync_index = model.index(carried[0][1]) if carried else -1
         sync_param = names.index(carried[0][0]) if carried else -1
         self.stepper = Stepper(equation_id(model), u3, p_run, p_t, p_t_index, sync_index, sync_param,
-                               np.ascontiguousarray(sim.q, dtype=float), float(sim.dt), kind, mi,
+                               kernel_array(sim.q, dtype=float), float(sim.dt), kind, mi,
                                float(model.singular_threshold), float(model.near_singular_threshold))
         self.code = np.zeros(N, dtype=np.int64)
         self.event_k = np.full(N, -1, dtype=np.int64)

@@ -29,14 +29,13 @@ import numpy as np
 
 from needlecli.kernels._jit import inline, jit, lanes
 from needlecli.kernels._threads import blocks, parallel_for
-from needlecli.kernels.channels import gaussian_part
+from needlecli.kernels.channels import LAYOUT_FULL, LAYOUT_NONE, estimate_arrays, gaussian_part, kept_covariance, kernel_array
 from needlecli.kernels.core import PI, repaired_root, solve_into, wrap_if_needed, wrap_inline
 from needlecli.kernels.models import equation_id, step_fast
 from needlecli.kernels.truth import margin
 
 OK, DIVERGED, SINGULAR = 0, 1, 2
 MODE_NONE, MODE_SCALAR, MODE_SELECT = 0, 1, 2
-LAYOUT_NONE, LAYOUT_DIAG, LAYOUT_FULL = 0, 1, 2
 
 
 MAX_CHANNELS = 4
@@ -710,7 +709,7 @@ def filter_runs(model, params, problem, s, chans, ticks, inputs, x0, P0, Q, kapp
     nt = len(ticks)
     dt_grid = float(problem.time[1] - problem.time[0]) if T > 1 else 1.0
     mid = equation_id(model)
-    angles = np.ascontiguousarray(model.angle_mask, dtype=np.bool_)
+    angles = kernel_array(model.angle_mask, dtype=np.bool_)
     tmask = np.zeros(n, dtype=np.bool_)
     if order is None:
         order_a = np.arange(n, dtype=np.int64)
@@ -719,11 +718,11 @@ def filter_runs(model, params, problem, s, chans, ticks, inputs, x0, P0, Q, kapp
         tmask[[model.index(k) for k in model.translation_states]] = True
     p_arr = np.array([float(np.asarray(v)) for v in params.values()], dtype=float)
     u = inputs
-    u3 = np.ascontiguousarray(u[:1] if u.strides[0] == 0 else u, dtype=float)
+    u3 = kernel_array(u[:1] if u.strides[0] == 0 else u, dtype=float)
     depth = problem.depth
-    depth2 = np.ascontiguousarray(depth[:1] if depth.strides[0] == 0 else depth, dtype=float)
+    depth2 = kernel_array(depth[:1] if depth.strides[0] == 0 else depth, dtype=float)
     itf = np.asarray(interfaces, dtype=float)
-    itf2 = np.ascontiguousarray(itf.reshape(1, -1) if itf.ndim == 1 else itf)
+    itf2 = kernel_array(itf.reshape(1, -1) if itf.ndim == 1 else itf)
     reset_target = -1.0
     if s.kappa_reset is not None and kappa_i is not None and itf.size:
         reset_target = float(s.kappa_reset.factor * P0[kappa_i, kappa_i])
@@ -734,8 +733,8 @@ def filter_runs(model, params, problem, s, chans, ticks, inputs, x0, P0, Q, kapp
     ch_sel, ch_ang, ch_sig2, ch_gate, ch_growth, ch_ga, ch_gd, ch_gtr, ch_pos = gaussian_part(chans, "select", 0.0)
     vals, valids = [], []
     for c in chans:
-        vals.append(np.ascontiguousarray(c["value"], dtype=float))
-        valids.append(np.ascontiguousarray(c["valid"], dtype=np.bool_))
+        vals.append(kernel_array(c["value"], dtype=float))
+        valids.append(kernel_array(c["valid"], dtype=np.bool_))
     nisv = tuple([np.full(np.shape(c["valid"]), np.nan) for c in chans] + [np.full((1, 1), np.nan)] * (MAX_CHANNELS - C))
     vals = tuple(vals + [np.zeros((1, 1, 1))] * (MAX_CHANNELS - C))
     valids = tuple(valids + [np.zeros((1, 1), dtype=np.bool_)] * (MAX_CHANNELS - C))
@@ -786,12 +785,7 @@ def filter_runs(model, params, problem, s, chans, ticks, inputs, x0, P0, Q, kapp
             started += due.size
         pred_count[i] = started
     # ---- outputs
-    states = np.empty((N, T, n))
-    layout = {"none": LAYOUT_NONE, "diag": LAYOUT_DIAG, "full": LAYOUT_FULL}[problem.cov_layout]
-    stride = int(problem.cov_stride)
-    Tc = len(range(0, T, stride))
-    cov_full = np.empty((N, Tc, n, n)) if layout == LAYOUT_FULL else np.empty((1, 1, 1, 1))
-    cov_diag = np.empty((N, Tc, n)) if layout == LAYOUT_DIAG else np.empty((1, 1, 1))
+    states, layout, stride, cov_full, cov_diag = estimate_arrays(problem, N, T, n)
     status = np.zeros(N, dtype=np.int64)
     event = np.full(N, -1, dtype=np.int64)
     repairs = np.zeros(N, dtype=np.int64)
@@ -803,10 +797,10 @@ def filter_runs(model, params, problem, s, chans, ticks, inputs, x0, P0, Q, kapp
     prog = np.zeros(N, dtype=np.int64)
     kind, mi = margin(model)
     kmax = float(s.kappa_max) if s.kappa_max is not None else np.nan
-    args = (Filter(mid, np.ascontiguousarray(x0, dtype=float), np.ascontiguousarray(P0, dtype=float),
-                   np.ascontiguousarray(ticks, dtype=np.int64), u3, p_arr, dt_grid, angles, order_a, int(n_act), tmask,
-                   np.ascontiguousarray(weights.wm), np.ascontiguousarray(weights.wc), float(np.sqrt(weights.scale)),
-                   np.ascontiguousarray(Q, dtype=float), -1 if kappa_i is None else int(kappa_i), kmax, reset_target,
+    args = (Filter(mid, kernel_array(x0, dtype=float), kernel_array(P0, dtype=float),
+                   kernel_array(ticks, dtype=np.int64), u3, p_arr, dt_grid, angles, order_a, int(n_act), tmask,
+                   kernel_array(weights.wm), kernel_array(weights.wc), float(np.sqrt(weights.scale)),
+                   kernel_array(Q, dtype=float), -1 if kappa_i is None else int(kappa_i), kmax, reset_target,
                    itf2 if itf2.shape[1] else np.zeros((1, 0)), depth2, float(s.max_cov_trace), kind, mi,
                    float(model.singular_threshold)),
             Channels(vals, valids, ch_m if C else np.zeros(1, dtype=np.int64), ch_sel, ch_ang, ch_sig2, ch_gate,
@@ -817,11 +811,7 @@ def filter_runs(model, params, problem, s, chans, ticks, inputs, x0, P0, Q, kapp
     total = N * max(nt - 1, 1)
     poll = None if progress is None else (lambda: progress(int(prog.sum()) * (nt - 1) // total, nt - 1))
     parallel_for(run, blocks(N, minimum=LANES), args, poll)
-    cov = None
-    if layout == LAYOUT_FULL:
-        cov = cov_full
-    elif layout == LAYOUT_DIAG:
-        cov = cov_diag
+    cov = kept_covariance(layout, cov_full, cov_diag)
     return {"states": states, "cov": cov, "status": status, "event": event, "repairs": repairs, "hits": hits,
             "resets": resets, "used": used[:, :C], "gated": gated[:, :C], "nis": nisv[:C], "roll": roll,
             "pred_tick": pred_tick}

@@ -411,3 +411,41 @@ def test_pid_alive_and_parent_alive(monkeypatch):
         assert platform.parent_alive(os.getppid()) and not platform.parent_alive(gone.pid)
     monkeypatch.setenv(platform.SWITCH, "posix_signals")  # as on Windows: unknown is alive
     assert platform.pid_alive(gone.pid) and platform.parent_alive(os.getpid())
+
+
+def test_cpu_quota_reads_the_control_groups_limit_and_falls_back_to_none(monkeypatch):
+    """What SLURM, Kubernetes or docker --cpus set, read from a stand-in of /proc and /sys/fs/cgroup
+    (cgroup v2 and v1), rounded up to whole cores; None without a limit, without /proc (the capability
+    taken away) or off Linux, and usable_cores then keeps the affinity."""
+    import io
+
+    files: dict[str, str] = {}
+
+    def fake_open(path, *a, **k):
+        if str(path) not in files:
+            raise FileNotFoundError(path)
+        return io.StringIO(files[str(path)])
+
+    monkeypatch.setattr(platform, "open", fake_open, raising=False)
+    monkeypatch.setattr(platform.sys, "platform", "linux")
+    files.update({"/proc/self/cgroup": "0::/slurm/job_7\n", "/sys/fs/cgroup/slurm/job_7/cpu.max": "150000 100000\n"})
+    assert platform.cpu_quota() == 2  # 1.5 cores, rounded up
+    monkeypatch.setattr(os, "cpu_count", lambda: 64)
+    monkeypatch.delattr(os, "sched_getaffinity", raising=False)
+    assert platform.usable_cores() == 2
+    files["/sys/fs/cgroup/slurm/job_7/cpu.max"] = "max 100000\n"
+    assert platform.cpu_quota() is None and platform.usable_cores() == 64
+    files.clear()
+    files.update({"/proc/self/cgroup": "4:cpu,cpuacct:/docker/abc\n",
+                  "/sys/fs/cgroup/cpu,cpuacct/docker/abc/cpu.cfs_quota_us": "50000\n",
+                  "/sys/fs/cgroup/cpu,cpuacct/docker/abc/cpu.cfs_period_us": "100000\n"})
+    monkeypatch.setattr(os.path, "isdir", lambda p: p == "/sys/fs/cgroup/cpu,cpuacct/docker/abc")
+    assert platform.cpu_quota() == 1
+    files["/sys/fs/cgroup/cpu,cpuacct/docker/abc/cpu.cfs_quota_us"] = "-1\n"  # v1: no limit
+    assert platform.cpu_quota() is None
+    files["/sys/fs/cgroup/cpu,cpuacct/docker/abc/cpu.cfs_quota_us"] = "50000\n"
+    monkeypatch.setenv(platform.SWITCH, "proc")  # the capability taken away
+    assert platform.cpu_quota() is None
+    monkeypatch.delenv(platform.SWITCH)
+    monkeypatch.setattr(platform.sys, "platform", "darwin")
+    assert platform.cpu_quota() is None and platform.usable_cores() == 64
